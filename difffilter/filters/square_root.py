@@ -1,0 +1,95 @@
+"""Square-root unscented Kalman filter (p001)."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from ..linalg import chol_rank1_update, gaussian_log_density, safe_cholesky, tria
+from ..models.base import Controls, StateSpaceModel
+from .base import Belief, StepInfo
+from .sigma_points import SigmaPoints
+from .ukf import UKF, expand_controls
+
+__all__ = ["SquareRootUKF"]
+
+
+class SquareRootUKF(UKF):
+    """UKF that propagates the lower Cholesky factor ``S`` (``P = S S^T``) instead of ``P``.
+
+    Predict: points from ``(x, S)``; ``S- = tria([sqrt(wc_i) dchi_i]_{i>=1}, sqrt(Q))`` followed
+    by a rank-1 Cholesky update (``wc_0 > 0``) or downdate (``wc_0 < 0``, e.g. Julier with
+    ``n + kappa < n``) with ``sqrt|wc_0| dchi_0``.  Update: ``S_zz`` likewise from the measurement
+    deviations and ``sqrt(R)``; ``K = P_xz S_zz^{-T} S_zz^{-1}`` by two triangular solves; the
+    posterior factor is re-triangularised in Joseph form,
+    ``S+ = tria([sqrt(wc_i) (dchi_i - K dzeta_i)], K sqrt(R))`` (plus the centre point's rank-1
+    update/downdate), which equals ``P- - K P_zz K^T`` exactly and never needs the ``m``
+    successive downdates of the textbook form.  ``P`` is never factorised again, so it stays
+    positive definite in cases where the covariance form loses definiteness.
+
+    The belief carries ``"scale_tril"``; ``"cov"`` is recorded as ``S S^T``.  Always redraws the
+    update points from ``(x-, S-)``, additive noise only.  Learnable: the model's parameters.
+    """
+
+    def __init__(self, model: StateSpaceModel, *, sigma_points: SigmaPoints | None = None) -> None:
+        super().__init__(model, sigma_points=sigma_points, redraw_after_predict=True, noise="additive")
+
+    def init_belief(self, mean: Tensor, cov: Tensor) -> Belief:
+        return {"mean": mean, "cov": cov, "scale_tril": safe_cholesky(cov).factor}
+
+    def _compound(self, dev: Tensor, wc: Tensor, extra: Tensor) -> Tensor:
+        """Lower factor of ``sum_i wc_i dev_i dev_i^T + extra extra^T`` (``dev [B, S, d]``)."""
+        if self.sigma_points.has_center:
+            rest = dev[..., 1:, :] * wc[1:, None].sqrt()
+            s = tria(torch.cat([rest.mT, extra], -1))
+            w0 = wc[0]
+            return chol_rank1_update(s, w0.abs().sqrt() * dev[..., 0, :], torch.sign(w0))
+        return tria(torch.cat([(dev * wc[:, None].sqrt()).mT, extra], -1))
+
+    def predict(self, belief: Belief, u: Controls) -> Belief:
+        mean, s = belief["mean"], belief["scale_tril"]
+        n = mean.shape[-1]
+        wm, wc = self._weights(n, mean)
+        prop = self.model.dynamics(self.sigma_points.generate(mean, s), expand_controls(u))
+        xm = torch.einsum("s,...sd->...d", wm, prop)
+        q = self.model.dynamics.process_noise(mean, u)
+        sq = safe_cholesky(q.expand(*mean.shape[:-1], n, n)).factor
+        s_new = self._compound(prop - xm[..., None, :], wc, sq)
+        return {**belief, "mean": xm, "cov": s_new @ s_new.mT, "scale_tril": s_new}
+
+    def update(self, belief: Belief, z: Tensor, mask: Tensor | None, u: Controls) -> tuple[Belief, StepInfo]:
+        mean, s = belief["mean"], belief["scale_tril"]
+        n = mean.shape[-1]
+        wm, wc = self._weights(n, mean)
+        hm = self.model.measurement
+        chi = self.sigma_points.generate(mean, s)
+        zeta = hm(chi, expand_controls(u))
+        zhat = torch.einsum("s,...sm->...m", wm, zeta)
+        dz = hm.residual(zeta, zhat[..., None, :])
+        dx = chi - mean[..., None, :]
+        r = hm.measurement_noise(mean, u)
+        r = r.expand(*mean.shape[:-1], *r.shape[-2:])
+        e = hm.residual(z, zhat)
+        m = e.shape[-1]
+        if mask is not None:
+            mo = mask.to(e.dtype)
+            e = torch.where(mask, e, torch.zeros_like(e))
+            dz = dz * mo[..., None, :]
+            r = r * (mo[..., :, None] * mo[..., None, :]) + torch.diag_embed(1.0 - mo)
+            num_obs = mo.sum(-1)
+        else:
+            num_obs = torch.full(e.shape[:-1], float(m), dtype=e.dtype, device=e.device)
+        sr = safe_cholesky(r).factor
+        szz = self._compound(dz, wc, sr)
+        pxz = (dx * wc[:, None]).mT @ dz
+        tmp = torch.linalg.solve_triangular(szz, pxz.mT, upper=False)
+        gain = torch.linalg.solve_triangular(szz.mT, tmp, upper=True).mT  # [B, n, m]
+        new_mean = mean + (gain @ e[..., None])[..., 0]
+        joseph_dev = dx - dz @ gain.mT
+        s_new = self._compound(joseph_dev, wc, gain @ sr)
+        loglik, maha = gaussian_log_density(e, szz)
+        # Missing components contribute log N(0; 0, 1) each in the padded system: remove it.
+        loglik = loglik + 0.5 * (m - num_obs) * torch.log(torch.tensor(2.0 * torch.pi, dtype=e.dtype))
+        info = StepInfo(loglik, maha, num_obs, e, szz @ szz.mT)
+        out = {k: v for k, v in belief.items() if k not in ("mean", "cov", "scale_tril")}
+        return {**out, "mean": new_mean, "cov": s_new @ s_new.mT, "scale_tril": s_new}, info

@@ -1,0 +1,196 @@
+"""Unscented Kalman filters: the general UKF and the simplified UKF of p003."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from ..linalg import safe_cholesky, symmetrize
+from ..models.base import Controls, DynamicsModel, StateSpaceModel
+from .base import Belief, GaussianFilter, StepInfo, gaussian_update
+from .sigma_points import MerweScaled, SigmaPoints
+
+__all__ = ["UKF", "SimplifiedUKF", "expand_controls", "weighted_moments"]
+
+
+def expand_controls(u: Controls, dim: int = 1) -> Controls:
+    """Insert a singleton sigma-point dimension so ``u [B, ...]`` broadcasts with ``x [B, S, n]``."""
+    if u is None:
+        return None
+    if isinstance(u, Tensor):
+        return u.unsqueeze(dim)
+    return {k: v.unsqueeze(dim) for k, v in u.items()}
+
+
+def weighted_moments(points: Tensor, wm: Tensor, wc: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Weighted mean ``[B, d]``, deviations ``[B, S, d]`` and covariance ``[B, d, d]`` of points ``[B, S, d]``."""
+    mean = torch.einsum("s,...sd->...d", wm, points)
+    dev = points - mean[..., None, :]
+    cov = (dev * wc[:, None]).mT @ dev
+    return mean, dev, cov
+
+
+def _block_diag(*mats: Tensor) -> Tensor:
+    """Batched block-diagonal matrix of ``[..., d_i, d_i]`` blocks (leading dims broadcast)."""
+    shape = torch.broadcast_shapes(*(m.shape[:-2] for m in mats))
+    total = sum(m.shape[-1] for m in mats)
+    out = mats[0].new_zeros(*shape, total, total)
+    i = 0
+    for m in mats:
+        d = m.shape[-1]
+        out[..., i : i + d, i : i + d] = m
+        i += d
+    return out
+
+
+class UKF(GaussianFilter):
+    """Unscented Kalman filter with a choice of sigma points, noise handling and point reuse.
+
+    Predict (additive noise): points ``chi_i`` of ``N(x, P)``, ``x- = sum wm_i f(chi_i)``,
+    ``P- = sum wc_i (f(chi_i) - x-)(...)^T + Q``.  Update: points ``zeta_i = h(chi_i)``,
+    ``P_zz = sum wc_i dzeta dzeta^T + R``, ``P_xz = sum wc_i dchi dzeta^T``, then the shared
+    Gaussian update (gain by triangular solves, ``P = P- - K P_zz K^T``).
+
+    Args:
+        model: the state-space model.
+        sigma_points: :class:`~difffilter.filters.sigma_points.Julier`, ``MerweScaled`` (default
+            ``alpha=1e-3, beta=2, kappa=0``) or ``Cubature``.
+        redraw_after_predict: True draws the update's points from ``N(x-, P-)``.  False reuses
+            the propagated points (p000).  With additive noise the propagated points do not
+            carry ``Q``, so they are extended by ``2n`` points ``x- +- gamma sqrt(Q)_i`` with
+            covariance weight ``1 / (2 gamma^2)`` and mean weight 0: the measurement moments then
+            see the full ``P-`` and the filter stays exact on linear-Gaussian models.
+        noise: ``"additive"`` (``2n + 1`` points in ``n`` dimensions, the p003 "AUKF") or
+            ``"augmented"`` (noise appended to the state: ``[x; w]`` for the prediction and
+            ``[x; v]`` for a redrawn update, or ``[x; w; v]`` when reusing points, p003's
+            augmented UKF).
+
+    Learnable: the model's parameters (Q, R, ...).
+    """
+
+    def __init__(
+        self,
+        model: StateSpaceModel,
+        *,
+        sigma_points: SigmaPoints | None = None,
+        redraw_after_predict: bool = True,
+        noise: str = "additive",
+    ) -> None:
+        super().__init__(model)
+        if noise not in ("additive", "augmented"):
+            raise ValueError(f"noise must be 'additive' or 'augmented', got {noise!r}")
+        self.sigma_points = sigma_points if sigma_points is not None else MerweScaled()
+        self.redraw_after_predict = bool(redraw_after_predict)
+        self.noise = noise
+
+    # -- helpers -----------------------------------------------------------------------------
+    def _weights(self, dim: int, like: Tensor) -> tuple[Tensor, Tensor]:
+        return self.sigma_points.weights(dim, like.dtype, like.device)
+
+    def _points(self, mean: Tensor, cov: Tensor) -> Tensor:
+        return self.sigma_points.generate(mean, safe_cholesky(cov).factor)
+
+    def _noise_matrices(self, mean: Tensor, u: Controls) -> tuple[Tensor, Tensor]:
+        q = self.model.dynamics.process_noise(mean, u)
+        r = self.model.measurement.measurement_noise(mean, u)
+        return q.expand(*mean.shape[:-1], *q.shape[-2:]), r.expand(*mean.shape[:-1], *r.shape[-2:])
+
+    # -- predict -----------------------------------------------------------------------------
+    def predict(self, belief: Belief, u: Controls) -> Belief:
+        mean, cov = belief["mean"], belief["cov"]
+        n = mean.shape[-1]
+        u1 = expand_controls(u)
+        f = self.model.dynamics
+        q, r = self._noise_matrices(mean, u)
+        out: Belief = dict(belief)
+        if self.noise == "additive":
+            chi = self._points(mean, cov)
+            wm, wc = self._weights(n, mean)
+            prop = f(chi, u1)
+            xm, dev, pf = weighted_moments(prop, wm, wc)
+            new_cov = symmetrize(pf + q)
+            if not self.redraw_after_predict:
+                sq = safe_cholesky(q).factor.mT * self.sigma_points.gamma(n)  # rows = scaled columns
+                ext = torch.cat([prop, xm[..., None, :] + sq, xm[..., None, :] - sq], -2)
+                wq = torch.full((2 * n,), 0.5 / self.sigma_points.gamma(n) ** 2, dtype=wm.dtype, device=wm.device)
+                out["sigma_points"] = ext
+                out["sigma_wm"] = torch.cat([wm, torch.zeros_like(wq)])
+                out["sigma_wc"] = torch.cat([wc, wq])
+        else:
+            m = r.shape[-1]
+            reuse = not self.redraw_after_predict
+            blocks = [cov, q, r] if reuse else [cov, q]
+            aug_mean = torch.cat([mean, mean.new_zeros(*mean.shape[:-1], n + (m if reuse else 0))], -1)
+            chi = self._points(aug_mean, _block_diag(*blocks))
+            dim = aug_mean.shape[-1]
+            wm, wc = self._weights(dim, mean)
+            prop = f(chi[..., :n], u1) + chi[..., n : 2 * n]
+            xm, dev, pf = weighted_moments(prop, wm, wc)
+            new_cov = symmetrize(pf)
+            if reuse:
+                out["sigma_points"] = prop
+                out["sigma_noise"] = chi[..., 2 * n :]
+                out["sigma_wm"], out["sigma_wc"] = wm, wc
+        out["mean"], out["cov"] = xm, new_cov
+        return out
+
+    # -- update ------------------------------------------------------------------------------
+    def _update_points(self, belief: Belief, u: Controls) -> tuple[Tensor, Tensor | None, Tensor, Tensor, bool]:
+        """Points ``[B, S, n]``, measurement-noise samples (or None), weights, and whether R is
+        still to be added to ``P_zz``."""
+        mean, cov = belief["mean"], belief["cov"]
+        n = mean.shape[-1]
+        if "sigma_points" in belief:
+            return belief["sigma_points"], belief.get("sigma_noise"), belief["sigma_wm"], belief["sigma_wc"], "sigma_noise" not in belief
+        if self.noise == "augmented":
+            _, r = self._noise_matrices(mean, u)
+            m = r.shape[-1]
+            aug_mean = torch.cat([mean, mean.new_zeros(*mean.shape[:-1], m)], -1)
+            chi = self._points(aug_mean, _block_diag(cov, r))
+            wm, wc = self._weights(n + m, mean)
+            return chi[..., :n], chi[..., n:], wm, wc, False
+        wm, wc = self._weights(n, mean)
+        return self._points(mean, cov), None, wm, wc, True
+
+    def update(self, belief: Belief, z: Tensor, mask: Tensor | None, u: Controls) -> tuple[Belief, StepInfo]:
+        mean, cov = belief["mean"], belief["cov"]
+        chi, vnoise, wm, wc, add_r = self._update_points(belief, u)
+        hm = self.model.measurement
+        zeta = hm(chi, expand_controls(u))
+        if vnoise is not None:
+            zeta = zeta + vnoise
+        zhat = torch.einsum("s,...sm->...m", wm, zeta)
+        dz = hm.residual(zeta, zhat[..., None, :])
+        dx = chi - mean[..., None, :]
+        pzz = (dz * wc[:, None]).mT @ dz
+        if add_r:
+            pzz = pzz + hm.measurement_noise(mean, u)
+        pxz = (dx * wc[:, None]).mT @ dz
+        new_mean, new_cov, info = gaussian_update(mean, cov, hm.residual(z, zhat), pzz, pxz, mask)
+        return {"mean": new_mean, "cov": new_cov, **self._carry(belief)}, info
+
+    @staticmethod
+    def _carry(belief: Belief) -> Belief:
+        """Belief entries that survive the update (everything but the predict-only points)."""
+        return {k: v for k, v in belief.items() if k not in ("mean", "cov") and not k.startswith("sigma_")}
+
+
+class SimplifiedUKF(UKF):
+    """Simplified UKF (p003's UTCUKF): Kalman prediction, unscented update.
+
+    For models with linear dynamics (``dynamics.matrix(u)`` returns ``F``): ``x- = f(x, u)``,
+    ``P- = F P F^T + Q`` exactly as a Kalman filter, then ``2n + 1`` points drawn once from
+    ``N(x-, P-)`` for the measurement update with additive ``R``.  Learnable: the model's
+    parameters.
+    """
+
+    def __init__(self, model: StateSpaceModel, *, sigma_points: SigmaPoints | None = None) -> None:
+        super().__init__(model, sigma_points=sigma_points, redraw_after_predict=True, noise="additive")
+        if type(model.dynamics).matrix is DynamicsModel.matrix:
+            raise TypeError("SimplifiedUKF needs linear dynamics: model.dynamics must implement matrix()")
+
+    def predict(self, belief: Belief, u: Controls) -> Belief:
+        mean, cov = belief["mean"], belief["cov"]
+        f = self.model.dynamics.matrix(u)
+        q = self.model.dynamics.process_noise(mean, u)
+        return {**belief, "mean": self.model.dynamics(mean, u), "cov": symmetrize(f @ cov @ f.mT + q)}

@@ -1,0 +1,159 @@
+"""Numerical linear algebra for Gaussian filters: the only home of these primitives.
+
+All functions act on batched tensors ``[..., n, n]`` and are differentiable.  Conventions:
+covariances are symmetrised before factorisation; inverses are never formed (triangular solves
+against Cholesky factors instead); Cholesky failures are repaired with a *bounded* diagonal
+jitter added only to the failing batch elements.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+__all__ = [
+    "CholeskyResult",
+    "chol_rank1_update",
+    "joseph_update",
+    "psd_solve",
+    "safe_cholesky",
+    "symmetrize",
+    "tria",
+    "gaussian_log_density",
+]
+
+#: Relative jitter levels tried by :func:`safe_cholesky`, multiplied by the mean diagonal.
+JITTER_LEVELS: tuple[float, ...] = (1e-12, 1e-10, 1e-8, 1e-6, 1e-4, 1e-2)
+
+
+def symmetrize(a: Tensor) -> Tensor:
+    """``(A + A^T) / 2`` over the last two dimensions."""
+    return 0.5 * (a + a.mT)
+
+
+class CholeskyResult(NamedTuple):
+    """Lower Cholesky factor and, per batch element, the jitter that was added (0 if none)."""
+
+    factor: Tensor
+    jitter: Tensor
+
+
+def _chol_ok(chol: Tensor, info: Tensor) -> Tensor:
+    finite = torch.isfinite(chol).flatten(-2).all(-1)
+    return (info == 0) & finite
+
+
+def safe_cholesky(a: Tensor, *, max_jitter: float = JITTER_LEVELS[-1]) -> CholeskyResult:
+    """Cholesky factor of symmetric ``a [..., n, n]`` with bounded, per-element jitter.
+
+    The common case costs one ``cholesky_ex``.  Batch elements whose factorisation fails
+    (non-zero ``info`` or non-finite factor) are retried, without gradient tracking, with a
+    jitter ``eps * mean(diag)`` for ``eps`` in :data:`JITTER_LEVELS` up to ``max_jitter``; then
+    the final factor is computed once, differentiably, on ``a + jitter * I``.  Elements still
+    failing at the largest jitter (e.g. containing NaN) are replaced by the identity so that
+    their garbage cannot propagate NaN into the gradients of the other batch elements; their
+    ``jitter`` entry is ``inf`` so callers can flag them.
+    """
+    a = symmetrize(a)
+    chol, info = torch.linalg.cholesky_ex(a)
+    ok = _chol_ok(chol, info)
+    if bool(ok.all()):
+        return CholeskyResult(chol, torch.zeros(ok.shape, dtype=a.dtype, device=a.device))
+    n = a.shape[-1]
+    eye = torch.eye(n, dtype=a.dtype, device=a.device)
+    with torch.no_grad():
+        diag_mean = torch.diagonal(a, dim1=-2, dim2=-1).abs().mean(-1)
+        scale = torch.where(torch.isfinite(diag_mean) & (diag_mean > 0), diag_mean, torch.ones_like(diag_mean))
+        jitter = torch.zeros_like(diag_mean)
+        pending = ~ok
+        for eps in JITTER_LEVELS:
+            if eps > max_jitter or not bool(pending.any()):
+                break
+            trial = eps * scale
+            c, i = torch.linalg.cholesky_ex(a + trial[..., None, None] * eye)
+            fixed = pending & _chol_ok(c, i)
+            jitter = torch.where(fixed, trial, jitter)
+            pending = pending & ~fixed
+        jitter = torch.where(pending, torch.full_like(jitter, math.inf), jitter)
+    usable = torch.isfinite(jitter)
+    safe_a = torch.where(usable[..., None, None], a + jitter.where(usable, 0.0)[..., None, None] * eye, eye)
+    chol = torch.linalg.cholesky_ex(safe_a)[0]
+    return CholeskyResult(chol, jitter)
+
+
+def psd_solve(a: Tensor, b: Tensor, *, chol: Tensor | None = None) -> Tensor:
+    """Solve ``A X = B`` for symmetric positive-definite ``A [..., n, n]``, ``B [..., n, k]``.
+
+    Uses a Cholesky factor (``chol`` if given, else :func:`safe_cholesky`); never an inverse.
+    """
+    if chol is None:
+        chol = safe_cholesky(a).factor
+    return torch.cholesky_solve(b, chol)
+
+
+def joseph_update(cov: Tensor, gain: Tensor, obs_matrix: Tensor, noise_cov: Tensor) -> Tensor:
+    """Joseph-form covariance update ``(I - K H) P (I - K H)^T + K R K^T`` (symmetrised).
+
+    Shapes: ``cov [..., n, n]``, ``gain [..., n, m]``, ``obs_matrix [..., m, n]``,
+    ``noise_cov [..., m, m]``.  Stays positive semi-definite for any gain, unlike
+    ``P - K S K^T``.
+    """
+    n = cov.shape[-1]
+    a = torch.eye(n, dtype=cov.dtype, device=cov.device) - gain @ obs_matrix
+    return symmetrize(a @ cov @ a.mT + gain @ noise_cov @ gain.mT)
+
+
+def tria(a: Tensor) -> Tensor:
+    """Lower-triangular ``S [..., n, n]`` with ``S S^T = A A^T`` for ``A [..., n, k]``, ``k >= n``.
+
+    QR re-triangularisation of a compound square-root matrix; the diagonal of the result is
+    made non-negative so that the factor is the unique Cholesky factor.
+    """
+    r = torch.linalg.qr(a.mT, mode="r")[1]  # [..., n, n] upper, R^T R = A A^T
+    s = r.mT
+    sign = torch.sign(torch.diagonal(s, dim1=-2, dim2=-1))
+    sign = torch.where(sign == 0, torch.ones_like(sign), sign)
+    return s * sign[..., None, :]
+
+
+def chol_rank1_update(chol: Tensor, v: Tensor, sign: float | Tensor = 1.0) -> Tensor:
+    """Cholesky factor of ``L L^T + sign * v v^T`` for lower ``chol [..., n, n]``, ``v [..., n]``.
+
+    A downdate (``sign < 0``) that would lose positive definiteness is clamped: the affected
+    diagonal entry is floored at ``sqrt(eps) * |L_kk|`` rather than becoming NaN.  The loop runs
+    over the ``n`` columns (never over the batch).
+    """
+    n = chol.shape[-1]
+    sign_t = torch.as_tensor(sign, dtype=chol.dtype, device=chol.device)
+    tiny = torch.finfo(chol.dtype).eps ** 0.5
+    cols = []
+    x = v
+    lt = chol
+    for k in range(n):
+        lkk = lt[..., k, k]
+        xk = x[..., k]
+        r2 = lkk * lkk + sign_t * xk * xk
+        r = torch.sqrt(torch.clamp(r2, min=(tiny * lkk) ** 2 + torch.finfo(chol.dtype).tiny))
+        c = r / lkk
+        s = xk / lkk
+        col_below = (lt[..., k + 1 :, k] + sign_t * s[..., None] * x[..., k + 1 :]) / c[..., None]
+        x = torch.cat([x[..., : k + 1], c[..., None] * x[..., k + 1 :] - s[..., None] * col_below], -1)
+        col = torch.cat([torch.zeros_like(lt[..., :k, k]), r[..., None], col_below], -1)
+        cols.append(col)
+    return torch.stack(cols, -1)
+
+
+def gaussian_log_density(residual: Tensor, chol: Tensor) -> tuple[Tensor, Tensor]:
+    """``log N(residual; 0, L L^T)`` and the Mahalanobis distance ``r^T (L L^T)^{-1} r``.
+
+    ``residual [..., m]``, ``chol [..., m, m]`` lower.  Returns ``(log_density [...],
+    mahalanobis [...])``.
+    """
+    m = residual.shape[-1]
+    w = torch.linalg.solve_triangular(chol, residual[..., None], upper=False)[..., 0]
+    maha = (w * w).sum(-1)
+    logdet = 2.0 * torch.log(torch.diagonal(chol, dim1=-2, dim2=-1)).sum(-1)
+    return -0.5 * (maha + logdet + m * math.log(2.0 * math.pi)), maha

@@ -1,0 +1,267 @@
+"""State-space model interfaces.
+
+A model describes
+
+.. math::
+    x_{k} = f(x_{k-1}, u_k) + w_k,\\quad w_k \\sim N(0, Q) \\qquad
+    z_k = h(x_k, u_k) + v_k,\\quad v_k \\sim N(0, R)
+
+with states ``[..., n]`` and measurements ``[..., m]``.  ``u`` are per-step exogenous inputs
+(controls, time steps, satellite positions...): a tensor or a ``dict`` of tensors whose leading
+dimensions broadcast against ``x`` (filters pass ``u`` with a singleton sigma-point dimension,
+e.g. ``x [B, S, n]`` with ``u [B, 1, k]``).  Models are written for arbitrary leading
+dimensions with ``...`` indexing, which is all the filters and ``torch.func`` need.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+
+import torch
+from torch import Tensor, nn
+
+from ..params import check_covariance, register_covariance
+
+__all__ = [
+    "Controls",
+    "DynamicsModel",
+    "FunctionalModel",
+    "LinearModel",
+    "MeasurementModel",
+    "StateSpaceModel",
+]
+
+Controls = Tensor | dict[str, Tensor] | None
+
+
+class DynamicsModel(nn.Module):
+    """Transition ``f`` with process noise ``Q``.
+
+    Subclasses implement :meth:`forward` (``f``); they may override :meth:`jacobian` (analytic
+    ``df/dx``, else filters use autodiff), :meth:`process_noise` (state-dependent Q) and
+    :meth:`matrix` (return ``F`` when ``f(x) = F x + c(u)`` is linear, enabling the Kalman filter
+    and the simplified UKF).  ``self.Q`` is the (constrained) process-noise covariance.
+    """
+
+    state_dim: int
+
+    def forward(self, x: Tensor, u: Controls = None) -> Tensor:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def jacobian(self, x: Tensor, u: Controls = None) -> Tensor | None:
+        """Analytic ``df/dx [..., n, n]``, or ``None`` to let the filter differentiate ``f``."""
+        return None
+
+    def matrix(self, u: Controls = None) -> Tensor | None:
+        """``F [..., n, n]`` if the dynamics are linear (affine in ``u``), else ``None``."""
+        return None
+
+    def process_noise(self, x: Tensor, u: Controls = None) -> Tensor:
+        """Process-noise covariance ``[n, n]`` or ``[..., n, n]`` for prior mean ``x``."""
+        return self.Q
+
+
+class MeasurementModel(nn.Module):
+    """Measurement ``h`` with noise ``R``; the counterpart of :class:`DynamicsModel`."""
+
+    measurement_dim: int
+
+    def forward(self, x: Tensor, u: Controls = None) -> Tensor:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def jacobian(self, x: Tensor, u: Controls = None) -> Tensor | None:
+        """Analytic ``dh/dx [..., m, n]``, or ``None`` to let the filter differentiate ``h``."""
+        return None
+
+    def matrix(self, u: Controls = None) -> Tensor | None:
+        """``H [..., m, n]`` if ``h(x) = H x`` is linear, else ``None``."""
+        return None
+
+    def measurement_noise(self, x: Tensor, u: Controls = None) -> Tensor:
+        """Measurement-noise covariance ``[m, m]`` or ``[..., m, m]``."""
+        return self.R
+
+    def residual(self, z: Tensor, z_ref: Tensor) -> Tensor:
+        """Difference ``z - z_ref`` of measurements ``[..., m]``; override to wrap angles."""
+        return z - z_ref
+
+
+class StateSpaceModel(nn.Module):
+    """A dynamics model and a measurement model: what every filter consumes."""
+
+    def __init__(self, dynamics: DynamicsModel, measurement: MeasurementModel) -> None:
+        super().__init__()
+        self.dynamics = dynamics
+        self.measurement = measurement
+
+    @property
+    def state_dim(self) -> int:
+        return int(self.dynamics.state_dim)
+
+    @property
+    def measurement_dim(self) -> int:
+        return int(self.measurement.measurement_dim)
+
+    # Convenience accessors so that ``model.Q``/``model.R`` read and write the constrained values.
+    @property
+    def Q(self) -> Tensor:  # noqa: N802 - field notation
+        return self.dynamics.Q
+
+    @Q.setter
+    def Q(self, value: Tensor) -> None:  # noqa: N802
+        self.dynamics.Q = value
+
+    @property
+    def R(self) -> Tensor:  # noqa: N802
+        return self.measurement.R
+
+    @R.setter
+    def R(self, value: Tensor) -> None:  # noqa: N802
+        self.measurement.R = value
+
+    def f(self, x: Tensor, u: Controls = None) -> Tensor:
+        return self.dynamics(x, u)
+
+    def h(self, x: Tensor, u: Controls = None) -> Tensor:
+        return self.measurement(x, u)
+
+
+class _FunctionalDynamics(DynamicsModel):
+    def __init__(self, f: Callable[..., Tensor], Q: Tensor, jacobian: Callable[..., Tensor] | None, structure: str, takes_u: bool) -> None:  # noqa: N803
+        super().__init__()
+        check_covariance("Q", Q)
+        self.state_dim = Q.shape[-1]
+        self._f, self._jac, self._takes_u = f, jacobian, takes_u
+        register_covariance(self, "Q", Q, structure)
+
+    def forward(self, x: Tensor, u: Controls = None) -> Tensor:
+        return self._f(x, u) if self._takes_u else self._f(x)
+
+    def jacobian(self, x: Tensor, u: Controls = None) -> Tensor | None:
+        if self._jac is None:
+            return None
+        return self._jac(x, u) if self._takes_u else self._jac(x)
+
+
+class _FunctionalMeasurement(MeasurementModel):
+    def __init__(self, h: Callable[..., Tensor], R: Tensor, jacobian: Callable[..., Tensor] | None, structure: str, takes_u: bool) -> None:  # noqa: N803
+        super().__init__()
+        check_covariance("R", R)
+        self.measurement_dim = R.shape[-1]
+        self._h, self._jac, self._takes_u = h, jacobian, takes_u
+        register_covariance(self, "R", R, structure)
+
+    def forward(self, x: Tensor, u: Controls = None) -> Tensor:
+        return self._h(x, u) if self._takes_u else self._h(x)
+
+    def jacobian(self, x: Tensor, u: Controls = None) -> Tensor | None:
+        if self._jac is None:
+            return None
+        return self._jac(x, u) if self._takes_u else self._jac(x)
+
+
+class FunctionalModel(StateSpaceModel):
+    """A model from plain callables.
+
+    Args:
+        f: transition ``f(x [..., n]) -> [..., n]`` (or ``f(x, u)`` with ``controls=True``).
+        h: measurement ``h(x [..., n]) -> [..., m]`` (or ``h(x, u)``).
+        Q: process-noise covariance ``[n, n]``; learnable with structure ``Q_structure``.
+        R: measurement-noise covariance ``[m, m]``; learnable with structure ``R_structure``.
+        f_jacobian, h_jacobian: optional analytic Jacobians ``[..., n, n]`` / ``[..., m, n]``.
+        controls: whether ``f``/``h`` take the per-step inputs ``u`` as second argument.
+        Q_structure, R_structure: ``"full"``, ``"diagonal"``, ``"scalar"`` or ``"fixed"``.
+    """
+
+    def __init__(
+        self,
+        *,
+        f: Callable[..., Tensor],
+        h: Callable[..., Tensor],
+        Q: Tensor,  # noqa: N803
+        R: Tensor,  # noqa: N803
+        f_jacobian: Callable[..., Tensor] | None = None,
+        h_jacobian: Callable[..., Tensor] | None = None,
+        controls: bool = False,
+        Q_structure: str = "full",  # noqa: N803
+        R_structure: str = "full",  # noqa: N803
+    ) -> None:
+        super().__init__(
+            _FunctionalDynamics(f, Q, f_jacobian, Q_structure, controls),
+            _FunctionalMeasurement(h, R, h_jacobian, R_structure, controls),
+        )
+
+
+class _LinearDynamics(DynamicsModel):
+    def __init__(self, F: Tensor, Q: Tensor, B: Tensor | None, structure: str) -> None:  # noqa: N803
+        super().__init__()
+        if F.ndim != 2 or F.shape[0] != F.shape[1]:
+            raise ValueError(f"F must be a square matrix [n, n], got shape {tuple(F.shape)}")
+        n = F.shape[0]
+        check_covariance("Q", Q, n)
+        if B is not None and (B.ndim != 2 or B.shape[0] != n):
+            raise ValueError(f"B must have shape [{n}, k], got {tuple(B.shape)}")
+        self.state_dim = n
+        self.register_buffer("F", F.detach().clone())
+        self.register_buffer("B", None if B is None else B.detach().clone())
+        register_covariance(self, "Q", Q, structure)
+
+    def forward(self, x: Tensor, u: Controls = None) -> Tensor:
+        out = x @ self.F.mT
+        if self.B is not None and u is not None:
+            if not isinstance(u, Tensor):
+                raise TypeError("controls for a LinearModel with B must be a tensor [B, T, k]")
+            out = out + u @ self.B.mT
+        return out
+
+    def jacobian(self, x: Tensor, u: Controls = None) -> Tensor:
+        return self.F.expand(*x.shape[:-1], *self.F.shape)
+
+    def matrix(self, u: Controls = None) -> Tensor:
+        return self.F
+
+
+class _LinearMeasurement(MeasurementModel):
+    def __init__(self, H: Tensor, R: Tensor, structure: str) -> None:  # noqa: N803
+        super().__init__()
+        if H.ndim != 2:
+            raise ValueError(f"H must be a matrix [m, n], got shape {tuple(H.shape)}")
+        check_covariance("R", R, H.shape[0])
+        self.measurement_dim = H.shape[0]
+        self.register_buffer("H", H.detach().clone())
+        register_covariance(self, "R", R, structure)
+
+    def forward(self, x: Tensor, u: Controls = None) -> Tensor:
+        return x @ self.H.mT
+
+    def jacobian(self, x: Tensor, u: Controls = None) -> Tensor:
+        return self.H.expand(*x.shape[:-1], *self.H.shape)
+
+    def matrix(self, u: Controls = None) -> Tensor:
+        return self.H
+
+
+class LinearModel(StateSpaceModel):
+    """Linear-Gaussian model ``x_k = F x_{k-1} + B u_k + w_k``, ``z_k = H x_k + v_k``.
+
+    ``F [n, n]``, ``H [m, n]``, ``Q [n, n]``, ``R [m, m]``, optional ``B [n, k]`` (then
+    ``controls`` are ``[B, T, k]``).  ``Q`` and ``R`` are learnable (see ``*_structure``).
+    """
+
+    def __init__(
+        self,
+        *,
+        F: Tensor,  # noqa: N803
+        H: Tensor,  # noqa: N803
+        Q: Tensor,  # noqa: N803
+        R: Tensor,  # noqa: N803
+        B: Tensor | None = None,  # noqa: N803
+        Q_structure: str = "full",  # noqa: N803
+        R_structure: str = "full",  # noqa: N803
+    ) -> None:
+        if H.ndim == 2 and F.ndim == 2 and H.shape[1] != F.shape[0]:
+            raise ValueError(f"H must have shape [m, {F.shape[0]}], got {tuple(H.shape)}")
+        super().__init__(_LinearDynamics(F, Q, B, Q_structure), _LinearMeasurement(H, R, R_structure))
+
+

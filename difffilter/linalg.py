@@ -112,7 +112,9 @@ def tria(a: Tensor) -> Tensor:
     QR re-triangularisation of a compound square-root matrix; the diagonal of the result is
     made non-negative so that the factor is the unique Cholesky factor.
     """
-    r = torch.linalg.qr(a.mT, mode="r")[1]  # [..., n, n] upper, R^T R = A A^T
+    # mode="r" is cheaper but not differentiable; use it only when no gradient is needed.
+    mode = "reduced" if (a.requires_grad and torch.is_grad_enabled()) else "r"
+    r = torch.linalg.qr(a.mT, mode=mode)[1]  # [..., n, n] upper, R^T R = A A^T
     s = r.mT
     sign = torch.sign(torch.diagonal(s, dim1=-2, dim2=-1))
     sign = torch.where(sign == 0, torch.ones_like(sign), sign)

@@ -9,7 +9,7 @@ from ..linalg import chol_rank1_update, gaussian_log_density, safe_cholesky, tri
 from ..models.base import Controls, StateSpaceModel
 from .base import Belief, StepInfo
 from .sigma_points import SigmaPoints
-from .ukf import UKF, expand_controls
+from .ukf import UKF, expand_controls, weighted_mean
 
 __all__ = ["SquareRootUKF"]
 
@@ -51,7 +51,7 @@ class SquareRootUKF(UKF):
         n = mean.shape[-1]
         wm, wc = self._weights(n, mean)
         prop = self.model.dynamics(self.sigma_points.generate(mean, s), expand_controls(u))
-        xm = torch.einsum("s,...sd->...d", wm, prop)
+        xm = weighted_mean(prop, wm)
         q = self.model.dynamics.process_noise(mean, u)
         sq = safe_cholesky(q.expand(*mean.shape[:-1], n, n)).factor
         s_new = self._compound(prop - xm[..., None, :], wc, sq)
@@ -64,7 +64,7 @@ class SquareRootUKF(UKF):
         hm = self.model.measurement
         chi = self.sigma_points.generate(mean, s)
         zeta = hm(chi, expand_controls(u))
-        zhat = torch.einsum("s,...sm->...m", wm, zeta)
+        zhat = weighted_mean(zeta, wm)
         dz = hm.residual(zeta, zhat[..., None, :])
         dx = chi - mean[..., None, :]
         r = hm.measurement_noise(mean, u)

@@ -10,7 +10,7 @@ from ..models.base import Controls, DynamicsModel, StateSpaceModel
 from .base import Belief, GaussianFilter, StepInfo, gaussian_update
 from .sigma_points import MerweScaled, SigmaPoints
 
-__all__ = ["UKF", "SimplifiedUKF", "expand_controls", "weighted_moments"]
+__all__ = ["UKF", "SimplifiedUKF", "expand_controls", "weighted_mean", "weighted_moments"]
 
 
 def expand_controls(u: Controls, dim: int = 1) -> Controls:
@@ -22,9 +22,17 @@ def expand_controls(u: Controls, dim: int = 1) -> Controls:
     return {k: v.unsqueeze(dim) for k, v in u.items()}
 
 
+def weighted_mean(points: Tensor, wm: Tensor) -> Tensor:
+    """``sum_i wm_i points_i`` for weights summing to one, computed as
+    ``p_0 + sum_i wm_i (p_i - p_0)``: large centre weights (scaled sets with small alpha have
+    ``|W_0| ~ 1e6``) then multiply exact zeros instead of cancelling in float32."""
+    ref = points[..., :1, :]
+    return ref[..., 0, :] + torch.einsum("s,...sd->...d", wm, points - ref)
+
+
 def weighted_moments(points: Tensor, wm: Tensor, wc: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """Weighted mean ``[B, d]``, deviations ``[B, S, d]`` and covariance ``[B, d, d]`` of points ``[B, S, d]``."""
-    mean = torch.einsum("s,...sd->...d", wm, points)
+    mean = weighted_mean(points, wm)
     dev = points - mean[..., None, :]
     cov = (dev * wc[:, None]).mT @ dev
     return mean, dev, cov
@@ -53,8 +61,10 @@ class UKF(GaussianFilter):
 
     Args:
         model: the state-space model.
-        sigma_points: :class:`~difffilter.filters.sigma_points.Julier`, ``MerweScaled`` (default
-            ``alpha=1e-3, beta=2, kappa=0``) or ``Cubature``.
+        sigma_points: :class:`~difffilter.filters.sigma_points.Julier`, ``MerweScaled`` or
+            ``Cubature``.  Default ``MerweScaled(alpha=1, beta=2, kappa=0)`` (points at
+            ``+-sqrt(n)`` standard deviations): small ``alpha`` such as 1e-3 places the points so
+            close to the mean that float32 deviations keep only ~3 digits.
         redraw_after_predict: True draws the update's points from ``N(x-, P-)``.  False reuses
             the propagated points (p000).  With additive noise the propagated points do not
             carry ``Q``, so they are extended by ``2n`` points ``x- +- gamma sqrt(Q)_i`` with
@@ -79,7 +89,7 @@ class UKF(GaussianFilter):
         super().__init__(model)
         if noise not in ("additive", "augmented"):
             raise ValueError(f"noise must be 'additive' or 'augmented', got {noise!r}")
-        self.sigma_points = sigma_points if sigma_points is not None else MerweScaled()
+        self.sigma_points = sigma_points if sigma_points is not None else MerweScaled(alpha=1.0, beta=2.0, kappa=0.0)
         self.redraw_after_predict = bool(redraw_after_predict)
         self.noise = noise
 
@@ -159,7 +169,7 @@ class UKF(GaussianFilter):
         zeta = hm(chi, expand_controls(u))
         if vnoise is not None:
             zeta = zeta + vnoise
-        zhat = torch.einsum("s,...sm->...m", wm, zeta)
+        zhat = weighted_mean(zeta, wm)
         dz = hm.residual(zeta, zhat[..., None, :])
         dx = chi - mean[..., None, :]
         pzz = (dz * wc[:, None]).mT @ dz

@@ -6,10 +6,11 @@ from collections.abc import Callable
 
 import torch
 from torch import Tensor
-from torch.func import jacfwd, jacrev, vmap
+from torch.func import jacrev, jvp, vmap
 
 from ..models.base import Controls, StateSpaceModel
 from .base import Belief, GaussianFilter, StepInfo, gaussian_update
+from .ukf import expand_controls
 from ..linalg import symmetrize
 
 __all__ = ["EKF", "autodiff_jacobian"]
@@ -18,13 +19,26 @@ __all__ = ["EKF", "autodiff_jacobian"]
 def autodiff_jacobian(fn: Callable[[Tensor, Controls], Tensor], x: Tensor, u: Controls, *, mode: str = "fwd") -> Tensor:
     """Per-batch-element Jacobian ``d fn / d x`` ``[B, out, n]`` of ``fn(x [B, n], u)``.
 
-    ``torch.func.vmap`` over the batch of ``jacfwd`` (default; ``n`` forward-mode passes) or
-    ``jacrev``.  ``u`` (tensor or dict) is mapped along its first dimension.
+    ``mode="fwd"``: one forward-mode ``torch.func.jvp`` on ``x`` repeated along a new axis with
+    the identity as tangents (``[B, n, n]``): every model accepts arbitrary leading dimensions,
+    so the whole batch's Jacobian costs one evaluation of ``fn`` on ``B * n`` states.
+    ``mode="rev"``: ``vmap`` over the batch of ``jacrev`` (``u`` mapped along its first
+    dimension).  Both stay differentiable for the outer backward pass.
     """
-    jac = jacfwd if mode == "fwd" else jacrev
-    if u is None:
-        return vmap(jac(lambda xi: fn(xi, None)))(x)
-    return vmap(jac(fn, argnums=0), in_dims=(0, 0))(x, u)
+    if mode == "fwd":
+        n = x.shape[-1]
+        basis = torch.eye(n, dtype=x.dtype, device=x.device).expand(*x.shape[:-1], n, n).contiguous()
+        rep = x[..., None, :].expand(*x.shape[:-1], n, n).contiguous()
+        u1 = expand_controls(u, x.ndim - 1)
+        _, tangents = jvp(lambda xx: fn(xx, u1), (rep,), (basis,))
+        out = tangents.mT  # tangents [..., n (direction), out]
+    elif u is None:
+        out = vmap(jacrev(lambda xi: fn(xi, None)))(x)
+    else:
+        out = vmap(jacrev(fn, argnums=0), in_dims=(0, 0))(x, u)
+    # Forward-mode AD can promote tangents of float32 inputs to float64 when a Python scalar
+    # is added (seen in torch 2.13): keep the state's dtype.
+    return out.to(x.dtype)
 
 
 class EKF(GaussianFilter):

@@ -1,0 +1,90 @@
+"""Linear-algebra primitives against dense references."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from difffilter.linalg import chol_rank1_update, gaussian_log_density, joseph_update, psd_solve, safe_cholesky, symmetrize, tria
+
+VALS = st.floats(-5.0, 5.0, allow_nan=False)
+
+
+def _spd(vals, n, shift=0.5):
+    a = torch.tensor(vals, dtype=torch.float64).reshape(n, n)
+    return a @ a.mT + shift * torch.eye(n, dtype=torch.float64)
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.lists(VALS, min_size=16, max_size=16), st.lists(VALS, min_size=4, max_size=4), st.booleans())
+def test_rank1_update_and_downdate(vals, v, down):
+    P = _spd(vals, 4)
+    vv = torch.tensor(v, dtype=torch.float64)
+    if down:  # downdate back to P from P + v v^T
+        L = torch.linalg.cholesky(P + torch.outer(vv, vv))
+        out = chol_rank1_update(L, vv, -1.0)
+        target = P
+    else:
+        out = chol_rank1_update(torch.linalg.cholesky(P), vv, 1.0)
+        target = P + torch.outer(vv, vv)
+    assert torch.allclose(out @ out.mT, target, atol=1e-8 * float(target.abs().max()))
+    assert torch.equal(out, torch.tril(out))
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.lists(VALS, min_size=24, max_size=24))
+def test_tria_is_cholesky_of_gram(vals):
+    a = torch.tensor(vals, dtype=torch.float64).reshape(3, 8)
+    s = tria(a)
+    assert torch.equal(s, torch.tril(s))
+    assert bool((torch.diagonal(s) >= 0).all())
+    assert torch.allclose(s @ s.mT, a @ a.mT, atol=1e-10)
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.lists(VALS, min_size=9, max_size=9), st.lists(VALS, min_size=3, max_size=3))
+def test_psd_solve_and_log_density_match_dense(vals, b):
+    A = _spd(vals, 3)
+    bb = torch.tensor(b, dtype=torch.float64)[:, None]
+    x = psd_solve(A, bb)
+    assert torch.allclose(A @ x, bb, atol=1e-8 * (1 + float(bb.abs().max())) * float(torch.linalg.cond(A)))
+    ld, maha = gaussian_log_density(bb[:, 0], torch.linalg.cholesky(A))
+    from scipy.stats import multivariate_normal
+
+    ref = multivariate_normal(mean=np.zeros(3), cov=A.numpy()).logpdf(bb[:, 0].numpy())
+    assert abs(float(ld) - ref) < 1e-8 * max(1.0, abs(ref))
+
+
+def test_safe_cholesky_repairs_only_failing_elements():
+    good = _spd(list(np.linspace(-1, 1, 9)), 3)
+    singular = torch.ones(3, 3, dtype=torch.float64)  # PSD, rank 1
+    indefinite = torch.diag(torch.tensor([1.0, -1.0, 1.0], dtype=torch.float64))
+    with_nan = good.clone()
+    with_nan[0, 0] = float("nan")
+    batch = torch.stack([good, singular, indefinite, with_nan]).requires_grad_(True)
+    res = safe_cholesky(batch)
+    assert float(res.jitter[0]) == 0.0
+    assert 0 < float(res.jitter[1]) <= 1e-2 * 1.0 + 1e-15  # bounded jitter
+    assert torch.isinf(res.jitter[2]) and torch.isinf(res.jitter[3])  # beyond the bound: flagged
+    assert torch.allclose(res.factor[0], torch.linalg.cholesky(good))
+    assert torch.isfinite(res.factor).all()
+    res.factor.sum().backward()
+    assert torch.isfinite(batch.grad[:2]).all()
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(VALS, min_size=16, max_size=16), st.lists(VALS, min_size=8, max_size=8))
+def test_joseph_equals_standard_update_for_optimal_gain_and_stays_psd(vals, hv):
+    P = _spd(vals, 4)
+    H = torch.tensor(hv, dtype=torch.float64).reshape(2, 4)
+    R = torch.eye(2, dtype=torch.float64) * 0.3
+    S = H @ P @ H.mT + R
+    K = P @ H.mT @ torch.linalg.inv(S)
+    std = symmetrize(P - K @ S @ K.mT)
+    jos = joseph_update(P, K, H, R)
+    assert torch.allclose(jos, std, atol=1e-8 * float(P.abs().max()))
+    # any (suboptimal) gain keeps Joseph PSD
+    jos2 = joseph_update(P, 3 * K, H, R)
+    assert float(torch.linalg.eigvalsh(jos2).min()) > -1e-9 * float(jos2.abs().max())

@@ -1,12 +1,17 @@
 """difffilter: batched, differentiable Kalman-family filters in PyTorch."""
 
-from . import linalg, params
-from .filters import EKF, UKF, GaussianFilter, KalmanFilter, SimplifiedUKF, SquareRootUKF
+from . import linalg, mixers, params
+from .filters import EKF, RCUKF, UKF, ColoredNoiseUKF, GaussianFilter, KalmanFilter, SimplifiedUKF, SquareRootUKF
+from .mixers import IMM, Blend
 from .models import FunctionalModel, LinearModel, StateSpaceModel
 
 __all__ = [
     "EKF",
+    "IMM",
+    "RCUKF",
     "UKF",
+    "Blend",
+    "ColoredNoiseUKF",
     "FunctionalModel",
     "GaussianFilter",
     "KalmanFilter",
@@ -15,6 +20,7 @@ __all__ = [
     "SquareRootUKF",
     "StateSpaceModel",
     "linalg",
+    "mixers",
     "params",
 ]
 __version__ = "0.1.0"

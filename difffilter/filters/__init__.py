@@ -1,6 +1,8 @@
 """Kalman-family filters sharing one time loop."""
 
+from .adaptive import RCUKF
 from .base import Belief, FilterResult, GaussianFilter, StepInfo
+from .colored import ColoredNoiseUKF
 from .ekf import EKF
 from .kalman import KalmanFilter
 from .sigma_points import Cubature, Julier, MerweScaled, SigmaPoints
@@ -9,7 +11,9 @@ from .square_root import SquareRootUKF
 
 __all__ = [
     "EKF",
+    "RCUKF",
     "UKF",
+    "ColoredNoiseUKF",
     "Belief",
     "Cubature",
     "FilterResult",

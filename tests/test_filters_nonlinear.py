@@ -60,7 +60,9 @@ def test_ukf_matches_filterpy_every_step(alpha, beta, kappa):
     x0, P0 = np.array([9.0, 0.5, 21.0, 0.0]), np.diag([4.0, 1.0, 4.0, 1.0])
     ref = UnscentedKalmanFilter(dim_x=4, dim_z=2, dt=DT, hx=hx_np, fx=fx_np, points=MerweScaledSigmaPoints(4, alpha, beta, kappa))
     ref.x, ref.P, ref.Q, ref.R = x0.copy(), P0.copy(), Q, R
-    res = UKF(rb_model(), sigma_points=MerweScaled(alpha=alpha, beta=beta, kappa=kappa))(torch.tensor(z)[None], torch.tensor(x0), torch.tensor(P0))
+    res = UKF(rb_model(), sigma_points=MerweScaled(alpha=alpha, beta=beta, kappa=kappa))(
+        torch.tensor(z)[None], torch.tensor(x0), torch.tensor(P0)
+    )
     tol = 1e-8 if alpha > 1e-2 else 1e-6  # |W0| ~ 1e6 amplifies rounding in both codes
     for t in range(len(z)):
         ref.predict()
@@ -225,7 +227,11 @@ def test_controls_reach_f_and_h_in_every_filter():
 
     B, T = 2, 8
     g = torch.Generator().manual_seed(0)
-    u = {"v": torch.randn(B, T, 2, generator=g, dtype=torch.float64), "dt": torch.full((B, T, 1), 0.5, dtype=torch.float64), "offset": torch.randn(B, T, 2, generator=g, dtype=torch.float64)}
+    u = {
+        "v": torch.randn(B, T, 2, generator=g, dtype=torch.float64),
+        "dt": torch.full((B, T, 1), 0.5, dtype=torch.float64),
+        "offset": torch.randn(B, T, 2, generator=g, dtype=torch.float64),
+    }
     z = torch.randn(B, T, 2, generator=g, dtype=torch.float64)
     model = FunctionalModel(f=f, h=h, Q=torch.eye(2, dtype=torch.float64) * 0.1, R=torch.eye(2, dtype=torch.float64), controls=True)
     ref_m, P = torch.zeros(B, 2, dtype=torch.float64), torch.eye(2, dtype=torch.float64).expand(B, 2, 2)

@@ -1,5 +1,22 @@
 """State-space models: interfaces, motion models and navigation models."""
 
 from .base import Controls, DynamicsModel, FunctionalModel, LinearModel, MeasurementModel, StateSpaceModel
+from .motion import ConstantAcceleration, ConstantVelocity, CurrentStatistical, Singer, singer_process_noise, singer_transition
+from .navigation import *  # noqa: F403
+from .navigation import __all__ as _navigation_all
 
-__all__ = ["Controls", "DynamicsModel", "FunctionalModel", "LinearModel", "MeasurementModel", "StateSpaceModel"]
+__all__ = [
+    "ConstantAcceleration",
+    "ConstantVelocity",
+    "Controls",
+    "CurrentStatistical",
+    "DynamicsModel",
+    "FunctionalModel",
+    "LinearModel",
+    "MeasurementModel",
+    "Singer",
+    "StateSpaceModel",
+    "singer_process_noise",
+    "singer_transition",
+    *_navigation_all,
+]

@@ -1,0 +1,87 @@
+"""The whole benchmark suite from a config mapping (the ``benchmark`` Hydra group)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+from collections.abc import Callable, Mapping
+from typing import Any
+
+from .report import write_report
+from .runner import BenchSettings, run_benchmark
+
+__all__ = ["run_suite", "settings_from_config"]
+
+
+def _plain(cfg: Any) -> Any:
+    try:
+        from omegaconf import OmegaConf
+
+        if OmegaConf.is_config(cfg):
+            return OmegaConf.to_container(cfg, resolve=True)
+    except ImportError:
+        pass
+    return cfg
+
+
+def settings_from_config(cfg: Mapping[str, Any]) -> BenchSettings:
+    """:class:`BenchSettings` from the group's keys (``compile``/``memory`` sections ignored)."""
+    names = {f.name for f in dataclasses.fields(BenchSettings)}
+    unknown = set(cfg) - names - {"compile", "memory"}
+    if unknown:
+        raise ValueError(f"unknown benchmark settings {sorted(unknown)}; known: {sorted(names | {'compile', 'memory'})}")
+    return BenchSettings(**{k: v for k, v in cfg.items() if k in names})
+
+
+def run_suite(cfg: Mapping[str, Any], outdir: str | os.PathLike[str], *, command: str = "", log: Callable[[str], None] = print) -> str:
+    """Run the throughput cases, then the compile and memory sections if enabled; write the
+    report into ``outdir`` and return its markdown."""
+    cfg = dict(_plain(cfg))
+    settings = settings_from_config(cfg)
+    report = run_benchmark(settings, log=log)
+    comp = cfg.get("compile") or {}
+    if comp.get("enabled"):
+        from .compiled import compile_experiment
+
+        rows: list[dict[str, Any]] = []
+        for kind in comp.get("filters", ["ekf", "ukf"]):
+            log(f"torch.compile experiment: {kind}")
+            rows += compile_experiment(
+                kind, batch=int(comp.get("batch_size", 256)), steps=int(comp.get("steps", 100)), dtype=comp.get("dtype", "float64"),
+                mode=comp.get("mode", "default"), seed=settings.seed,
+            )  # fmt: skip
+        report.extra_tables["compile"] = rows
+    mem = cfg.get("memory") or {}
+    if mem.get("enabled"):
+        from .memory import measure_training_memory
+
+        rows = []
+        for c in mem.get("configs", []):
+            log(f"TBPTT memory: {c}")
+            try:
+                rows.append(
+                    measure_training_memory(
+                        kind=c["kind"],
+                        dtype=c.get("dtype", "float64"),
+                        steps=int(c.get("steps", mem.get("steps", 5000))),
+                        batch=int(c.get("batch", mem.get("batch", 1024))),
+                        window=int(c["window"]),
+                        threads=settings.threads,
+                        max_windows=c.get("max_windows", mem.get("max_windows")),
+                        timeout_s=mem.get("timeout_s"),
+                    )  # fmt: skip
+                )
+            except Exception as exc:  # noqa: BLE001 - one failed configuration must not lose the others
+                rows.append(
+                    {
+                        "filter": c["kind"],
+                        "dtype": c.get("dtype"),
+                        "W": c["window"],
+                        "error": f"{type(exc).__name__}: {exc}"[:300],
+                        "peak_rss_mb": math.nan,
+                    }
+                )
+            log(f"  -> {rows[-1]}")
+        report.extra_tables["memory"] = rows
+    return write_report(report, outdir, command=command, batch=settings.target_batch)

@@ -1,0 +1,299 @@
+"""Trajectory data for learning: simulated train/val/test sets and truncated-BPTT windows.
+
+A *simulator* is any callable ``simulator(batch_size=..., seed=..., dtype=...)`` returning an
+object with ``truth [B, T, n_t]``, ``measurements [B, T, m]``, ``mask`` (``[B, T]``,
+``[B, T, m]`` or ``None``) and ``controls`` (tensor or dict of ``[B, T, ...]``, or ``None``), and
+optionally ``initial_mean [B, n]|[n]`` / ``initial_cov [n, n]|[B, n, n]`` (the belief before the
+first measurement), ``true_params`` and ``make_model()`` (for oracles).  Every difffilter
+simulator follows this (``difffilter.sim.sampling.ModelSimulator``, the per-paper simulators).
+
+Batches are plain dicts (which Lightning moves between devices as they are)::
+
+    {"measurements": [B, W, m], "mask": [B, W(, m)] | None, "controls": ... | None,
+     "truth": [B, W, n_t] | None, "initial_mean": [B, n] | None, "initial_cov": [B, n, n] | None,
+     "index": [B] trajectory ids, "window_index": k, "num_windows": K, "start": k * W}
+
+Training yields, for each batch of trajectories, its windows in time order (``window_index``
+``0..K-1``) so that the learner can carry the belief from one window to the next
+(truncated back-propagation through time); validation and test yield whole trajectories.
+Under DDP every process draws the same sets (same seeds) and takes its own shard.
+"""
+
+from __future__ import annotations
+
+import inspect
+import math
+import warnings
+from collections.abc import Callable, Iterator, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import pytorch_lightning as pl
+import torch
+from torch import Tensor
+from torch.utils.data import DataLoader, IterableDataset
+
+from ..models.base import Controls
+from ..sim.sampling import as_dtype
+
+__all__ = ["TrajectoryDataModule", "TrajectorySet", "WindowedTrajectories"]
+
+Batch = dict[str, Any]
+
+
+def _map_controls(controls: Controls, fn: Callable[[Tensor], Tensor]) -> Controls:
+    if controls is None:
+        return None
+    if isinstance(controls, Tensor):
+        return fn(controls)
+    return {k: fn(v) for k, v in controls.items()}
+
+
+def _accepts(fn: Callable[..., Any], name: str) -> bool:
+    try:
+        params = inspect.signature(fn).parameters
+    except (TypeError, ValueError):
+        return False
+    return name in params or any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values())
+
+
+def _cast(x: Tensor | None, dtype: torch.dtype) -> Tensor | None:
+    return x.to(dtype) if x is not None and x.is_floating_point() else x
+
+
+@dataclass
+class TrajectorySet:
+    """A set of ``N`` trajectories of ``T`` steps in a simulator-independent layout.
+
+    ``initial_mean [N, n]`` and ``initial_cov [N, n, n]`` are ``None`` when the simulator gives no
+    initial belief (the learner then uses its own).  ``source`` is the simulator's raw output
+    (``true_params``, ``make_model()``...).
+    """
+
+    measurements: Tensor
+    mask: Tensor | None
+    controls: Controls
+    truth: Tensor | None
+    initial_mean: Tensor | None
+    initial_cov: Tensor | None
+    source: Any = None
+
+    @classmethod
+    def from_simulation(cls, data: Any, dtype: torch.dtype | None = None, max_steps: int | None = None) -> TrajectorySet:
+        """Normalise a simulator's output (shapes checked, floats cast to ``dtype``, time cut to
+        the first ``max_steps`` steps)."""
+        z = data.measurements
+        if not isinstance(z, Tensor) or z.ndim != 3:
+            raise ValueError(f"simulator output must have measurements [B, T, m], got {getattr(z, 'shape', type(z))}")
+        dtype = dtype or z.dtype
+        n_traj, steps = z.shape[:2]
+        cut = slice(0, steps if max_steps is None else min(int(max_steps), steps))
+        mean0 = getattr(data, "initial_mean", None)
+        cov0 = getattr(data, "initial_cov", None)
+        if mean0 is not None and mean0.ndim == 1:
+            mean0 = mean0.expand(n_traj, -1)
+        if cov0 is not None and cov0.ndim == 2:
+            cov0 = cov0.expand(n_traj, -1, -1)
+        truth = getattr(data, "truth", None)
+        return cls(
+            measurements=z[:, cut].to(dtype),
+            mask=None if getattr(data, "mask", None) is None else data.mask[:, cut],
+            controls=_map_controls(getattr(data, "controls", None), lambda v: _cast(v[:, cut], dtype)),  # type: ignore[arg-type]
+            truth=None if truth is None else truth[:, cut].to(dtype),
+            initial_mean=_cast(mean0, dtype),
+            initial_cov=_cast(cov0, dtype),
+            source=data,
+        )
+
+    def __len__(self) -> int:
+        return int(self.measurements.shape[0])
+
+    @property
+    def num_steps(self) -> int:
+        return int(self.measurements.shape[1])
+
+    def batch(self, index: Tensor, start: int = 0, stop: int | None = None) -> Batch:
+        """Trajectories ``index`` restricted to steps ``[start, stop)`` as a batch dict."""
+        t = slice(start, stop)
+        pick: Callable[[Tensor], Tensor] = lambda v: v[index][:, t]  # noqa: E731
+        return {
+            "measurements": pick(self.measurements),
+            "mask": None if self.mask is None else pick(self.mask),
+            "controls": _map_controls(self.controls, pick),
+            "truth": None if self.truth is None else pick(self.truth),
+            "initial_mean": None if self.initial_mean is None else self.initial_mean[index],
+            "initial_cov": None if self.initial_cov is None else self.initial_cov[index],
+            "index": index,
+        }
+
+    def all(self) -> Batch:
+        """Every trajectory, whole, as one batch."""
+        out = self.batch(torch.arange(len(self)))
+        out.update(window_index=0, num_windows=1, start=0)
+        return out
+
+
+class WindowedTrajectories(IterableDataset):
+    """Yields batches of ``batch_size`` trajectories, each cut into consecutive windows of
+    ``window`` steps (``None``: whole trajectories), in time order.
+
+    Shuffles the trajectory order every pass (seed ``seed + pass``) if ``shuffle``.  ``rank`` and
+    ``world_size`` select this process's shard; with ``equal_shards`` every shard has the same
+    number of trajectories (the remainder is dropped) so that DDP processes step in lock-step.
+    """
+
+    def __init__(
+        self,
+        data: TrajectorySet,
+        *,
+        batch_size: int,
+        window: int | None = None,
+        shuffle: bool = False,
+        seed: int = 0,
+        rank: int = 0,
+        world_size: int = 1,
+        equal_shards: bool = False,
+    ) -> None:
+        super().__init__()
+        if batch_size < 1:
+            raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+        if window is not None and window < 1:
+            raise ValueError(f"window must be >= 1 or None, got {window}")
+        self.data, self.batch_size, self.window = data, int(batch_size), window
+        self.shuffle, self.seed, self.rank, self.world_size = shuffle, int(seed), int(rank), int(world_size)
+        self.equal_shards = equal_shards
+        self._passes = 0
+        if self._shard_size() == 0:
+            raise ValueError(f"{len(data)} trajectories cannot be shared by {world_size} processes")
+
+    def _shard_size(self) -> int:
+        n = len(self.data)
+        if self.equal_shards:
+            return n // self.world_size
+        return len(range(self.rank, n, self.world_size))
+
+    @property
+    def num_windows(self) -> int:
+        steps = self.data.num_steps
+        return 1 if self.window is None else math.ceil(steps / self.window)
+
+    def __len__(self) -> int:
+        return math.ceil(self._shard_size() / self.batch_size) * self.num_windows
+
+    def __iter__(self) -> Iterator[Batch]:
+        n = len(self.data)
+        if self.shuffle:
+            order = torch.randperm(n, generator=torch.Generator().manual_seed(self.seed + self._passes))
+        else:
+            order = torch.arange(n)
+        self._passes += 1
+        shard = order[self.rank :: self.world_size][: self._shard_size()]
+        steps, k = self.data.num_steps, self.num_windows
+        width = steps if self.window is None else self.window
+        for first in range(0, len(shard), self.batch_size):
+            index = shard[first : first + self.batch_size]
+            for w in range(k):
+                start = w * width
+                out = self.data.batch(index, start, min(start + width, steps))
+                out.update(window_index=w, num_windows=k, start=start)
+                yield out
+
+
+class TrajectoryDataModule(pl.LightningDataModule):
+    """Train/val/test trajectory sets drawn from a simulator with different seeds.
+
+    Args:
+        simulator: ``(batch_size=, seed=, dtype=) -> data`` (see the module docstring).
+        train_size, val_size, test_size: trajectories per set.
+        batch_size: trajectories per training batch; ``eval_batch_size`` for val/test
+            (default: the whole shard in one batch).
+        window: truncated-BPTT window length ``W`` (``None``: full back-propagation).
+        seeds: ``{"train": 0, "val": 1, "test": 2}``; the sets are disjoint draws.
+        dtype: dtype of every floating tensor (``"float64"``/``"float32"``).
+        shuffle: reshuffle training trajectories every epoch.
+        max_steps: keep only the first ``max_steps`` steps (smoke runs of long scenarios); also
+            passed to the simulator as ``num_steps`` when it takes that argument.
+        test_simulator: optional different simulator for the test set (out-of-distribution).
+    """
+
+    def __init__(
+        self,
+        simulator: Callable[..., Any],
+        *,
+        train_size: int = 64,
+        val_size: int = 32,
+        test_size: int = 64,
+        batch_size: int = 32,
+        eval_batch_size: int | None = None,
+        window: int | None = None,
+        seeds: Mapping[str, int] | None = None,
+        dtype: torch.dtype | str = torch.float64,
+        shuffle: bool = True,
+        max_steps: int | None = None,
+        test_simulator: Callable[..., Any] | None = None,
+    ) -> None:
+        super().__init__()
+        self.simulator = simulator
+        self.test_simulator = test_simulator
+        self.sizes = {"train": int(train_size), "val": int(val_size), "test": int(test_size)}
+        self.batch_size = int(batch_size)
+        self.eval_batch_size = eval_batch_size
+        self.window = None if window is None else int(window)
+        self.seeds = {"train": 0, "val": 1, "test": 2, **{k: int(v) for k, v in dict(seeds or {}).items()}}
+        if len(set(self.seeds[k] for k in ("train", "val", "test"))) < 3:
+            warnings.warn(f"train/val/test seeds are not distinct ({self.seeds}): the sets overlap", stacklevel=2)
+        self.dtype = as_dtype(dtype)
+        self.shuffle = shuffle
+        self.max_steps = max_steps
+        self._sets: dict[str, TrajectorySet] = {}
+
+    def dataset(self, split: str) -> TrajectorySet:
+        """The ``"train"``, ``"val"`` or ``"test"`` set (simulated on first use, then cached)."""
+        if split not in self.sizes:
+            raise ValueError(f"split must be 'train', 'val' or 'test', got {split!r}")
+        if split not in self._sets:
+            sim = self.test_simulator if split == "test" and self.test_simulator is not None else self.simulator
+            kwargs: dict[str, Any] = {"batch_size": self.sizes[split], "seed": self.seeds[split], "dtype": self.dtype}
+            if self.max_steps is not None and _accepts(sim, "num_steps"):
+                kwargs["num_steps"] = int(self.max_steps)
+            raw = sim(**kwargs)
+            self._sets[split] = TrajectorySet.from_simulation(raw, self.dtype, self.max_steps)
+        return self._sets[split]
+
+    def setup(self, stage: str | None = None) -> None:
+        splits = {"fit": ("train", "val"), "validate": ("val",), "test": ("test",)}.get(stage or "", ("train", "val", "test"))
+        for split in splits:
+            self.dataset(split)
+
+    def _rank_world(self) -> tuple[int, int]:
+        trainer = getattr(self, "trainer", None)
+        if trainer is None:
+            return 0, 1
+        return int(trainer.global_rank), int(trainer.world_size)
+
+    def _loader(self, split: str) -> DataLoader:
+        rank, world = self._rank_world()
+        data = self.dataset(split)
+        train = split == "train"
+        shard = len(range(rank, len(data), world))
+        windows = WindowedTrajectories(
+            data,
+            batch_size=self.batch_size if train else (self.eval_batch_size or max(shard, 1)),
+            window=self.window if train else None,
+            shuffle=train and self.shuffle,
+            seed=self.seeds[split],
+            rank=rank,
+            world_size=world,
+            equal_shards=train,
+        )
+        # batch_size=None: the dataset yields ready-made batches (no collation, no sampler).
+        return DataLoader(windows, batch_size=None)
+
+    def train_dataloader(self) -> DataLoader:
+        return self._loader("train")
+
+    def val_dataloader(self) -> DataLoader:
+        return self._loader("val")
+
+    def test_dataloader(self) -> DataLoader:
+        return self._loader("test")

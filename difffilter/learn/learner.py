@@ -1,0 +1,375 @@
+"""Lightning module that learns a filter's parameters by back-propagation through the filter.
+
+:class:`FilterLearner` wraps any difffilter filter or mixer (a
+:class:`~difffilter.filters.base.GaussianFilter`): the filter's constrained parameters named in
+``learn`` train (``requires_grad_``), everything else stays fixed.  Training batches are
+truncated-BPTT windows (:mod:`difffilter.learn.data`): window ``k > 0`` of a batch continues
+from the detached final belief of window ``k - 1``, so a trajectory of any length trains in
+memory bounded by the window; each window is one optimiser step.
+
+Stability kit:
+
+* ``dtype`` converts the filter (float64 for learning, the default of the configs);
+* ``max_jitter`` bounds the Cholesky jitter (:func:`~difffilter.learn.stability.bounded_jitter`);
+* trajectories with a non-finite loss are left out of the batch mean and counted
+  (``stability/nonfinite_trajectories``); a step whose loss or gradient is not finite is
+  skipped (gradients cleared, so the optimiser leaves the parameters and its state alone) and
+  counted (``stability/skipped_steps``).  Each kind warns once;
+* gradient clipping is the Trainer's ``gradient_clip_val``.
+
+Logged to every logger: ``train/loss``, ``val/loss`` and ``val/{rmse_pos, rmse_state, anees,
+nis, nll}`` (``test/...`` likewise), every element of every learnable constrained value each
+epoch (``params/model.measurement.R[0,0]``...), and, to loggers that can, figures: truth vs
+estimate, errors with their ±3 sigma envelope, and IMM mode probabilities when the result has
+``mode_probs``.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from typing import Any
+
+import pytorch_lightning as pl
+import torch
+from torch import Tensor, nn
+
+from ..filters.base import Belief, FilterResult, GaussianFilter, detach_belief
+from ..sim.sampling import as_dtype
+from .losses import FilterLoss, MSELoss, NEESLoss, NLLLoss, Prior
+from .metrics import finalize_metrics, metric_sums
+from .selection import learnable_values, match_parameters, parameter_owners, select_parameters
+from .stability import OnceWarner, bounded_jitter
+
+__all__ = ["FilterLearner", "make_loss", "parameter_scalars"]
+
+_LOSSES: dict[str, Callable[[], FilterLoss]] = {"mse": MSELoss, "nll": NLLLoss, "nees": NEESLoss}
+
+
+def make_loss(loss: FilterLoss | str) -> FilterLoss:
+    """A loss object from a name (``"mse"``, ``"nll"``, ``"nees"``) or a callable."""
+    if isinstance(loss, str):
+        if loss not in _LOSSES:
+            raise ValueError(f"loss must be one of {sorted(_LOSSES)} or a callable, got {loss!r}")
+        return _LOSSES[loss]()
+    if not callable(loss):
+        raise TypeError(f"loss must be a name or a callable (result, batch) -> [B], got {type(loss).__name__}")
+    return loss
+
+
+def parameter_scalars(name: str, value: Tensor, max_elements: int = 64) -> dict[str, float]:
+    """Scalars to log for one constrained value: every element of small tensors (upper triangle
+    of symmetric matrices, structural zeros left out), only the diagonal of large square ones."""
+    v = value.detach().to("cpu", torch.float64)
+    if v.ndim == 0:
+        return {name: float(v)}
+    if v.ndim == 1:
+        entries = v if v.numel() <= max_elements else v[:max_elements]
+        return {f"{name}[{i}]": float(x) for i, x in enumerate(entries)}
+    if v.ndim == 2 and v.shape[0] == v.shape[1]:
+        symmetric = bool(torch.allclose(v, v.T))
+        if v.numel() > max_elements:
+            return {f"{name}[{i},{i}]": float(v[i, i]) for i in range(min(v.shape[0], max_elements))}
+        out = {}
+        for i in range(v.shape[0]):
+            for j in range(i if symmetric else 0, v.shape[1]):
+                if i == j or not symmetric or float(v[i, j]) != 0.0:
+                    out[f"{name}[{i},{j}]"] = float(v[i, j])
+        return out
+    flat = v.flatten()
+    if flat.numel() <= max_elements:
+        return {f"{name}[{i}]": float(x) for i, x in enumerate(flat)}
+    return {f"{name}.norm": float(flat.norm())}
+
+
+class FilterLearner(pl.LightningModule):
+    """Learn a filter's parameters from trajectories.
+
+    Args:
+        filter: the filter or mixer to train (any :class:`GaussianFilter`).
+        loss: ``"mse"``, ``"nll"``, ``"nees"`` or a callable ``(result, batch) -> [B]`` (see
+            :mod:`difffilter.learn.losses`).
+        learn: names of the parameters to train (``["R", "Q", "tau", "transition"]``; matched as
+            in :mod:`difffilter.learn.selection`); ``None`` trains every parameter.
+        optimizer: ``params -> torch.optim.Optimizer`` (a Hydra ``_partial_``); default Adam(lr=0.01).
+        scheduler: optional ``optimizer -> LR scheduler`` (a Hydra ``_partial_``).
+        scheduler_interval: ``"epoch"`` or ``"step"``.
+        monitor: metric a plateau scheduler watches.
+        initial_mean, initial_cov: ``[n]``, ``[n, n]`` initial belief used when the batches
+            carry none.
+        log_prior: ``{parameter name: prior with log_prob(value)}``; the loss becomes
+            ``data_loss - prior_weight * sum log p(value)``.
+        prior_weight: weight of the log-prior (the data loss is per step and trajectory, so
+            ``1 / (trajectories x steps)`` makes the objective the MAP one).
+        dtype: convert the filter to this dtype (``"float64"``); ``None`` keeps it.
+        max_jitter: largest relative Cholesky jitter allowed while filtering (``None``: default).
+        position_index, truth_position_index: state/truth components of the position (for
+            ``rmse_pos`` and the trajectory figure).
+        state_index, truth_index: state/truth components for ``rmse_state`` and NEES.
+        figure_every_n_epochs: validation figures every n epochs (0: never).
+        max_logged_elements: larger parameters log only their diagonal / norm.
+    """
+
+    def __init__(
+        self,
+        filter: GaussianFilter,  # noqa: A002 - the field's word
+        loss: FilterLoss | str = "nll",
+        *,
+        learn: Sequence[str] | None = None,
+        optimizer: Callable[[Iterable[nn.Parameter]], torch.optim.Optimizer] | None = None,
+        scheduler: Callable[[torch.optim.Optimizer], Any] | None = None,
+        scheduler_interval: str = "epoch",
+        monitor: str = "val/loss",
+        initial_mean: Tensor | Sequence[float] | None = None,
+        initial_cov: Tensor | Sequence[Sequence[float]] | None = None,
+        log_prior: Mapping[str, Prior] | None = None,
+        prior_weight: float = 1.0,
+        dtype: torch.dtype | str | None = None,
+        max_jitter: float | None = None,
+        position_index: Sequence[int] | None = None,
+        truth_position_index: Sequence[int] | None = None,
+        state_index: Sequence[int] | None = None,
+        truth_index: Sequence[int] | None = None,
+        figure_every_n_epochs: int = 1,
+        max_logged_elements: int = 64,
+    ) -> None:
+        super().__init__()
+        if not isinstance(filter, GaussianFilter):
+            raise TypeError(f"filter must be a difffilter GaussianFilter, got {type(filter).__name__}")
+        if scheduler_interval not in ("epoch", "step"):
+            raise ValueError(f"scheduler_interval must be 'epoch' or 'step', got {scheduler_interval!r}")
+        self.save_hyperparameters(ignore=["filter", "loss", "optimizer", "scheduler", "log_prior"])
+        self.filter = filter if dtype is None else filter.to(as_dtype(dtype))
+        self.loss_fn = make_loss(loss)
+        self.learned_names = select_parameters(self.filter, None if learn is None else list(learn))
+        # An empty config group (scheduler: none) arrives as an empty mapping: no scheduler.
+        self.optimizer_factory = optimizer or None
+        self.scheduler_factory = scheduler or None
+        self.scheduler_interval, self.monitor = scheduler_interval, monitor
+        pdt = next((p.dtype for p in self.filter.parameters()), as_dtype(dtype))
+        self.register_buffer("initial_mean", None if initial_mean is None else torch.as_tensor(initial_mean, dtype=pdt))
+        cov0 = None if initial_cov is None else torch.as_tensor(initial_cov, dtype=pdt)
+        if cov0 is not None and cov0.ndim == 1:
+            cov0 = torch.diag_embed(cov0)
+        self.register_buffer("initial_cov", cov0)
+        self.priors = dict(log_prior or {})
+        self.prior_names = {k: match_parameters(self.filter, [k])[k] for k in self.priors}
+        self.prior_weight = float(prior_weight)
+        self.max_jitter = max_jitter
+        idx = lambda v: None if v is None else [int(i) for i in v]  # noqa: E731
+        self.indices = {
+            "position_index": idx(position_index),
+            "truth_position_index": idx(truth_position_index),
+            "state_index": idx(state_index),
+            "truth_index": idx(truth_index),
+        }
+        self.figure_every_n_epochs = int(figure_every_n_epochs)
+        self.max_logged_elements = int(max_logged_elements)
+        self.skipped_steps = 0
+        self.nonfinite_trajectories = 0
+        self._warn = OnceWarner()
+        self._carries: dict[int, Belief] = {}
+        self._carry_index: Tensor | None = None
+        self._skip_pending = False
+        self._sums: dict[str, Tensor] = {}
+        self._figure_data: dict[str, Any] | None = None
+
+    # -- running the filter -------------------------------------------------------------------
+    def initial_belief(self, batch: Mapping[str, Any]) -> tuple[Tensor, Tensor]:
+        """``(mean, cov)`` from the batch, else the learner's own initial belief."""
+        mean, cov = batch.get("initial_mean"), batch.get("initial_cov")
+        mean = self.initial_mean if mean is None else mean
+        cov = self.initial_cov if cov is None else cov
+        if mean is None or cov is None:
+            raise ValueError("no initial belief: the batches carry none, so give FilterLearner initial_mean= and initial_cov=")
+        return mean, cov
+
+    def forward(self, batch: Mapping[str, Any], belief: Belief | None = None) -> FilterResult:  # type: ignore[override]
+        """Run the filter on a batch dict (from ``belief`` if given, else the initial belief)."""
+        mean, cov = self.initial_belief(batch)
+        with bounded_jitter(self.max_jitter):
+            return self.filter(
+                batch["measurements"],
+                None if belief is not None else mean,
+                None if belief is not None else cov,
+                mask=batch.get("mask"),
+                controls=batch.get("controls"),
+                belief=belief,
+            )
+
+    def log_prior(self) -> Tensor | None:
+        """Sum of the configured parameter log-priors (``None`` without priors)."""
+        if not self.priors:
+            return None
+        owners = parameter_owners(self.filter)
+        total: Tensor | None = None
+        for key, prior in self.priors.items():
+            for name in self.prior_names[key]:
+                mod, attr, _ = owners[name]
+                lp = prior.log_prob(getattr(mod, attr))
+                total = lp if total is None else total + lp
+        return total
+
+    def _zero_loss(self) -> Tensor:
+        """A zero loss connected to every trainable parameter (backward runs, gradients are 0),
+        so that DDP processes stay in step when one of them has nothing finite to learn from."""
+        params = [p for p in self.filter.parameters() if p.requires_grad]
+        return sum((p * 0).sum() for p in params)  # type: ignore[return-value]
+
+    def _reduce_loss(self, per_trajectory: Tensor, stage: str) -> tuple[Tensor | None, int]:
+        finite = torch.isfinite(per_trajectory)
+        bad = int((~finite).sum())
+        if bad and stage == "train":
+            self.nonfinite_trajectories += bad
+            self._warn(
+                "trajectory",
+                f"{bad} trajectories with a non-finite loss were left out of the batch mean "
+                "(counted in stability/nonfinite_trajectories; warning shown once)",
+            )
+        if not bool(finite.any()):
+            return None, bad
+        return per_trajectory[finite].mean(), bad
+
+    # -- Lightning hooks ----------------------------------------------------------------------
+    def training_step(self, batch: Mapping[str, Any], batch_idx: int) -> Tensor:
+        index = batch.get("index")
+        if index is None:  # batches from elsewhere: whole trajectories, no carry-over
+            index = torch.arange(batch["measurements"].shape[0], device=batch["measurements"].device)
+        window = int(batch.get("window_index", 0))
+        same = self._carry_index is not None and torch.equal(self._carry_index.to(index.device), index)
+        if not same:
+            self._carries, self._carry_index = {}, index
+        belief = self._carries.get(window - 1) if window > 0 else None
+        if window > 0 and belief is None:
+            self._warn("carry", "a continuation window arrived without its previous window; restarting from the initial belief")
+        result = self(batch, belief)
+        # Keyed by window so that an optimiser re-evaluating a window (LBFGS closures) still
+        # starts it from the previous window's belief.
+        self._carries = {k: v for k, v in self._carries.items() if k >= window - 1}
+        self._carries[window] = detach_belief(result.final_belief)
+        loss, _ = self._reduce_loss(self.loss_fn(result, batch), "train")
+        prior = self.log_prior()
+        if loss is not None and prior is not None:
+            loss = loss - self.prior_weight * prior
+        if loss is None or not bool(torch.isfinite(loss)):
+            self._skip_pending = True
+            loss = self._zero_loss()
+        else:
+            self.log("train/loss", loss, on_step=True, on_epoch=True, prog_bar=True, batch_size=int(index.numel()), sync_dist=True)
+        return loss
+
+    def on_before_optimizer_step(self, optimizer: torch.optim.Optimizer) -> None:
+        params = [p for group in optimizer.param_groups for p in group["params"]]
+        bad = self._skip_pending or any(p.grad is not None and not bool(torch.isfinite(p.grad).all()) for p in params)
+        flag = torch.tensor(float(bad), dtype=torch.float64, device=self.device)
+        if self.trainer.world_size > 1:
+            flag = self.trainer.strategy.reduce(flag, reduce_op="sum")
+        self._skip_pending = False
+        if float(flag) > 0:
+            for p in params:
+                p.grad = None
+            self.skipped_steps += 1
+            self._warn(
+                "step",
+                "an optimiser step with a non-finite loss or gradient was skipped (counted in stability/skipped_steps; warning shown once)",
+            )
+        self.log("stability/skipped_steps", float(self.skipped_steps), on_step=True, on_epoch=False, batch_size=1)
+
+    def on_train_epoch_end(self) -> None:
+        scalars: dict[str, float] = {}
+        for name, value in learnable_values(self.filter).items():
+            scalars.update(parameter_scalars(f"params/{name}", value, self.max_logged_elements))
+        scalars["stability/nonfinite_trajectories"] = float(self.nonfinite_trajectories)
+        self.log_dict(scalars, on_step=False, on_epoch=True, rank_zero_only=True, batch_size=1)
+
+    def _eval_step(self, batch: Mapping[str, Any], batch_idx: int, stage: str) -> None:
+        result = self(batch)
+        loss, bad = self._reduce_loss(self.loss_fn(result, batch), stage)
+        n = int(batch["measurements"].shape[0])
+        f64 = torch.float64
+        sums = metric_sums(result, batch.get("truth"), **self.indices)
+        sums["loss_sum"] = (loss.detach() if loss is not None else torch.zeros((), device=self.device)).to(f64) * (n - bad)
+        sums["loss_count"] = torch.tensor(float(n - bad), dtype=f64, device=self.device)
+        for k, v in sums.items():
+            self._sums[k] = self._sums.get(k, torch.zeros((), dtype=f64, device=self.device)) + v.to(f64)
+        if batch_idx == 0:
+            self._figure_data = {
+                "truth": None if batch.get("truth") is None else batch["truth"][0].detach(),
+                "mean": result.mean[0].detach(),
+                "cov": result.cov[0].detach(),
+                "mode_probs": result.extras["mode_probs"][0].detach() if "mode_probs" in result.extras else None,
+            }
+
+    def _eval_epoch_end(self, stage: str) -> None:
+        keys = sorted(self._sums)
+        if not keys:
+            return
+        packed = torch.stack([self._sums[k] for k in keys])
+        if self.trainer.world_size > 1:
+            packed = self.trainer.strategy.reduce(packed, reduce_op="sum")
+        sums = dict(zip(keys, packed, strict=True))
+        self._sums = {}
+        metrics = finalize_metrics(sums, bounds=False)
+        count = float(sums["loss_count"])
+        metrics["loss"] = float(sums["loss_sum"]) / count if count > 0 else float("nan")
+        # Already summed over processes above; sync_dist only averages identical values.
+        self.log_dict({f"{stage}/{k}": v for k, v in metrics.items()}, on_step=False, on_epoch=True, batch_size=1, sync_dist=True)
+        every = self.figure_every_n_epochs
+        if stage == "test" or (every > 0 and self.current_epoch % every == 0 and not self.trainer.sanity_checking):
+            self._log_figures(stage)
+
+    def _log_figures(self, stage: str) -> None:
+        data = self._figure_data
+        if data is None or not self.trainer.is_global_zero:
+            return
+        from .plots import plot_errors, plot_mode_probs, plot_trajectory  # matplotlib only when drawing
+
+        writers = [lg.experiment for lg in self.loggers if hasattr(lg.experiment, "add_figure")]
+        if not writers:
+            return
+        ix = self.indices
+        pos = ix["position_index"] or list(range(min(2, data["mean"].shape[-1])))
+        tpos = ix["truth_position_index"] if ix["position_index"] is not None else None
+        figures = {"trajectory": plot_trajectory(data["truth"], data["mean"], position_index=pos, truth_position_index=tpos)}
+        if data["truth"] is not None:
+            figures["error"] = plot_errors(data["truth"], data["mean"], data["cov"], index=pos, truth_index=tpos)
+        if data["mode_probs"] is not None:
+            figures["mode_probs"] = plot_mode_probs(data["mode_probs"])
+        for writer in writers:
+            for name, fig in figures.items():
+                writer.add_figure(f"{stage}/{name}", fig, global_step=self.global_step, close=False)
+
+    def on_validation_epoch_start(self) -> None:
+        self._sums, self._figure_data = {}, None
+
+    def validation_step(self, batch: Mapping[str, Any], batch_idx: int) -> None:
+        self._eval_step(batch, batch_idx, "val")
+
+    def on_validation_epoch_end(self) -> None:
+        self._eval_epoch_end("val")
+
+    def on_test_epoch_start(self) -> None:
+        self._sums, self._figure_data = {}, None
+
+    def test_step(self, batch: Mapping[str, Any], batch_idx: int) -> None:
+        self._eval_step(batch, batch_idx, "test")
+
+    def on_test_epoch_end(self) -> None:
+        self._eval_epoch_end("test")
+
+    def on_train_epoch_start(self) -> None:
+        self._carries, self._carry_index = {}, None
+
+    def configure_optimizers(self) -> Any:
+        params = [p for p in self.filter.parameters() if p.requires_grad]
+        if not params:
+            raise ValueError("FilterLearner has no trainable parameter: check `learn`")
+        factory = self.optimizer_factory or functools.partial(torch.optim.Adam, lr=1e-2)
+        optimizer = factory(params)
+        if self.scheduler_factory is None:
+            return optimizer
+        scheduler = self.scheduler_factory(optimizer)
+        return {
+            "optimizer": optimizer,
+            "lr_scheduler": {"scheduler": scheduler, "interval": self.scheduler_interval, "monitor": self.monitor},
+        }

@@ -1,0 +1,155 @@
+"""Training losses on filter outputs, and parameter priors.
+
+Every loss maps ``(result: FilterResult, batch: Mapping) -> Tensor [B]``: one value per
+trajectory, so that the learner can drop trajectories whose loss is not finite and average the
+rest.  ``batch`` holds at least ``truth [B, T, n_t]`` for the supervised losses.
+
+* :class:`MSELoss` - mean squared state error against the truth (optionally on a subset of
+  components, e.g. positions).  It only sees the posterior *mean*, which for a Kalman filter
+  depends on ``Q`` and ``R`` through their ratio (the gain): scaling both leaves it unchanged,
+  so mse alone cannot identify noise levels, only their ratio (and whatever shapes the mean,
+  like ``tau``).
+* :class:`NLLLoss` - negative innovation log-likelihood per observed step, no truth needed;
+  the maximum-likelihood criterion that identifies ``Q`` and ``R`` themselves.
+* :class:`NEESLoss` - ``(log(ANEES_b / d))^2``: penalises per-trajectory average NEES away from
+  the number of compared components ``d`` (covariance consistency).
+* :class:`CompositeLoss` - weighted sum, e.g. ``mse + 0.1 nees`` to get accurate *and*
+  consistent estimates.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from typing import Any, Protocol
+
+import torch
+from torch import Tensor
+
+from ..filters.base import FilterResult
+from .metrics import Index, component_error, nees, nll_per_step
+
+__all__ = [
+    "CompositeLoss",
+    "FilterLoss",
+    "LogNormalPrior",
+    "MSELoss",
+    "NEESLoss",
+    "NLLLoss",
+    "NormalPrior",
+    "Prior",
+]
+
+
+class FilterLoss(Protocol):
+    """``(result, batch) -> [B]`` per-trajectory loss."""
+
+    def __call__(self, result: FilterResult, batch: Mapping[str, Any]) -> Tensor: ...
+
+
+def _truth(batch: Mapping[str, Any], name: str) -> Tensor:
+    truth = batch.get("truth")
+    if truth is None:
+        raise ValueError(f"the {name} loss needs batch['truth'] [B, T, n_t]; use the 'nll' loss for data without truth")
+    return truth
+
+
+def _index(index: Index) -> list[int] | None:
+    return None if index is None else [int(i) for i in index]
+
+
+class MSELoss:
+    """Per-trajectory mean squared error ``mean_t ||x_hat_t[index] - x_t[truth_index]||^2 / d``.
+
+    Args:
+        state_index: estimate components to compare (``None``: all).
+        truth_index: matching truth components (default: ``state_index``).
+        weights: optional per-component weights ``[d]`` (e.g. to balance units).
+    """
+
+    def __init__(self, *, state_index: Index = None, truth_index: Index = None, weights: Sequence[float] | None = None) -> None:
+        self.state_index = _index(state_index)
+        self.truth_index = _index(truth_index)
+        self.weights = None if weights is None else [float(w) for w in weights]
+
+    def __call__(self, result: FilterResult, batch: Mapping[str, Any]) -> Tensor:
+        err, valid = component_error(result.mean, _truth(batch, "mse"), self.state_index, self.truth_index)
+        sq = err * err
+        if self.weights is not None:
+            sq = sq * torch.as_tensor(self.weights, dtype=sq.dtype, device=sq.device)
+        per_step = sq.mean(-1)
+        return per_step.sum(-1) / valid.sum(-1).clamp_min(1).to(per_step.dtype)
+
+
+class NLLLoss:
+    """Negative innovation log-likelihood per observed step ``-sum_t log N(e_t; 0, S_t) / T_obs``."""
+
+    def __call__(self, result: FilterResult, batch: Mapping[str, Any]) -> Tensor:
+        return nll_per_step(result)
+
+
+class NEESLoss:
+    """``(log(ANEES_b / d))^2`` with ``ANEES_b`` the trajectory's average NEES over ``d`` compared
+    components: zero when the filter's covariance matches its errors on average, and symmetric
+    in over- and under-confidence on a log scale.
+
+    Args:
+        state_index, truth_index: as :class:`MSELoss`.
+    """
+
+    def __init__(self, *, state_index: Index = None, truth_index: Index = None) -> None:
+        self.state_index = _index(state_index)
+        self.truth_index = _index(truth_index)
+
+    def __call__(self, result: FilterResult, batch: Mapping[str, Any]) -> Tensor:
+        ne = nees(result.mean, result.cov, _truth(batch, "nees"), self.state_index, self.truth_index)
+        d = len(self.state_index) if self.state_index is not None else result.mean.shape[-1]
+        ok = torch.isfinite(ne)
+        avg = torch.where(ok, ne, torch.zeros_like(ne)).sum(-1) / ok.sum(-1).clamp_min(1)
+        return torch.log(avg / d) ** 2
+
+
+class CompositeLoss:
+    """Weighted sum of losses: ``CompositeLoss({"mse": MSELoss(), "nees": NEESLoss()}, {"nees": 0.1})``."""
+
+    def __init__(self, terms: Mapping[str, FilterLoss], weights: Mapping[str, float] | None = None) -> None:
+        if not terms:
+            raise ValueError("CompositeLoss needs at least one term")
+        self.terms = dict(terms)
+        self.weights = {k: float((weights or {}).get(k, 1.0)) for k in self.terms}
+
+    def __call__(self, result: FilterResult, batch: Mapping[str, Any]) -> Tensor:
+        return sum(self.weights[k] * fn(result, batch) for k, fn in self.terms.items())  # type: ignore[return-value]
+
+
+class Prior(Protocol):
+    """``log_prob(value) -> scalar``: log-density of a constrained parameter value."""
+
+    def log_prob(self, value: Tensor) -> Tensor: ...
+
+
+class NormalPrior:
+    """Independent ``N(loc, scale^2)`` on every element of a constrained value."""
+
+    def __init__(self, *, loc: float | Sequence[float], scale: float | Sequence[float]) -> None:
+        self.loc, self.scale = loc, scale
+
+    def log_prob(self, value: Tensor) -> Tensor:
+        loc = torch.as_tensor(self.loc, dtype=value.dtype, device=value.device)
+        scale = torch.as_tensor(self.scale, dtype=value.dtype, device=value.device)
+        z = (value - loc) / scale
+        return (-0.5 * z * z - torch.log(scale) - 0.5 * math.log(2 * math.pi)).sum()
+
+
+class LogNormalPrior:
+    """Independent log-normal prior, ``log(value) ~ N(loc, scale^2)`` (for scales such as tau, or
+    the diagonal of a covariance: matrices use their diagonal)."""
+
+    def __init__(self, *, loc: float | Sequence[float], scale: float | Sequence[float]) -> None:
+        self.loc, self.scale = loc, scale
+
+    def log_prob(self, value: Tensor) -> Tensor:
+        if value.ndim >= 2 and value.shape[-1] == value.shape[-2]:
+            value = torch.diagonal(value, dim1=-2, dim2=-1)
+        logv = torch.log(value)
+        return NormalPrior(loc=self.loc, scale=self.scale).log_prob(logv) - logv.sum()

@@ -1,0 +1,105 @@
+"""Diagnostic figures (matplotlib, object-oriented API: no global pyplot state).
+
+Each function draws one trajectory and returns a ``matplotlib.figure.Figure`` ready for
+``SummaryWriter.add_figure`` or ``fig.savefig``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from matplotlib.figure import Figure
+from torch import Tensor
+
+__all__ = ["plot_errors", "plot_mode_probs", "plot_trajectory"]
+
+
+def _np(x: Tensor) -> object:
+    return x.detach().to("cpu", torch.float64).numpy()
+
+
+def plot_trajectory(
+    truth: Tensor | None,
+    estimate: Tensor,
+    *,
+    position_index: Sequence[int],
+    truth_position_index: Sequence[int] | None = None,
+    measurements: Tensor | None = None,
+    measurement_index: Sequence[int] | None = None,
+    title: str = "trajectory",
+) -> Figure:
+    """Truth vs estimate of one trajectory: the plane of the first two position components
+    (``estimate [T, n]``, ``truth [T, n_t]``), or position against time for one component."""
+    fig = Figure(figsize=(6, 5))
+    ax = fig.add_subplot()
+    pi = list(position_index)
+    ti = list(truth_position_index) if truth_position_index is not None else pi
+    est = _np(estimate[:, pi])
+    if len(pi) >= 2:
+        if measurements is not None and measurement_index is not None:
+            z = _np(measurements[:, list(measurement_index)])
+            ax.plot(z[:, 0], z[:, 1], ".", ms=2, color="0.6", label="measurements")  # type: ignore[index]
+        if truth is not None:
+            tr = _np(truth[:, ti])
+            ax.plot(tr[:, 0], tr[:, 1], "k-", lw=1.5, label="truth")  # type: ignore[index]
+        ax.plot(est[:, 0], est[:, 1], "C1--", lw=1.2, label="estimate")  # type: ignore[index]
+        ax.set_xlabel(f"state[{pi[0]}]")
+        ax.set_ylabel(f"state[{pi[1]}]")
+        ax.set_aspect("equal", adjustable="datalim")
+    else:
+        if truth is not None:
+            ax.plot(_np(truth[:, ti[0]]), "k-", label="truth")
+        ax.plot(est[:, 0], "C1--", label="estimate")  # type: ignore[index]
+        ax.set_xlabel("step")
+    ax.set_title(title)
+    ax.legend(loc="best", fontsize=8)
+    fig.tight_layout()
+    return fig
+
+
+def plot_errors(
+    truth: Tensor,
+    mean: Tensor,
+    cov: Tensor,
+    *,
+    index: Sequence[int] | None = None,
+    truth_index: Sequence[int] | None = None,
+    title: str = "error and 3-sigma envelope",
+) -> Figure:
+    """Estimation error of each selected component with the filter's ``±3 sigma`` envelope
+    (``mean [T, n]``, ``cov [T, n, n]``, ``truth [T, n_t]``)."""
+    idx = list(index) if index is not None else list(range(mean.shape[-1]))
+    tidx = list(truth_index) if truth_index is not None else idx
+    err = _np(mean[:, idx] - truth[:, tidx])
+    sd = _np(3.0 * torch.diagonal(cov, dim1=-2, dim2=-1)[:, idx].clamp_min(0).sqrt())
+    fig = Figure(figsize=(7, 1.8 * len(idx) + 0.6))
+    axes = fig.subplots(len(idx), 1, sharex=True, squeeze=False)[:, 0]
+    for k, ax in enumerate(axes):
+        ax.plot(err[:, k], "C0-", lw=1, label="error")  # type: ignore[index]
+        ax.plot(sd[:, k], "C3--", lw=0.8, label="±3σ")  # type: ignore[index]
+        ax.plot(-sd[:, k], "C3--", lw=0.8)  # type: ignore[index, operator]
+        ax.set_ylabel(f"state[{idx[k]}]")
+    axes[0].set_title(title)
+    axes[0].legend(loc="upper right", fontsize=8)
+    axes[-1].set_xlabel("step")
+    fig.tight_layout()
+    return fig
+
+
+def plot_mode_probs(mode_probs: Tensor, *, true_modes: Tensor | None = None, names: Sequence[str] | None = None) -> Figure:
+    """IMM mode probabilities ``[T, M]`` over time (and the true mode sequence ``[T]`` if known)."""
+    mp = _np(mode_probs)
+    fig = Figure(figsize=(7, 3))
+    ax = fig.add_subplot()
+    for j in range(mode_probs.shape[-1]):
+        ax.plot(mp[:, j], lw=1.2, label=names[j] if names else f"mode {j}")  # type: ignore[index]
+    if true_modes is not None:
+        m = mode_probs.shape[-1]
+        ax.step(range(true_modes.shape[0]), _np(true_modes.to(torch.float64) / max(m - 1, 1)), "k:", lw=1, where="post", label="true mode")
+    ax.set_ylim(-0.05, 1.05)
+    ax.set_xlabel("step")
+    ax.set_ylabel("probability")
+    ax.legend(loc="best", fontsize=8)
+    fig.tight_layout()
+    return fig

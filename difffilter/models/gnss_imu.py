@@ -1,0 +1,403 @@
+"""IMU-driven GNSS/IMU vehicle models of p004 (Li, Zhu, Wang & Lyu) and its switching statistics.
+
+Frames: navigation frame ENU (east, north, up), body frame FLU (forward, left, up); gravity
+``g_n = [0, 0, -9.80665]`` m/s^2, flat non-rotating earth (a 400 s, 5 km drive).  Headings are
+azimuths ``psi`` (clockwise from north); the body yaw about "up" is ``pi/2 - psi``.
+
+IMU inputs per step ``k`` (controls, interval ``(t_{k-1}, t_k]``, what an IMU's velocity and
+angle increments divided by ``T`` deliver):
+
+* ``u["accel"]``: mean specific force ``(1/T) C_bn(t_{k-1}) (v(t_k) - v(t_{k-1}) - g_n T)``,
+  resolved in the body frame at the *start* of the interval (m/s^2), ``[..., 3]`` (planar:
+  ``[..., 2]``, forward and left);
+* ``u["gyro"]``: mean angular rate ``Delta theta / T`` (rad/s), ``[..., 3]`` (planar: ``[..., 1]``,
+  yaw rate about up, counter-clockwise positive);
+* optional ``u["dt"] [..., 1]`` overriding the constructor's ``T``.
+
+With these inputs the velocity update ``v_k = v_{k-1} + (C_nb(q_{k-1}) (f - b_a) + g_n) T`` is exact;
+position uses the trapezoid ``p_k = p_{k-1} + (v_{k-1} + v_k) T / 2`` (error ``O(T^3)`` jerk,
+absorbed by ``Q``) and attitude the exact rotation by ``(omega - b_g) T``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from ..params import Positive, register_constrained, register_covariance
+from .base import Controls, DynamicsModel, MeasurementModel, StateSpaceModel
+from .motion import block_diag
+
+__all__ = [
+    "GNSS_IMU_PAPER",
+    "GRAVITY",
+    "GnssImuDynamics",
+    "GnssImuModel",
+    "GnssMeasurement",
+    "PlanarGnssImuDynamics",
+    "p004_switching_statistics",
+    "quaternion_multiply",
+    "quaternion_to_rotation",
+    "wrap_angle",
+]
+
+GRAVITY = 9.80665
+
+#: Settings used for p004 (SI units).  Paper values: accelerometer bias 0.05 mg, gyro bias
+#: 0.1 deg/h, process-noise variance 0.01 (read as the accelerometer white noise, 0.1 m/s^2 on
+#: each 1 s mean), azimuth error variance 1 deg^2 (the optional dual-antenna heading).  Our
+#: choices: GNSS position noise 0.1 m for the paper's "20 dB" (10^(-20/20) of a 1 m reference,
+#: which fits the published cm-level RMSEs), GNSS velocity noise 0.05 m/s, gyro white noise
+#: 0.1 deg/s on each 1 s mean, bias random walks 1e-5 m/s^2/sqrt(s) and 1e-6 rad/s/sqrt(s).
+GNSS_IMU_PAPER: dict[str, float] = {
+    "dt": 1.0,
+    "sigma_accel": 0.1,
+    "sigma_gyro": math.radians(0.1),
+    "sigma_accel_bias": 0.05e-3 * GRAVITY,
+    "sigma_gyro_bias": math.radians(0.1) / 3600.0,
+    "sigma_accel_bias_walk": 1e-5,
+    "sigma_gyro_bias_walk": 1e-6,
+    "sigma_gnss": 0.1,
+    "sigma_gnss_velocity": 0.05,
+    "sigma_heading": math.radians(1.0),
+}
+
+
+def wrap_angle(a: Tensor) -> Tensor:
+    """Angles wrapped to ``[-pi, pi)``."""
+    return torch.remainder(a + math.pi, 2.0 * math.pi) - math.pi
+
+
+def quaternion_multiply(p: Tensor, q: Tensor) -> Tensor:
+    """Hamilton product ``p * q`` of ``[..., 4]`` quaternions ``[w, x, y, z]``."""
+    pw, px, py, pz = p.unbind(-1)
+    qw, qx, qy, qz = q.unbind(-1)
+    return torch.stack(
+        [
+            pw * qw - px * qx - py * qy - pz * qz,
+            pw * qx + px * qw + py * qz - pz * qy,
+            pw * qy - px * qz + py * qw + pz * qx,
+            pw * qz + px * qy - py * qx + pz * qw,
+        ],
+        -1,
+    )
+
+
+def quaternion_to_rotation(q: Tensor) -> Tensor:
+    """Rotation matrix ``[..., 3, 3]`` (body -> navigation) of unit quaternions ``[..., 4]``."""
+    w, x, y, z = q.unbind(-1)
+    rows = [
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ]
+    return torch.stack([torch.stack(r, -1) for r in rows], -2)
+
+
+def _rotation_quaternion(theta: Tensor) -> Tensor:
+    """Quaternion of the rotation vector ``theta [..., 3]``, smooth at 0."""
+    sq = (theta * theta).sum(-1, keepdim=True)
+    # sqrt(sq + tiny) keeps the gradient finite at theta = 0; sin(n/2)/n = sinc(n / 2 pi) / 2.
+    n = torch.sqrt(sq + 1e-30)
+    return torch.cat([torch.cos(n / 2), 0.5 * torch.sinc(n / (2 * math.pi)) * theta], -1)
+
+
+def _step_dt(u: Controls, default: Tensor) -> Tensor:
+    if isinstance(u, dict) and "dt" in u:
+        return u["dt"][..., 0]
+    return default
+
+
+def _imu(u: Controls) -> tuple[Tensor, Tensor]:
+    if not isinstance(u, dict) or "accel" not in u or "gyro" not in u:
+        raise ValueError('GNSS/IMU models need controls {"accel": [B, T, k], "gyro": [B, T, k]}')
+    return u["accel"], u["gyro"]
+
+
+def _kinematic_noise(dt: Tensor, var: Tensor, dims: int) -> Tensor:
+    """Position/velocity noise ``[..., 2 d, 2 d]`` (layout ``[p (d), v (d)]``) for accelerometer
+    noise of variance ``var`` on each ``T``-mean, taken as white within the interval (spectral
+    density ``var T``): ``var [[T^4/3, T^3/2], [T^3/2, T^2]]``.  The sample-mean noise alone would
+    give the singular ``[[T^4/4, T^3/2], [T^3/2, T^2]]``; the extra ``var T^4/12`` on position
+    keeps ``Q`` positive definite and covers the trapezoid's ``O(T^3)`` position error."""
+    eye = torch.eye(dims, dtype=dt.dtype, device=dt.device)
+    blk = lambda c: (var * c)[..., None, None] * eye  # noqa: E731
+    top = torch.cat([blk(dt**4 / 3), blk(dt**3 / 2)], -1)
+    bottom = torch.cat([blk(dt**3 / 2), blk(dt**2)], -1)
+    return torch.cat([top, bottom], -2)
+
+
+class _ImuNoise(DynamicsModel):
+    """Learnable IMU noise levels shared by the 3-D and planar models."""
+
+    def _register_noise(self, dt: float, opts: dict[str, float], dtype: torch.dtype | None) -> None:
+        dtype = dtype or torch.get_default_dtype()
+        self.register_buffer("dt", torch.tensor(float(dt), dtype=dtype))
+        for name in ("sigma_accel", "sigma_gyro", "sigma_accel_bias_walk", "sigma_gyro_bias_walk"):
+            register_constrained(self, name, torch.tensor(float(opts[name]), dtype=dtype), Positive())
+
+    @property
+    def Q(self) -> Tensor:  # noqa: N802 - field notation
+        """Process noise at the constructor's ``T``."""
+        return self.process_noise(torch.zeros(self.state_dim, dtype=self.dt.dtype, device=self.dt.device))
+
+
+class GnssImuDynamics(_ImuNoise):
+    """p004 strapdown prediction, state (16) ``[p (3), v (3), q (4), b_a (3), b_g (3)]``.
+
+    .. math::
+        q_k = \\frac{\\bar q \\otimes \\exp((\\omega - b_g) T / 2)}{\\|\\cdot\\|}, \\;
+        v_k = v + (C(\\bar q)(f - b_a) + g_n) T, \\; p_k = p + (v + v_k) T/2,
+
+    ``bar q = q / |q|`` (``f`` keeps the quaternion normalised, so sigma points and updates that
+    leave the unit sphere are projected back).  Biases are random walks.
+
+    ``Q = blockdiag(Q_pv, (sigma_gyro T / 2)^2 I_4, sigma_ba_walk^2 T I_3, sigma_bg_walk^2 T I_3)``
+    with ``Q_pv`` from white accelerometer noise (``sigma_accel`` on each ``T``-mean;
+    isotropic, so rotating it to the navigation frame changes nothing).  The quaternion block is
+    isotropic in 4-D: its tangential part is the gyro noise ``(T/2) Xi(q) n_g``, and its radial
+    part is removed by the next normalisation, while keeping ``Q`` positive definite.
+
+    Learnable (``Positive``): ``sigma_accel`` (m/s^2), ``sigma_gyro`` (rad/s),
+    ``sigma_accel_bias_walk`` (m/s^2/sqrt(s)), ``sigma_gyro_bias_walk`` (rad/s/sqrt(s)).
+    Controls: ``accel [..., 3]``, ``gyro [..., 3]`` (module docstring).
+    """
+
+    def __init__(self, *, dt: float = 1.0, dtype: torch.dtype | None = None, **noise: float) -> None:
+        super().__init__()
+        self.state_dim = 16
+        self._register_noise(dt, {**GNSS_IMU_PAPER, **noise}, dtype)
+
+    def forward(self, x: Tensor, u: Controls = None) -> Tensor:
+        accel, gyro = _imu(u)
+        dt = _step_dt(u, self.dt)[..., None]
+        p, v, q, ba, bg = x[..., 0:3], x[..., 3:6], x[..., 6:10], x[..., 10:13], x[..., 13:16]
+        q = q / torch.linalg.vector_norm(q, dim=-1, keepdim=True)
+        a = (quaternion_to_rotation(q) @ (accel - ba)[..., None])[..., 0]
+        a = a + torch.tensor([0.0, 0.0, -GRAVITY], dtype=x.dtype, device=x.device)
+        v_new = v + a * dt
+        q_new = quaternion_multiply(q, _rotation_quaternion((gyro - bg) * dt))
+        q_new = q_new / torch.linalg.vector_norm(q_new, dim=-1, keepdim=True)
+        p_new = p + 0.5 * (v + v_new) * dt
+        shape = torch.broadcast_shapes(p_new.shape, q_new.shape[:-1] + (3,))
+        parts = [p_new, v_new, q_new, ba, bg]
+        return torch.cat([t.expand(*shape[:-1], t.shape[-1]) for t in parts], -1)
+
+    def process_noise(self, x: Tensor, u: Controls = None) -> Tensor:
+        dt = _step_dt(u, self.dt)
+        one = torch.ones_like(dt)
+        eye = lambda d, var: var[..., None, None] * torch.eye(d, dtype=dt.dtype, device=dt.device)  # noqa: E731
+        return block_diag(
+            _kinematic_noise(dt, self.sigma_accel**2 * one, 3),
+            eye(4, (self.sigma_gyro * dt / 2) ** 2),
+            eye(3, self.sigma_accel_bias_walk**2 * dt),
+            eye(3, self.sigma_gyro_bias_walk**2 * dt),
+        )
+
+
+class PlanarGnssImuDynamics(_ImuNoise):
+    """Planar reduction of :class:`GnssImuDynamics` for a level vehicle, state (8)
+    ``[p_e, p_n, v_e, v_n, psi, b_f, b_l, b_g]`` (heading ``psi`` clockwise from north,
+    unwrapped).
+
+    .. math::
+        \\psi_k = \\psi - (\\omega - b_g) T, \\;
+        a = R(\\psi) (f - b), \\; R(\\psi) = \\begin{bmatrix}\\sin\\psi & -\\cos\\psi \\\\
+        \\cos\\psi & \\sin\\psi\\end{bmatrix}, \\; v_k = v + a T, \\; p_k = p + (v + v_k) T / 2.
+
+    It keeps p004's nonlinearity (velocity rotated by an uncertain heading) with half the states
+    and no quaternion constraint, which makes the EKF/UKF comparison cheaper and cleaner.
+    ``Q = blockdiag(Q_pv, (sigma_gyro T)^2, sigma_ba_walk^2 T I_2, sigma_bg_walk^2 T)``.
+    Learnable: as :class:`GnssImuDynamics`.  Controls: ``accel [..., 2]`` (forward, left),
+    ``gyro [..., 1]`` (counter-clockwise yaw rate).  Has an analytic Jacobian.
+    """
+
+    def __init__(self, *, dt: float = 1.0, dtype: torch.dtype | None = None, **noise: float) -> None:
+        super().__init__()
+        self.state_dim = 8
+        self._register_noise(dt, {**GNSS_IMU_PAPER, **noise}, dtype)
+
+    def _parts(self, x: Tensor, u: Controls) -> tuple[Tensor, ...]:
+        accel, gyro = _imu(u)
+        dt = _step_dt(u, self.dt)
+        psi = x[..., 4]
+        ff, fl = accel[..., 0] - x[..., 5], accel[..., 1] - x[..., 6]
+        s, c = torch.sin(psi), torch.cos(psi)
+        return dt, psi, ff, fl, s, c, gyro[..., 0] - x[..., 7]
+
+    def forward(self, x: Tensor, u: Controls = None) -> Tensor:
+        dt, psi, ff, fl, s, c, w = self._parts(x, u)
+        a = torch.stack([ff * s - fl * c, ff * c + fl * s], -1)
+        v = x[..., 2:4]
+        v_new = v + a * dt[..., None]
+        p_new = x[..., 0:2] + 0.5 * (v + v_new) * dt[..., None]
+        return torch.cat([p_new, v_new, (psi - w * dt)[..., None], x[..., 5:8].expand(*p_new.shape[:-1], 3)], -1)
+
+    def jacobian(self, x: Tensor, u: Controls = None) -> Tensor:
+        dt, psi, ff, fl, s, c, w = self._parts(x, u)
+        shape = torch.broadcast_shapes(x.shape[:-1], ff.shape)
+        jac = torch.eye(8, dtype=x.dtype, device=x.device).expand(*shape, 8, 8).clone()
+        dt = dt * torch.ones(shape, dtype=x.dtype, device=x.device)
+        # d a / d [psi, b_f, b_l]
+        da = torch.stack(
+            [torch.stack([ff * c + fl * s, -s, c], -1), torch.stack([-ff * s + fl * c, -c, -s], -1)],
+            -2,
+        ).expand(*shape, 2, 3)
+        cols = [4, 5, 6]
+        jac[..., 2:4, cols] = da * dt[..., None, None]
+        jac[..., 0:2, cols] = da * (0.5 * dt * dt)[..., None, None]
+        jac[..., 0, 2] = dt
+        jac[..., 1, 3] = dt
+        jac[..., 4, 7] = dt
+        return jac
+
+    def process_noise(self, x: Tensor, u: Controls = None) -> Tensor:
+        dt = _step_dt(u, self.dt)
+        eye = lambda d, var: var[..., None, None] * torch.eye(d, dtype=dt.dtype, device=dt.device)  # noqa: E731
+        return block_diag(
+            _kinematic_noise(dt, self.sigma_accel**2 * torch.ones_like(dt), 2),
+            eye(1, (self.sigma_gyro * dt) ** 2),
+            eye(2, self.sigma_accel_bias_walk**2 * dt),
+            eye(1, self.sigma_gyro_bias_walk**2 * dt),
+        )
+
+
+class GnssMeasurement(MeasurementModel):
+    """GNSS fix: position, optionally velocity and dual-antenna heading (p004 ``z_GNSS``).
+
+    ``z = [p, (v), (psi)]`` with ``psi`` the azimuth of the body's forward axis (3-D:
+    ``atan2(C_e1, C_n1)`` from the quaternion; planar: the heading state).  ``residual`` wraps the
+    heading component to ``[-pi, pi)``.
+
+    Args:
+        planar: state layout of :class:`PlanarGnssImuDynamics` (else :class:`GnssImuDynamics`).
+        velocity, heading: whether the fix includes velocity / heading.
+        sigma_gnss, sigma_gnss_velocity, sigma_heading: noise stds giving a diagonal ``R``,
+            learnable with ``R_structure``.
+    """
+
+    def __init__(
+        self,
+        *,
+        planar: bool = False,
+        velocity: bool = False,
+        heading: bool = False,
+        sigma_gnss: float = GNSS_IMU_PAPER["sigma_gnss"],
+        sigma_gnss_velocity: float = GNSS_IMU_PAPER["sigma_gnss_velocity"],
+        sigma_heading: float = GNSS_IMU_PAPER["sigma_heading"],
+        R_structure: str = "diagonal",  # noqa: N803
+        dtype: torch.dtype | None = None,
+    ) -> None:
+        super().__init__()
+        d = 2 if planar else 3
+        self.planar, self.velocity, self.heading = planar, velocity, heading
+        self._lin = list(range(d)) + (list(range(d, 2 * d)) if velocity else [])
+        sig = [sigma_gnss] * d + ([sigma_gnss_velocity] * d if velocity else []) + ([sigma_heading] if heading else [])
+        self.measurement_dim = len(sig)
+        s = torch.tensor(sig, dtype=dtype or torch.get_default_dtype())
+        register_covariance(self, "R", torch.diag(s * s), R_structure)
+
+    def forward(self, x: Tensor, u: Controls = None) -> Tensor:
+        z = x[..., self._lin]
+        if not self.heading:
+            return z
+        if self.planar:
+            psi = x[..., 4]
+        else:
+            w, qx, qy, qz = x[..., 6:10].unbind(-1)
+            # forward axis in ENU: first column of C(q) (scale-free, so |q| != 1 is harmless)
+            east = w * w + qx * qx - qy * qy - qz * qz
+            north = 2 * (qx * qy + w * qz)
+            psi = torch.atan2(east, north)
+        return torch.cat([z, psi[..., None]], -1)
+
+    def residual(self, z: Tensor, z_ref: Tensor) -> Tensor:
+        r = z - z_ref
+        if not self.heading:
+            return r
+        return torch.cat([r[..., :-1], wrap_angle(r[..., -1:])], -1)
+
+    def matrix(self, u: Controls = None) -> Tensor | None:
+        if self.heading and not self.planar:
+            return None
+        n = 8 if self.planar else 16
+        rows = self._lin + ([4] if self.heading else [])
+        return torch.eye(n, dtype=self.R.dtype, device=self.R.device)[rows]
+
+    def jacobian(self, x: Tensor, u: Controls = None) -> Tensor | None:
+        h = self.matrix(u)
+        return None if h is None else h.expand(*x.shape[:-1], *h.shape)
+
+
+class GnssImuModel(StateSpaceModel):
+    """p004's GNSS/IMU model: IMU-driven prediction, GNSS correction.
+
+    Args:
+        planar: use :class:`PlanarGnssImuDynamics` (8 states) instead of the 16-state
+            :class:`GnssImuDynamics`.
+        dt: sample interval (s).
+        velocity, heading: extra GNSS observations (see :class:`GnssMeasurement`).
+        R_structure: learnable structure of ``R``.
+        **settings: overrides of :data:`GNSS_IMU_PAPER` (noise levels).
+
+    Learnable: the four IMU noise levels (``Q``) and ``R``.
+    """
+
+    def __init__(
+        self,
+        *,
+        planar: bool = False,
+        dt: float = GNSS_IMU_PAPER["dt"],
+        velocity: bool = False,
+        heading: bool = False,
+        R_structure: str = "diagonal",  # noqa: N803
+        dtype: torch.dtype | None = None,
+        **settings: float,
+    ) -> None:
+        opts = {**GNSS_IMU_PAPER, **settings}
+        noise = {k: opts[k] for k in ("sigma_accel", "sigma_gyro", "sigma_accel_bias_walk", "sigma_gyro_bias_walk")}
+        cls = PlanarGnssImuDynamics if planar else GnssImuDynamics
+        measurement = GnssMeasurement(
+            planar=planar,
+            velocity=velocity,
+            heading=heading,
+            sigma_gnss=opts["sigma_gnss"],
+            sigma_gnss_velocity=opts["sigma_gnss_velocity"],
+            sigma_heading=opts["sigma_heading"],
+            R_structure=R_structure,
+            dtype=dtype,
+        )
+        super().__init__(cls(dt=dt, dtype=dtype, **noise), measurement)
+
+
+def p004_switching_statistics(
+    accel: Tensor,
+    gyro: Tensor,
+    sigma_accel: Tensor | float,
+    sigma_gyro: Tensor | float,
+    sigma_gnss: Tensor | float,
+    sigma_imu: Tensor | float,
+    *,
+    gravity: float | None = None,
+) -> tuple[Tensor, Tensor]:
+    """p004's switching statistics, eqs. (1) and (2).
+
+    ``gamma = max(sigma_alpha, sigma_beta) / max(sigma_GNSS, sigma_IMU)`` (noise regime: EKF when
+    below 3x the system-noise std) and ``mu = sqrt(|alpha|^2 / 9.8^2 + |beta|^2 / pi^2)``
+    (motion regime: UKF when above the sensor's tolerated error), with ``alpha`` the
+    accelerometer output ``[..., k]`` and ``beta`` the gyro output ``[..., k]`` (vector norms).
+
+    ``mu`` is meant for the motion-induced acceleration: pass gravity-compensated ``accel``, or
+    ``gravity=9.80665`` to subtract it from the last (up) axis of a level vehicle's reading.
+    Returns ``(gamma, mu)``; ``gamma`` has the broadcast shape of the sigmas, ``mu`` is ``[...]``.
+    """
+    if gravity is not None:
+        accel = torch.cat([accel[..., :-1], accel[..., -1:] - gravity], -1)
+    alpha = torch.linalg.vector_norm(accel, dim=-1)
+    beta = torch.linalg.vector_norm(gyro, dim=-1)
+    mu = torch.sqrt(alpha * alpha / 9.8**2 + beta * beta / math.pi**2)
+    t = lambda v: torch.as_tensor(v, dtype=accel.dtype, device=accel.device)  # noqa: E731
+    gamma = torch.maximum(t(sigma_accel), t(sigma_gyro)) / torch.maximum(t(sigma_gnss), t(sigma_imu))
+    return gamma, mu

@@ -1,0 +1,395 @@
+"""GPS/SINS ultra-tight error-state model (paper p003): 18 SINS error states + 2 clock states.
+
+State ``x [..., 20]``::
+
+    0-2   dL, dlambda, dh      position error (rad, rad, m) of the INS w.r.t. the truth
+    3-5   dv_E, dv_N, dv_U     velocity error (m/s), local-level ENU
+    6-8   phi_E, phi_N, phi_U  platform misalignment (phi-angle, rad): C_b^p = (I - [phi x]) C_b^n
+    9-11  eps_b                gyro constant drift (rad/s, body frame)
+    12-14 eps_r                gyro first-order Markov drift (rad/s, body frame)
+    15-17 nabla                accelerometer bias, first-order Markov (m/s^2, body frame)
+    18-19 dt_u, dt_ru          receiver clock bias (m) and drift (m/s)
+
+Errors are "INS minus truth".  With ``position_in_metres=True`` states 0-1 become
+``(R_M + h) dL`` and ``(R_N + h) cos L dlambda`` (north, east metres), which keeps float32
+covariances well conditioned.
+
+Per-step inputs ``u`` (dict, entries broadcast against ``x``): ``"llh" [..., 3]`` INS-indicated
+latitude/longitude (rad) and height (m), ``"vel" [..., 3]`` INS ENU velocity, ``"f_n" [..., 3]``
+INS specific force in the navigation frame (mean over the step), ``"C_bn" [..., 3, 3]`` INS
+body-to-ENU attitude matrix, ``"dt" [..., 1]`` (or a fixed ``dt``), and for the measurements
+``"sat_pos"``/``"sat_vel" [..., K, 3]`` ECEF satellite positions/velocities.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from ..params import register_covariance
+from .base import Controls, DynamicsModel, MeasurementModel
+
+__all__ = [
+    "DEG_PER_HOUR",
+    "MILLI_G",
+    "SinsErrorDynamics",
+    "SinsPseudorangeMeasurement",
+    "sins_error_matrix",
+    "sins_noise_psd",
+]
+
+DEG_PER_HOUR = math.pi / 180.0 / 3600.0  # rad/s
+MILLI_G = 9.80665e-3  # m/s^2
+_W = 7.2921151467e-5
+
+
+def _geo() -> Any:
+    from ..sim import geometry  # lazy: difffilter.sim imports the models
+
+    return geometry
+
+
+def _get(u: Controls, key: str) -> Tensor:
+    if not isinstance(u, dict) or key not in u:
+        raise KeyError(f"the SINS model needs u[{key!r}]")
+    return u[key]
+
+
+def _skew(v: Tensor) -> Tensor:
+    z = torch.zeros_like(v[..., 0])
+    x, y, w = v.unbind(-1)
+    return torch.stack([torch.stack([z, -w, y], -1), torch.stack([w, z, -x], -1), torch.stack([-y, x, z], -1)], -2)
+
+
+def _position_scale(llh: Tensor) -> Tensor:
+    """``[..., 3]`` metres per unit of (dL, dlambda, dh)."""
+    rm, rn = _geo().radii_of_curvature(llh[..., 0])
+    h = llh[..., 2]
+    return torch.stack([rm + h, (rn + h) * torch.cos(llh[..., 0]), torch.ones_like(h)], -1)
+
+
+def sins_error_matrix(
+    llh: Tensor, vel: Tensor, f_n: Tensor, C_bn: Tensor, *, gyro_markov_time: float, accel_markov_time: float, clock_time: float
+) -> Tensor:
+    """Continuous-time ``F [..., 20, 20]`` of the phi-angle ENU error model (``x' = F x + w``).
+
+    With ``R_m = R_M + h``, ``R_n = R_N + h``, Earth rate ``w_ie = [0, W cos L, W sin L]``,
+    transport rate ``w_en = [-v_N/R_m, v_E/R_n, v_E tan L/R_n]``, ``w_in = w_ie + w_en``:
+
+    * ``dL' = dv_N/R_m - v_N dh/R_m^2``;
+      ``dlambda' = dv_E/(R_n cos L) + v_E tan L dL/(R_n cos L) - v_E dh/(R_n^2 cos L)``; ``dh' = dv_U``.
+    * ``dv' = f^n x phi - (2 w_ie + w_en) x dv - (2 dw_ie + dw_en) x v + C_b^n nabla + dg``, with
+      ``dw_ie = [0, -W sin L dL, W cos L dL]``,
+      ``dw_en = [-dv_N/R_m + v_N dh/R_m^2, dv_E/R_n - v_E dh/R_n^2,
+      tan L dv_E/R_n + v_E sec^2 L dL/R_n - v_E tan L dh/R_n^2]`` and the normal-gravity error
+      ``dg_U = -(dg/dL) dL - (dg/dh) dh``.
+    * ``phi' = -w_in x phi + dw_ie + dw_en - C_b^n (eps_b + eps_r)``.
+    * ``eps_b' = 0``, ``eps_r' = -eps_r/T_g``, ``nabla' = -nabla/T_a``,
+      ``dt_u' = dt_ru``, ``dt_ru' = -dt_ru/tau_clk`` (p003's clock model, **[fix]** of the paper).
+    """
+    geo = _geo()
+    lat, h = llh[..., 0], llh[..., 2]
+    rm, rn = geo.radii_of_curvature(lat)
+    rm, rn = rm + h, rn + h
+    sl, cl = torch.sin(lat), torch.cos(lat)
+    tl = sl / cl
+    ve, vn = vel[..., 0], vel[..., 1]
+    batch = torch.broadcast_shapes(lat.shape, vel.shape[:-1], f_n.shape[:-1], C_bn.shape[:-2])
+    F = lat.new_zeros(*batch, 20, 20)
+    F[..., 0, 4] = 1.0 / rm
+    F[..., 0, 2] = -vn / rm**2
+    F[..., 1, 3] = 1.0 / (rn * cl)
+    F[..., 1, 0] = ve * tl / (rn * cl)
+    F[..., 1, 2] = -ve / (rn**2 * cl)
+    F[..., 2, 5] = 1.0
+    # d(w_ie), d(w_en) as [..., 3, 20] maps of the state
+    d_ie = lat.new_zeros(*batch, 3, 20)
+    d_ie[..., 1, 0] = -_W * sl
+    d_ie[..., 2, 0] = _W * cl
+    d_en = lat.new_zeros(*batch, 3, 20)
+    d_en[..., 0, 4] = -1.0 / rm
+    d_en[..., 0, 2] = vn / rm**2
+    d_en[..., 1, 3] = 1.0 / rn
+    d_en[..., 1, 2] = -ve / rn**2
+    d_en[..., 2, 3] = tl / rn
+    d_en[..., 2, 0] = ve / (rn * cl * cl)
+    d_en[..., 2, 2] = -ve * tl / rn**2
+    zero = torch.zeros_like(sl)
+    w_ie = torch.stack([zero, _W * cl, _W * sl], -1)
+    w_en = torch.stack([-vn / rm, ve / rn, ve * tl / rn], -1)
+    cbn = C_bn.expand(*batch, 3, 3)
+    vel_rows = _skew(vel).expand(*batch, 3, 3) @ (2.0 * d_ie + d_en)
+    vel_rows[..., :, 6:9] += _skew(f_n)
+    vel_rows[..., :, 3:6] -= _skew(2.0 * w_ie + w_en)
+    vel_rows[..., :, 15:18] += cbn
+    s2 = sl * sl
+    dg_dl = 9.7803267714 * (5.27094e-3 + 2.0 * 2.32718e-5 * s2) * 2.0 * sl * cl
+    vel_rows[..., 2, 0] -= dg_dl
+    vel_rows[..., 2, 2] += 3.086e-6
+    F[..., 3:6, :] = vel_rows
+    att_rows = d_ie + d_en
+    att_rows[..., :, 6:9] -= _skew(w_ie + w_en)
+    att_rows[..., :, 9:12] -= cbn
+    att_rows[..., :, 12:15] -= cbn
+    F[..., 6:9, :] = att_rows
+    idx = torch.arange(3)
+    F[..., 12 + idx, 12 + idx] = -1.0 / gyro_markov_time
+    F[..., 15 + idx, 15 + idx] = -1.0 / accel_markov_time
+    F[..., 18, 19] = 1.0
+    F[..., 19, 19] = -1.0 / clock_time
+    return F
+
+
+def sins_noise_psd(
+    *,
+    gyro_white: float = 0.01 * DEG_PER_HOUR,
+    gyro_markov: float = 0.1 * DEG_PER_HOUR,
+    gyro_markov_time: float = 3600.0,
+    accel_white: float = 0.1 * MILLI_G,
+    accel_markov: float = 0.1 * MILLI_G,
+    accel_markov_time: float = 3600.0,
+    clock_bias_psd: float = 0.01,
+    clock_drift_psd: float = 0.04,
+    position_in_metres: bool = False,
+    dtype: torch.dtype = torch.float64,
+) -> Tensor:
+    """Diagonal continuous-time PSD ``[20]`` of ``w`` (p003's sensor specification).
+
+    White noises are given as the standard deviation of 1 Hz samples, so their PSD is
+    ``sigma^2 * 1 s``; Markov drivers have PSD ``2 sigma^2 / T`` (``sigma`` = steady-state std).
+    Clock PSDs: a TCXO (``h_0 = 2e-19``, ``h_-2 = 2e-20`` give ``c^2 h_0 / 2 = 0.009 m^2/s`` and
+    ``2 pi^2 c^2 h_-2 = 0.035 m^2/s^3``).  Position and constant-drift entries get tiny floors
+    (1e-6 m^2/s, (1e-4 deg/h)^2/s) so ``"diagonal"`` structures stay positive definite.
+    """
+    pos = torch.tensor([1e-6, 1e-6, 1e-6], dtype=dtype)
+    if not position_in_metres:
+        pos[:2] = pos[:2] / 6.371e6**2
+    vals = torch.cat(
+        [
+            pos,
+            torch.full((3,), accel_white**2, dtype=dtype),
+            torch.full((3,), gyro_white**2, dtype=dtype),
+            torch.full((3,), (1e-4 * DEG_PER_HOUR) ** 2, dtype=dtype),
+            torch.full((3,), 2.0 * gyro_markov**2 / gyro_markov_time, dtype=dtype),
+            torch.full((3,), 2.0 * accel_markov**2 / accel_markov_time, dtype=dtype),
+            torch.tensor([clock_bias_psd, clock_drift_psd], dtype=dtype),
+        ]
+    )
+    return vals
+
+
+class SinsErrorDynamics(DynamicsModel):
+    """Discretised 20-state SINS/GPS error dynamics (p003), linear: ``x_k = Phi_k x_{k-1} + w``.
+
+    ``Phi = expm(F dt)`` (``discretization="expm"``, :func:`torch.linalg.matrix_exp`) or its first-
+    or second-order series ``I + F dt (+ (F dt)^2 / 2)``, with ``F`` from :func:`sins_error_matrix`
+    evaluated at the INS-indicated navigation solution in ``u``.  Process noise by the trapezoidal
+    rule ``Q_d = (Phi Q Phi^T + Q) dt / 2``.
+
+    Learnable: ``Q``, the **continuous-time** PSD matrix ``[20, 20]`` (default structure
+    ``"scalar"``: one positive scale on :func:`sins_noise_psd`, the per-mode scale of p003's IMM).
+    """
+
+    def __init__(
+        self,
+        *,
+        dt: float | None = None,
+        Q: Tensor | None = None,
+        Q_structure: str = "scalar",
+        gyro_markov_time: float = 3600.0,
+        accel_markov_time: float = 3600.0,
+        clock_time: float = 3600.0,
+        discretization: str = "expm",
+        position_in_metres: bool = False,
+        dtype: torch.dtype = torch.float64,
+    ) -> None:
+        super().__init__()
+        if discretization not in ("expm", "first", "second"):
+            raise ValueError(f"discretization must be 'expm', 'first' or 'second', got {discretization!r}")
+        self.state_dim = 20
+        self.dt, self.discretization, self.position_in_metres = dt, discretization, position_in_metres
+        self.gyro_markov_time, self.accel_markov_time, self.clock_time = gyro_markov_time, accel_markov_time, clock_time
+        if Q is None:
+            Q = torch.diag(
+                sins_noise_psd(
+                    gyro_markov_time=gyro_markov_time,
+                    accel_markov_time=accel_markov_time,
+                    position_in_metres=position_in_metres,
+                    dtype=dtype,
+                )
+            )
+        register_covariance(self, "Q", Q, Q_structure)
+
+    def _dt(self, u: Controls, like: Tensor) -> Tensor:
+        if isinstance(u, dict) and "dt" in u:
+            return u["dt"][..., 0].to(like.dtype)
+        if self.dt is None:
+            raise KeyError("SinsErrorDynamics needs u['dt'] or a fixed dt")
+        return torch.full((), self.dt, dtype=like.dtype, device=like.device)
+
+    def continuous_matrix(self, u: Controls) -> Tensor:
+        """``F [..., 20, 20]`` in this model's state units."""
+        llh = _get(u, "llh")
+        F = sins_error_matrix(
+            llh, _get(u, "vel"), _get(u, "f_n"), _get(u, "C_bn"),
+            gyro_markov_time=self.gyro_markov_time, accel_markov_time=self.accel_markov_time, clock_time=self.clock_time,
+        )  # fmt: skip
+        if self.position_in_metres:
+            s = torch.ones_like(F[..., 0])
+            s[..., :3] = _position_scale(llh).expand(*F.shape[:-2], 3)
+            F = s[..., :, None] * F / s[..., None, :]
+        return F
+
+    def matrix(self, u: Controls = None) -> Tensor:
+        F = self.continuous_matrix(u)
+        a = F * self._dt(u, F)[..., None, None]
+        if self.discretization == "expm":
+            return torch.linalg.matrix_exp(a)
+        eye = torch.eye(20, dtype=F.dtype, device=F.device)
+        return eye + a if self.discretization == "first" else eye + a + 0.5 * a @ a
+
+    def forward(self, x: Tensor, u: Controls = None) -> Tensor:
+        return (self.matrix(u) @ x[..., None])[..., 0]
+
+    def jacobian(self, x: Tensor, u: Controls = None) -> Tensor:
+        phi = self.matrix(u)
+        return phi.expand(*torch.broadcast_shapes(x.shape[:-1], phi.shape[:-2]), 20, 20)
+
+    def process_noise(self, x: Tensor, u: Controls = None) -> Tensor:
+        phi = self.matrix(u)
+        q = self.Q
+        dt = self._dt(u, phi)[..., None, None]
+        qd = 0.5 * (phi @ q @ phi.mT + q) * dt
+        return 0.5 * (qd + qd.mT)
+
+
+class SinsPseudorangeMeasurement(MeasurementModel):
+    """Pseudorange and pseudorange-rate differences INS - GPS for ``K`` satellites (p003).
+
+    Nonlinear form (default): with ``p_I = ecef(llh_I)``, ``d = ecef(llh_I) - ecef(llh_I - dllh)``
+    (exact, :func:`~difffilter.sim.geometry.ecef_displacement`), ``a_j = p_I - s_j``,
+    ``b_j = a_j - d = p_true - s_j``, ``w_I = C_n^e(llh_I) v_I - sdot_j``,
+    ``w_G = C_n^e(llh_I - dllh) (v_I - dv) - sdot_j``:
+
+    .. math::
+        \\delta\\rho_j = \\|a_j\\| - \\|b_j\\| - dt_u, \\qquad
+        \\delta\\dot\\rho_j = \\frac{a_j^T w_I}{\\|a_j\\|} - \\frac{b_j^T w_G}{\\|b_j\\|} - dt_{ru}
+
+    (``||a|| - ||b||`` is evaluated as ``(2 a.d - |d|^2) / (||a|| + ||b||)``: no cancellation).
+    ``linearized=True`` gives the paper's ``e_j^T J_geo dllh - dt_u`` and ``e_j^T C_n^e dv - dt_ru``
+    with ``e_j = a_j/||a_j||`` (then :meth:`matrix` returns ``H``).  Output
+    ``[drho_1..K, drhodot_1..K]`` (or only ranges with ``rates=False``).  Analytic Jacobian.
+
+    Learnable: ``R`` (default ``"scalar"`` structure on ``diag(sigma_range^2, sigma_rate^2)``).
+    """
+
+    def __init__(
+        self,
+        *,
+        num_satellites: int,
+        rates: bool = True,
+        linearized: bool = False,
+        sigma_range: float = 3.0,
+        sigma_rate: float = 0.05,
+        R: Tensor | None = None,
+        R_structure: str = "scalar",
+        position_in_metres: bool = False,
+        dtype: torch.dtype = torch.float64,
+    ) -> None:
+        super().__init__()
+        self.num_satellites, self.rates, self.linearized = int(num_satellites), rates, linearized
+        self.position_in_metres = position_in_metres
+        self.measurement_dim = self.num_satellites * (2 if rates else 1)
+        if R is None:
+            var = [sigma_range**2] * self.num_satellites + ([sigma_rate**2] * self.num_satellites if rates else [])
+            R = torch.diag(torch.tensor(var, dtype=dtype))
+        register_covariance(self, "R", R, R_structure)
+
+    def _errors(self, x: Tensor, u: Controls) -> tuple[Tensor, Tensor, Tensor]:
+        llh = _get(u, "llh")
+        pos = x[..., 0:3]
+        if self.position_in_metres:
+            pos = pos / _position_scale(llh)
+        return llh, pos, x[..., 3:6]
+
+    def forward(self, x: Tensor, u: Controls = None) -> Tensor:
+        geo = _geo()
+        llh, dllh, dv = self._errors(x, u)
+        s = _get(u, "sat_pos")
+        a = geo.geodetic_to_ecef(llh)[..., None, :] - s
+        na = torch.linalg.vector_norm(a, dim=-1)
+        ea = a / na[..., None]
+        if self.linearized:
+            d = (geo.geodetic_jacobian(llh) @ dllh[..., None])[..., 0]
+            rho = (ea * d[..., None, :]).sum(-1)
+        else:
+            d = geo.ecef_displacement(llh, dllh)[..., None, :]
+            b = a - d
+            nb = torch.linalg.vector_norm(b, dim=-1)
+            rho = (2.0 * (a * d).sum(-1) - (d * d).sum(-1)) / (na + nb)
+        rho = rho - x[..., 18, None]
+        if not self.rates:
+            return rho
+        if self.linearized:
+            dve = (dv[..., None, :] @ geo.enu_rotation(llh[..., 0], llh[..., 1]))[..., 0, :]
+            rate = (ea * dve[..., None, :]).sum(-1)
+        else:
+            vel = _get(u, "vel")
+            sv = _get(u, "sat_vel")
+            c_i = geo.enu_rotation(llh[..., 0], llh[..., 1])
+            true_llh = llh - dllh
+            c_t = geo.enu_rotation(true_llh[..., 0], true_llh[..., 1])
+            w_i = (vel[..., None, :] @ c_i)[..., 0, None, :] - sv
+            w_g = ((vel - dv)[..., None, :] @ c_t)[..., 0, None, :] - sv
+            rate = (ea * w_i).sum(-1) - (b * w_g).sum(-1) / nb
+        return torch.cat([rho, rate - x[..., 19, None]], -1)
+
+    def jacobian(self, x: Tensor, u: Controls = None) -> Tensor:
+        geo = _geo()
+        llh, dllh, dv = self._errors(x, u)
+        s = _get(u, "sat_pos")
+        k = self.num_satellites
+        a = geo.geodetic_to_ecef(llh)[..., None, :] - s
+        ea = a / torch.linalg.vector_norm(a, dim=-1, keepdim=True)
+        true_llh = llh if self.linearized else llh - dllh
+        jgeo = geo.geodetic_jacobian(true_llh)  # [..., 3, 3]
+        if self.linearized:
+            e = ea
+        else:
+            b = a - geo.ecef_displacement(llh, dllh)[..., None, :]
+            nb = torch.linalg.vector_norm(b, dim=-1, keepdim=True)
+            e = b / nb
+        batch = torch.broadcast_shapes(e.shape[:-2], x.shape[:-1])
+        jac = x.new_zeros(*batch, self.measurement_dim, 20)
+        jac[..., :k, 0:3] = e @ jgeo
+        jac[..., :k, 18] = -1.0
+        if self.rates:
+            c_t = geo.enu_rotation(true_llh[..., 0], true_llh[..., 1])  # rows E, N, U in ECEF
+            jac[..., k:, 3:6] = e @ c_t.mT
+            jac[..., k:, 19] = -1.0
+            if not self.linearized:
+                vt = _get(u, "vel") - dv
+                w_g = (vt[..., None, :] @ c_t)[..., 0, None, :] - _get(u, "sat_vel")
+                proj = (w_g - e * (e * w_g).sum(-1, keepdim=True)) / nb
+                east, north, up = c_t.unbind(-2)
+                lat = true_llh[..., 0]
+                sl, cl = torch.sin(lat)[..., None], torch.cos(lat)[..., None]
+                ve, vn, vu = (vt[..., i, None] for i in range(3))
+                dvec_dlat = -vn * up + vu * north
+                dvec_dlon = ve * (sl * north - cl * up) - vn * sl * east + vu * cl * east
+                rot_part = torch.stack(
+                    [(e * dvec_dlat[..., None, :]).sum(-1), (e * dvec_dlon[..., None, :]).sum(-1), torch.zeros_like(e[..., 0])], -1
+                )
+                jac[..., k:, 0:3] = proj @ jgeo + rot_part
+        if self.position_in_metres:
+            jac[..., 0:3] = jac[..., 0:3] / _position_scale(llh)[..., None, :]
+        return jac
+
+    def matrix(self, u: Controls = None) -> Tensor | None:
+        if not self.linearized:
+            return None
+        x = _get(u, "llh").new_zeros(*_get(u, "llh").shape[:-1], 20)
+        return self.jacobian(x, u)

@@ -1,0 +1,484 @@
+"""p003 flight simulator: 1800 s aircraft profile, strapdown INS errors, GPS pseudorange differences.
+
+How the truth is produced (nothing is sampled from the filter's error model):
+
+1. A scripted flight (:data:`PAPER_PHASES`, or a random schedule) defines speed ``V``, heading
+   ``psi`` (clockwise from north), flight-path angle ``gamma`` on a fine grid (``imu_rate`` Hz).
+   Every manoeuvre uses a ``sin^2`` shape, so accelerations and rates are continuous.  Attitude:
+   pitch = ``gamma``, coordinated-turn roll ``atan(V psi' / g)``; body axes right-forward-up.
+2. One strapdown mechanisation step (ENU, :func:`_mechanise`) is applied to the truth: the true
+   positions are integrated with it, and the true IMU increments (``dtheta``, ``dv`` in body axes)
+   are obtained by *inverting* it, so error-free sensors reproduce the truth to rounding.
+3. The INS runs the same mechanisation from perturbed initial conditions with corrupted increments:
+   gyro constant drift + first-order Markov drift + white noise, accelerometer Markov bias + white
+   noise (p003's values).  The 20-state error truth is INS minus truth (phi-angle from the attitude
+   matrices), sampled at 1 Hz, and the clock follows its own two-state model.
+4. Satellites: :class:`~difffilter.sim.geometry.CircularOrbitConstellation` (24 satellites, 6 planes),
+   the ``K`` with the highest minimum elevation over the flight; slots below 5 deg are masked.
+   Measurements ``drho = |p_INS - s| - (|p_true - s| + dt_u + v)`` and
+   ``drhodot = e_I.(v_INS - s') - (e_G.(v_true - s') + dt_ru + v')``.
+
+Option (default on, the premise of p003's two-mode IMM): during manoeuvres the IMU white noise is
+multiplied by ``manoeuvre_imu_noise_scale`` (100, p003's ``sigma_Q`` ratio) and the GPS noise by
+``manoeuvre_measurement_noise_scale`` (10, the ``sigma_R`` ratio): vibration and tracking-loop stress.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from . import geometry as geo
+from .p001_static import as_generator
+
+__all__ = ["P003_CONFIG", "PAPER_PHASES", "P003Scenario", "flight_profile", "make_p003_model", "manoeuvre_flags", "simulate_p003"]
+
+#: (start s, end s, kind, magnitude): accelerate -> delta-V (m/s), climb/descend -> peak flight-path
+#: angle (deg), turn -> heading change (deg, left negative).  Times from the paper; magnitudes chosen.
+PAPER_PHASES: tuple[tuple[float, float, str, float], ...] = (
+    (0, 10, "static", 0.0),
+    (10, 20, "accelerate", 60.0),
+    (20, 60, "level", 0.0),
+    (60, 90, "climb", 10.0),
+    (90, 150, "level", 0.0),
+    (150, 160, "accelerate", 40.0),
+    (160, 500, "level", 0.0),
+    (500, 520, "turn", -60.0),
+    (520, 1000, "level", 0.0),
+    (1000, 1020, "turn", 60.0),
+    (1020, 1200, "level", 0.0),
+    (1200, 1220, "climb", 10.0),
+    (1220, 1500, "level", 0.0),
+    (1500, 1515, "climb", -10.0),
+    (1515, 1800, "level", 0.0),
+)
+
+P003_CONFIG: dict[str, float] = {
+    "lat_deg": 32.0209,  # [fix] the paper swaps E/N
+    "lon_deg": 118.7667,
+    "height": 0.0,
+    "heading_deg": 135.0,
+    "duration": 1800.0,
+    "gyro_constant_dph": 0.1,  # deg/h, 1-sigma per axis
+    "gyro_markov_dph": 0.1,
+    "gyro_markov_time": 3600.0,
+    "gyro_white_dph": 0.01,  # std of 1 Hz samples
+    "accel_bias_mg": 0.1,  # first-order Markov, 1-sigma
+    "accel_markov_time": 3600.0,
+    "accel_white_mg": 0.1,
+    "init_attitude_deg": 0.1,
+    "init_position": 30.0,  # m per axis
+    "init_velocity": 0.5,  # m/s per axis
+    "clock_bias": 100.0,  # m, "clock-equivalent pseudorange error"
+    "clock_drift": 1.0,  # m/s (not in the paper)
+    "clock_time": 3600.0,
+    "clock_bias_psd": 0.01,  # m^2/s (TCXO, see models.sins.sins_noise_psd)
+    "clock_drift_psd": 0.04,  # m^2/s^3
+    "sigma_range": 3.0,  # m (not in the paper)
+    "sigma_rate": 0.05,  # m/s
+    "elevation_mask_deg": 5.0,
+}
+
+
+@dataclass
+class P003Scenario:
+    """Simulated flights (batch-first, 1 Hz, ``T = duration`` steps at ``t_k = k`` s).
+
+    ``truth [B, T, 20]`` error state (``models.sins`` layout), ``measurements [B, T, 2K]``
+    (``[drho, drhodot]``), ``mask [B, T, 2K]``, ``controls`` (``llh, vel, f_n, C_bn, dt, sat_pos,
+    sat_vel``), ``manoeuvre [B, T]`` (step ``k`` inside a manoeuvre phase), ``initial_mean [B, 20]``
+    (zeros), ``initial_cov [20, 20]``, ``initial_truth [B, 20]`` (the error at ``t = 0``),
+    ``nav_truth`` (``llh, vel, euler`` ``[B, T, 3]``; euler = heading, pitch, roll), ``phases`` per
+    batch element, ``config``.
+    """
+
+    truth: Tensor
+    measurements: Tensor
+    mask: Tensor
+    controls: dict[str, Tensor]
+    manoeuvre: Tensor
+    initial_mean: Tensor
+    initial_cov: Tensor
+    initial_truth: Tensor
+    nav_truth: dict[str, Tensor]
+    times: Tensor
+    dt: float
+    phases: list[list[tuple[float, float, str, float]]]
+    config: dict[str, float] = field(default_factory=dict)
+
+
+# --- numpy strapdown helpers (float64; arrays [..., 3] / [..., 3, 3]) ------------------------------
+_E2, _A, _W = geo.WGS84_E2, geo.WGS84_A, geo.EARTH_RATE
+
+
+def _rot(v: np.ndarray) -> np.ndarray:
+    """Rodrigues ``exp([v x]) = cos(t) I + sin(t)/t [v x] + (1 - cos t)/t^2 v v^T`` for ``v [..., 3]``."""
+    th = np.sqrt((v * v).sum(-1))
+    small = th < 1e-4
+    ts = np.where(small, 1.0, th)
+    a = np.where(small, 1.0 - th**2 / 6.0, np.sin(ts) / ts)
+    b = np.where(small, 0.5 - th**2 / 24.0, (1.0 - np.cos(ts)) / ts**2)
+    r = b[..., None, None] * v[..., :, None] * v[..., None, :]
+    c = np.cos(th)
+    av = a[..., None] * v
+    x, y, z = av[..., 0], av[..., 1], av[..., 2]
+    r[..., 0, 0] += c
+    r[..., 1, 1] += c
+    r[..., 2, 2] += c
+    r[..., 0, 1] -= z
+    r[..., 0, 2] += y
+    r[..., 1, 0] += z
+    r[..., 1, 2] -= x
+    r[..., 2, 0] -= y
+    r[..., 2, 1] += x
+    return r
+
+
+def _log(r: np.ndarray) -> np.ndarray:
+    """Rotation vector of ``r`` (angles well below pi)."""
+    c = np.clip((np.trace(r, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)
+    th = np.arccos(c)
+    vee = 0.5 * np.stack([r[..., 2, 1] - r[..., 1, 2], r[..., 0, 2] - r[..., 2, 0], r[..., 1, 0] - r[..., 0, 1]], -1)
+    s = np.sin(th)
+    f = np.where(th < 1e-6, 1.0 + th**2 / 6.0, th / np.where(th < 1e-6, 1.0, s))
+    return vee * f[..., None]
+
+
+def _frame(llh: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``w_in = w_ie + w_en`` (ENU), ``g^n - (2 w_ie + w_en) x v`` and the radii ``R_M + h``,
+    ``R_N + h``: everything one mechanisation step needs at ``(llh, v)``."""
+    lat, h = llh[..., 0], llh[..., 2]
+    sl, cl = np.sin(lat), np.cos(lat)
+    q = 1.0 - _E2 * sl * sl
+    rn0 = _A / np.sqrt(q)
+    rm, rn = rn0 * (1.0 - _E2) / q + h, rn0 + h
+    ve, vn, vu = v[..., 0], v[..., 1], v[..., 2]
+    wx, wy, wz = -vn / rm, _W * cl + ve / rn, _W * sl + ve * sl / (cl * rn)
+    ax, ay, az = wx, wy + _W * cl, wz + _W * sl  # 2 w_ie + w_en
+    s2 = sl * sl
+    g = 9.7803267714 * (1.0 + 5.27094e-3 * s2 + 2.32718e-5 * s2 * s2) - 3.086e-6 * h
+    acc = np.stack([-(ay * vu - az * vn), -(az * ve - ax * vu), -(ax * vn - ay * ve) - g], -1)
+    return np.stack([wx, wy, wz], -1), acc, rm, rn
+
+
+def _position_step(llh: np.ndarray, v0: np.ndarray, v1: np.ndarray, dt: float, rm: np.ndarray, rn: np.ndarray) -> np.ndarray:
+    vm = 0.5 * (v0 + v1)
+    return llh + np.stack([vm[..., 1] / rm, vm[..., 0] / (rn * np.cos(llh[..., 0])), vm[..., 2]], -1) * dt
+
+
+def _attitude(psi: np.ndarray, pitch: np.ndarray, roll: np.ndarray) -> np.ndarray:
+    """Body (right, forward, up) to ENU: ``R_z(-psi) R_x(pitch) R_y(roll)``."""
+    cz, sz, cx, sx, cy, sy = np.cos(-psi), np.sin(-psi), np.cos(pitch), np.sin(pitch), np.cos(roll), np.sin(roll)
+    o, z = np.ones_like(psi), np.zeros_like(psi)
+    rz = np.stack([np.stack([cz, -sz, z], -1), np.stack([sz, cz, z], -1), np.stack([z, z, o], -1)], -2)
+    rx = np.stack([np.stack([o, z, z], -1), np.stack([z, cx, -sx], -1), np.stack([z, sx, cx], -1)], -2)
+    ry = np.stack([np.stack([cy, z, sy], -1), np.stack([z, o, z], -1), np.stack([-sy, z, cy], -1)], -2)
+    return rz @ rx @ ry
+
+
+# --- flight profile -----------------------------------------------------------------------------
+def _random_phases(rng: np.random.Generator, duration: float) -> list[tuple[float, float, str, float]]:
+    phases: list[tuple[float, float, str, float]] = [(0.0, 10.0, "static", 0.0)]
+    speed, t = 0.0, 10.0
+    first = True
+    while t < duration:
+        if first:
+            d, kind, mag = float(rng.uniform(10, 20)), "accelerate", float(rng.uniform(50, 90))
+            first = False
+        else:
+            d = float(rng.uniform(20, 200))
+            phases.append((t, min(t + d, duration), "level", 0.0))
+            t += d
+            if t >= duration:
+                break
+            kind = str(rng.choice(["accelerate", "climb", "turn"]))
+            d = float(rng.uniform(10, 30))
+            if kind == "accelerate":
+                mag = float(rng.uniform(-40, 40))
+                mag = float(np.clip(speed + mag, 40.0, 200.0) - speed)
+            elif kind == "climb":
+                mag = float(rng.choice([-1, 1]) * rng.uniform(4, 12))
+            else:
+                mag = float(rng.choice([-1, 1]) * rng.uniform(30, 120))
+        phases.append((t, min(t + d, duration), kind, mag))
+        speed += mag if kind == "accelerate" else 0.0
+        t += d
+    return phases
+
+
+def flight_profile(phases: list[tuple[float, float, str, float]], t: np.ndarray, psi0: float) -> dict[str, np.ndarray]:
+    """Truth kinematics on the time grid ``t [N]`` (s) for a phase list like :data:`PAPER_PHASES`:
+    ``speed`` (m/s), ``psi`` heading (rad, clockwise from north, starting at ``psi0``), ``psid``
+    its rate and ``gamma`` flight-path angle (rad).  Each manoeuvre has a ``sin^2`` profile."""
+    speed, psi, psid, gamma = np.zeros_like(t), np.full_like(t, psi0), np.zeros_like(t), np.zeros_like(t)
+    for t0, t1, kind, mag in phases:
+        d = t1 - t0
+        tau = np.clip((t - t0) / d, 0.0, 1.0)
+        inside = (t > t0) & (t < t1)
+        ramp = tau - np.sin(2 * np.pi * tau) / (2 * np.pi)  # integral of 2 sin^2(pi tau)
+        bump = np.where(inside, np.sin(np.pi * tau) ** 2, 0.0)
+        if kind == "accelerate":
+            speed += mag * ramp
+        elif kind == "turn":
+            psi += math.radians(mag) * ramp
+            psid += math.radians(mag) / d * 2.0 * bump
+        elif kind == "climb":
+            gamma += math.radians(mag) * bump
+    return {"speed": speed, "psi": psi, "psid": psid, "gamma": gamma}
+
+
+def manoeuvre_flags(phases: list[tuple[float, float, str, float]], t: np.ndarray) -> np.ndarray:
+    """True where ``t`` lies strictly inside a phase other than ``static``/``level``."""
+    out = np.zeros(t.shape, dtype=bool)
+    for t0, t1, kind, _ in phases:
+        if kind not in ("static", "level"):
+            out |= (t > t0) & (t < t1)
+    return out
+
+
+def _clock_discrete(dt: float, tau: float, qb: float, qd: float) -> tuple[np.ndarray, np.ndarray]:
+    """Exact (Van Loan) discretisation of ``b' = d + w_b``, ``d' = -d/tau + w_d``."""
+    f = torch.tensor([[0.0, 1.0], [0.0, -1.0 / tau]], dtype=torch.float64)
+    q = torch.diag(torch.tensor([qb, qd], dtype=torch.float64))
+    m = torch.zeros(4, 4, dtype=torch.float64)
+    m[:2, :2], m[:2, 2:], m[2:, 2:] = -f, q, f.T
+    e = torch.linalg.matrix_exp(m * dt)
+    phi = e[2:, 2:].T
+    return phi.numpy(), (phi @ e[:2, 2:]).numpy()
+
+
+def simulate_p003(
+    batch_size: int = 1,
+    seed: int | torch.Generator | None = 0,
+    dtype: torch.dtype = torch.float64,
+    *,
+    profile: str = "paper",
+    duration: float | None = None,
+    imu_rate: int = 10,
+    num_satellites: int = 8,
+    sensor_errors: bool = True,
+    imu_noise: bool = True,
+    initial_errors: bool = True,
+    measurement_noise: bool = True,
+    manoeuvre_imu_noise_scale: float = 100.0,
+    manoeuvre_measurement_noise_scale: float = 10.0,
+    position_in_metres: bool = False,
+    config: dict[str, float] | None = None,
+) -> P003Scenario:
+    """Simulate ``batch_size`` flights (see the module docstring).
+
+    Args:
+        profile: ``"paper"`` (:data:`PAPER_PHASES` from 32.0209 N, 118.7667 E, heading 135 deg,
+            fixed satellite geometry) or ``"random"`` (random schedule, start point, heading and
+            satellite geometry per batch element).
+        duration: seconds (default 1800); the paper profile is cut there.
+        sensor_errors / initial_errors / measurement_noise: switch off for tests (with both error
+            switches off the INS equals the truth to rounding); ``imu_noise=False`` keeps the
+            biases but drops the white noises and Markov driving noises (deterministic errors).
+        position_in_metres: express truth and covariances in the ``models.sins`` metre layout.
+    """
+    gen = as_generator(seed)
+    cfg = {**P003_CONFIG, **(config or {})}
+    dur = float(duration if duration is not None else cfg["duration"])
+    steps, n_in = int(round(dur)), int(round(dur)) * imu_rate
+    dti, bsz, k_sat = 1.0 / imu_rate, batch_size, num_satellites
+
+    def randn(*shape: int) -> np.ndarray:
+        return torch.randn(*shape, generator=gen, dtype=torch.float64).numpy()
+
+    rng = np.random.default_rng(int(torch.randint(0, 2**62, (1,), generator=gen)))
+    tg = np.arange(n_in + 1) * dti
+    if profile == "paper":
+        phases = [list(PAPER_PHASES) for _ in range(bsz)]
+        lat0 = np.full(bsz, math.radians(cfg["lat_deg"]))
+        lon0 = np.full(bsz, math.radians(cfg["lon_deg"]))
+        psi0 = np.full(bsz, math.radians(cfg["heading_deg"]))
+        earth_angle, orbit_phase = np.zeros(bsz), np.zeros(bsz)
+    elif profile == "random":
+        phases = [_random_phases(rng, dur) for _ in range(bsz)]
+        lat0, lon0 = np.radians(rng.uniform(-60, 60, bsz)), np.radians(rng.uniform(-180, 180, bsz))
+        psi0, earth_angle, orbit_phase = rng.uniform(0, 2 * np.pi, (3, bsz))
+    else:
+        raise ValueError(f"profile must be 'paper' or 'random', got {profile!r}")
+    prof = [flight_profile(p, tg, float(s)) for p, s in zip(phases, psi0, strict=True)]
+    speed, psi, psid, gamma = (np.stack([p[k] for p in prof]) for k in ("speed", "psi", "psid", "gamma"))
+    vel = speed[..., None] * np.stack([np.cos(gamma) * np.sin(psi), np.cos(gamma) * np.cos(psi), np.sin(gamma)], -1)
+    roll = np.arctan(speed * psid / 9.80665)
+    c_true = _attitude(psi, gamma, roll)  # [B, N+1, 3, 3]
+    llh = np.zeros((bsz, n_in + 1, 3))
+    llh[:, 0] = np.stack([lat0, lon0, np.full(bsz, cfg["height"])], -1)
+    for i in range(n_in):
+        _, _, rm_i, rn_i = _frame(llh[:, i], vel[:, i])
+        llh[:, i + 1] = _position_step(llh[:, i], vel[:, i], vel[:, i + 1], dti, rm_i, rn_i)
+    # true IMU increments: the mechanisation step inverted
+    w_in, acc, _, _ = _frame(llh[:, :-1], vel[:, :-1])
+    c0t = np.swapaxes(c_true[:, :-1], -1, -2)
+    dtheta = _log(c0t @ _rot(w_in * dti) @ c_true[:, 1:])
+    dvel = (c0t @ (vel[:, 1:] - vel[:, :-1] - acc * dti)[..., None])[..., 0]
+    # sensor errors
+    dph, mg = math.radians(1.0) / 3600.0, 9.80665e-3
+    on = 1.0 if sensor_errors else 0.0
+    man_in = np.stack([manoeuvre_flags(p, tg[:-1] + 0.5 * dti) for p in phases])[..., None]
+    noisy = on * float(imu_noise)
+    white_scale = np.where(man_in, manoeuvre_imu_noise_scale, 1.0) * math.sqrt(dti) * noisy
+    eps_b = randn(bsz, 3) * cfg["gyro_constant_dph"] * dph * on
+    eps_r = randn(bsz, 3) * cfg["gyro_markov_dph"] * dph * on
+    nabla = randn(bsz, 3) * cfg["accel_bias_mg"] * mg * on
+    gyro_w = randn(bsz, n_in, 3) * cfg["gyro_white_dph"] * dph * white_scale
+    acc_w = randn(bsz, n_in, 3) * cfg["accel_white_mg"] * mg * white_scale
+    drive = randn(bsz, n_in, 6) * noisy
+    ag, aa = math.exp(-dti / cfg["gyro_markov_time"]), math.exp(-dti / cfg["accel_markov_time"])
+    sg = cfg["gyro_markov_dph"] * dph * math.sqrt(1 - ag * ag)
+    sa = cfg["accel_bias_mg"] * mg * math.sqrt(1 - aa * aa)
+    # initial errors (north/east/up metres, m/s, rad)
+    ie = 1.0 if initial_errors else 0.0
+    d_neu = randn(bsz, 3) * cfg["init_position"] * ie
+    d_v = randn(bsz, 3) * cfg["init_velocity"] * ie
+    phi0 = randn(bsz, 3) * math.radians(cfg["init_attitude_deg"]) * ie
+    _, _, rm0, rn0 = _frame(llh[:, 0], vel[:, 0])
+    ins_llh = llh[:, 0] + np.stack([d_neu[:, 0] / rm0, d_neu[:, 1] / (rn0 * np.cos(llh[:, 0, 0])), d_neu[:, 2]], -1)
+    ins_v, ins_c = vel[:, 0] + d_v, _rot(-phi0) @ c_true[:, 0]
+    rec = {k: np.zeros((bsz, steps + 1, 3)) for k in ("llh", "vel", "f_n", "eps_r", "nabla")}
+    rec_c = np.zeros((bsz, steps + 1, 3, 3))
+    rec["llh"][:, 0], rec["vel"][:, 0], rec["eps_r"][:, 0], rec["nabla"][:, 0], rec_c[:, 0] = ins_llh, ins_v, eps_r, nabla, ins_c
+    f_acc = np.zeros((bsz, 3))
+    for i in range(n_in):
+        w_in, acc, rm_i, rn_i = _frame(ins_llh, ins_v)
+        dvb = dvel[:, i] + nabla * dti + acc_w[:, i]
+        dvn = (ins_c @ dvb[..., None])[..., 0]
+        f_acc += dvn
+        v_new = ins_v + dvn + acc * dti
+        ins_c = _rot(-w_in * dti) @ ins_c @ _rot(dtheta[:, i] + (eps_b + eps_r) * dti + gyro_w[:, i])
+        ins_llh = _position_step(ins_llh, ins_v, v_new, dti, rm_i, rn_i)
+        ins_v = v_new
+        eps_r = ag * eps_r + sg * drive[:, i, :3]
+        nabla = aa * nabla + sa * drive[:, i, 3:]
+        if (i + 1) % imu_rate == 0:
+            k = (i + 1) // imu_rate
+            rec["llh"][:, k], rec["vel"][:, k], rec["eps_r"][:, k], rec["nabla"][:, k], rec_c[:, k] = ins_llh, ins_v, eps_r, nabla, ins_c
+            rec["f_n"][:, k], f_acc = f_acc, np.zeros((bsz, 3))
+    # --- error truth at the 1 Hz epochs ------------------------------------------------------------
+    ke = np.arange(steps + 1) * imu_rate
+    t_llh, t_vel, t_c = llh[:, ke], vel[:, ke], c_true[:, ke]
+    err = np.zeros((bsz, steps + 1, 20))
+    err[..., 0:3], err[..., 3:6] = rec["llh"] - t_llh, rec["vel"] - t_vel
+    err[..., 6:9] = -_log(rec_c @ np.swapaxes(t_c, -1, -2))
+    err[..., 9:12], err[..., 12:15], err[..., 15:18] = eps_b[:, None], rec["eps_r"], rec["nabla"]
+    phi_c, q_c = _clock_discrete(1.0, cfg["clock_time"], cfg["clock_bias_psd"], cfg["clock_drift_psd"])
+    lq, cn = np.linalg.cholesky(q_c), randn(bsz, steps, 2)
+    err[:, 0, 18:20] = randn(bsz, 2) * np.array([cfg["clock_bias"], cfg["clock_drift"]])
+    for k in range(steps):
+        err[:, k + 1, 18:20] = err[:, k, 18:20] @ phi_c.T + cn[:, k] @ lq.T
+    # --- satellites and measurements ----------------------------------------------------------
+    f64 = torch.float64
+    tt = torch.arange(steps + 1, dtype=f64).expand(bsz, steps + 1)
+    sp, sv = geo.CircularOrbitConstellation().state(tt, torch.tensor(earth_angle)[:, None], torch.tensor(orbit_phase)[:, None])
+    p_true = geo.geodetic_to_ecef(torch.from_numpy(t_llh))
+    elev = geo.azimuth_elevation(p_true, sp)[1]
+    best = torch.argsort(elev[:, 1:].amin(1), dim=-1, descending=True)[:, :k_sat]  # [B, K]
+    pick = best[:, None, :, None].expand(bsz, steps + 1, k_sat, 3)
+    sp, sv, elev = sp.gather(2, pick), sv.gather(2, pick), elev.gather(2, best[:, None].expand(bsz, steps + 1, k_sat))
+    ins_llh_t = torch.from_numpy(rec["llh"])
+    p_ins = geo.geodetic_to_ecef(ins_llh_t)
+    ci = geo.enu_rotation(ins_llh_t[..., 0], ins_llh_t[..., 1])
+    ct = geo.enu_rotation(torch.from_numpy(t_llh[..., 0]), torch.from_numpy(t_llh[..., 1]))
+    vi_e = (torch.from_numpy(rec["vel"])[..., None, :] @ ci)[..., 0, :]
+    vt_e = (torch.from_numpy(t_vel)[..., None, :] @ ct)[..., 0, :]
+    a, b = p_ins[..., None, :] - sp, p_true[..., None, :] - sp
+    na, nb = a.norm(dim=-1), b.norm(dim=-1)
+    clock = torch.from_numpy(err[..., 18:20])
+    man = np.stack([manoeuvre_flags(p, np.arange(1, steps + 1) - 0.5) for p in phases])
+    nscale = torch.from_numpy(np.where(man, manoeuvre_measurement_noise_scale, 1.0))[..., None] * float(measurement_noise)
+    drho = (na - nb - clock[..., 0, None])[:, 1:] - torch.from_numpy(randn(bsz, steps, k_sat)) * cfg["sigma_range"] * nscale
+    rate = ((a * (vi_e[..., None, :] - sv)).sum(-1) / na - (b * (vt_e[..., None, :] - sv)).sum(-1) / nb - clock[..., 1, None])[:, 1:]
+    rate = rate - torch.from_numpy(randn(bsz, steps, k_sat)) * cfg["sigma_rate"] * nscale
+    vis = elev[:, 1:] > math.radians(cfg["elevation_mask_deg"])
+    # --- units and initial belief -------------------------------------------------------------
+    _, _, rm, rn = _frame(rec["llh"], rec["vel"])
+    scale = np.stack([rm, rn * np.cos(rec["llh"][..., 0]), np.ones_like(rm)], -1)
+    if position_in_metres:
+        err[..., 0:3] *= scale
+    sd0 = np.concatenate(
+        [
+            np.full((bsz, 3), cfg["init_position"]) / (1.0 if position_in_metres else scale[:, 0]),
+            np.full((bsz, 3), cfg["init_velocity"]),
+            np.full((bsz, 3), math.radians(cfg["init_attitude_deg"])),
+            np.full((bsz, 6), cfg["gyro_constant_dph"] * dph),
+            np.full((bsz, 3), cfg["accel_bias_mg"] * mg),
+            np.tile([cfg["clock_bias"], cfg["clock_drift"]], (bsz, 1)),
+        ],
+        -1,
+    )
+    euler = np.stack([psi, gamma, roll], -1)[:, ke]
+
+    def cast(v: np.ndarray | Tensor) -> Tensor:
+        return torch.as_tensor(v).to(dtype)
+
+    controls = {
+        "llh": cast(rec["llh"][:, 1:]),
+        "vel": cast(rec["vel"][:, 1:]),
+        "f_n": cast(rec["f_n"][:, 1:]),
+        "C_bn": cast(rec_c[:, 1:]),
+        "dt": torch.ones(bsz, steps, 1, dtype=dtype),
+        "sat_pos": cast(sp[:, 1:]),
+        "sat_vel": cast(sv[:, 1:]),
+    }
+    return P003Scenario(
+        truth=cast(err[:, 1:]),
+        measurements=torch.cat([drho, rate], -1).to(dtype),
+        mask=torch.cat([vis, vis], -1),
+        controls=controls,
+        manoeuvre=torch.from_numpy(man),
+        initial_mean=torch.zeros(bsz, 20, dtype=dtype),
+        initial_cov=torch.diag_embed(cast(sd0**2)),
+        initial_truth=cast(err[:, 0]),
+        nav_truth={"llh": cast(t_llh[:, 1:]), "vel": cast(t_vel[:, 1:]), "euler": cast(euler[:, 1:])},
+        times=torch.arange(1, steps + 1, dtype=dtype),
+        dt=1.0,
+        phases=phases,
+        config={**cfg, "imu_rate": float(imu_rate), "num_satellites": float(k_sat)},
+    )
+
+
+def make_p003_model(
+    *,
+    num_satellites: int = 8,
+    q_scale: float = 1.0,
+    r_scale: float = 1.0,
+    linearized: bool = False,
+    position_in_metres: bool = False,
+    discretization: str = "expm",
+    Q_structure: str = "scalar",
+    R_structure: str = "scalar",
+    config: dict[str, float] | None = None,
+    dtype: torch.dtype = torch.float64,
+) -> torch.nn.Module:
+    """The 20-state error model with the simulator's noise levels times ``q_scale`` (on the PSD,
+    i.e. ``sigma_Q^2``) and ``r_scale`` (on ``R``).  p003's modes: low = ``(1, 1)``, high =
+    ``(100**2, 10**2)`` (``sigma_Q(high) = 100 sigma_Q(low)``, ``sigma_R(high) = 10 sigma_R(low)``)."""
+    from ..models.base import StateSpaceModel
+    from ..models.sins import DEG_PER_HOUR, MILLI_G, SinsErrorDynamics, SinsPseudorangeMeasurement, sins_noise_psd
+
+    cfg = {**P003_CONFIG, **(config or {})}
+    psd = sins_noise_psd(
+        gyro_white=cfg["gyro_white_dph"] * DEG_PER_HOUR, gyro_markov=cfg["gyro_markov_dph"] * DEG_PER_HOUR,
+        gyro_markov_time=cfg["gyro_markov_time"], accel_white=cfg["accel_white_mg"] * MILLI_G,
+        accel_markov=cfg["accel_bias_mg"] * MILLI_G, accel_markov_time=cfg["accel_markov_time"],
+        clock_bias_psd=cfg["clock_bias_psd"], clock_drift_psd=cfg["clock_drift_psd"],
+        position_in_metres=position_in_metres, dtype=dtype,
+    )  # fmt: skip
+    dyn = SinsErrorDynamics(
+        Q=torch.diag(psd) * q_scale, Q_structure=Q_structure, gyro_markov_time=cfg["gyro_markov_time"],
+        accel_markov_time=cfg["accel_markov_time"], clock_time=cfg["clock_time"], discretization=discretization,
+        position_in_metres=position_in_metres, dtype=dtype,
+    )  # fmt: skip
+    var = [cfg["sigma_range"] ** 2 * r_scale] * num_satellites + [cfg["sigma_rate"] ** 2 * r_scale] * num_satellites
+    meas = SinsPseudorangeMeasurement(
+        num_satellites=num_satellites, linearized=linearized, R=torch.diag(torch.tensor(var, dtype=dtype)),
+        R_structure=R_structure, position_in_metres=position_in_metres, dtype=dtype,
+    )  # fmt: skip
+    return StateSpaceModel(dyn, meas)

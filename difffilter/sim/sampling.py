@@ -1,0 +1,276 @@
+"""In-family trajectory sampler: draw truth and measurements from any :class:`StateSpaceModel`.
+
+For a model ``(f, h, Q, R)`` and an initial belief ``N(m_0, P_0)``
+
+.. math::
+    x_0 \\sim N(m_0, P_0), \\quad
+    x_k = f(x_{k-1}, u_k) + w_k,\\ w_k \\sim N(0, Q(x_{k-1}, u_k)), \\quad
+    z_k = h(x_k, u_k) + v_k,\\ v_k \\sim N(0, R(x_k, u_k)),
+
+for ``k = 1..T``.  ``truth[:, t]`` is ``x_{t+1}`` and ``measurements[:, t]`` is ``z_{t+1}``, so
+``(m_0, P_0)`` is exactly the belief *before* the first measurement that every difffilter filter
+expects, and a filter run with the sampling model's own parameters is the optimal (oracle)
+filter for linear-Gaussian models.  State-dependent ``Q``/``R`` (``process_noise`` /
+``measurement_noise`` overrides) are honoured.
+
+Randomness comes from one ``torch.Generator`` seeded by ``seed``; everything is drawn and
+propagated in float64 and cast to the requested dtype at the end, so the float32 data set is the
+float64 one rounded, and a seed gives the same trajectories on every machine.
+
+Such data is "in-family": the filter's model class contains the truth, which is what parameter
+recovery tests and oracle comparisons need.  Paper scenarios with scripted manoeuvres live in
+the per-paper simulators of :mod:`difffilter.sim`.
+"""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+from torch import Tensor
+from torch.nn.utils import parametrize
+
+from ..filters.base import slice_controls
+from ..linalg import safe_cholesky
+from ..models.base import Controls, StateSpaceModel
+from ..params import constrained_values
+
+__all__ = ["ModelSimulator", "SampledTrajectories", "as_dtype", "sample_trajectories"]
+
+
+def as_dtype(dtype: torch.dtype | str | None, default: torch.dtype = torch.float64) -> torch.dtype:
+    """``torch.float64``, ``"float64"``, ``"torch.float32"``, ``"64"`` or ``None`` -> a torch dtype."""
+    if dtype is None:
+        return default
+    if isinstance(dtype, torch.dtype):
+        return dtype
+    name = str(dtype).removeprefix("torch.")
+    aliases = {"64": "float64", "32": "float32", "double": "float64", "float": "float32", "16": "float16"}
+    out = getattr(torch, aliases.get(name, name), None)
+    if not isinstance(out, torch.dtype) or not out.is_floating_point:
+        raise ValueError(f"dtype must name a floating-point torch dtype (e.g. 'float64'), got {dtype!r}")
+    return out
+
+
+def _generator(seed: int | torch.Generator) -> torch.Generator:
+    if isinstance(seed, torch.Generator):
+        return seed
+    return torch.Generator().manual_seed(int(seed))
+
+
+def _cast_controls(controls: Controls, dtype: torch.dtype) -> Controls:
+    def cast(v: Tensor) -> Tensor:
+        return v.to(dtype) if v.is_floating_point() else v
+
+    if controls is None:
+        return None
+    if isinstance(controls, Tensor):
+        return cast(controls)
+    return {k: cast(v) for k, v in controls.items()}
+
+
+def _noise_factor(cov: Tensor, batch: int, dim: int) -> Tensor:
+    cov = cov.expand(batch, dim, dim) if cov.ndim == 2 else cov
+    return safe_cholesky(cov).factor
+
+
+@dataclass
+class SampledTrajectories:
+    """Trajectories drawn from a model (batch-first, ``T`` steps).
+
+    Attributes:
+        truth: ``[B, T, n]`` true states ``x_1..x_T``.
+        measurements: ``[B, T, m]`` (NaN where ``mask`` is False).
+        mask: ``[B, T]`` bool, True = observed, or ``None`` when every step is observed.
+        controls: the per-step inputs ``[B, T, ...]`` used (tensor, dict or ``None``).
+        initial_mean: ``[B, n]`` prior mean ``m_0`` (the filter's starting belief).
+        initial_cov: ``[n, n]`` prior covariance ``P_0``.
+        initial_state: ``[B, n]`` the drawn ``x_0``.
+        true_params: constrained parameter values of the sampling model, ``{dotted name: value}``
+            (e.g. ``{"dynamics.Q": ..., "measurement.R": ...}``), for an oracle filter.
+        dt: sampling period (s) if known.
+        model: the sampling model (float64 copy); see :meth:`make_model`.
+    """
+
+    truth: Tensor
+    measurements: Tensor
+    mask: Tensor | None
+    controls: Controls
+    initial_mean: Tensor
+    initial_cov: Tensor
+    initial_state: Tensor
+    true_params: dict[str, Tensor] = field(default_factory=dict)
+    dt: float | None = None
+    model: StateSpaceModel | None = None
+
+    def make_model(self) -> StateSpaceModel:
+        """A fresh copy of the sampling model in this data's dtype (the oracle model)."""
+        if self.model is None:
+            raise ValueError("these trajectories carry no model")
+        return copy.deepcopy(self.model).to(self.measurements.dtype)
+
+
+@torch.no_grad()
+def sample_trajectories(
+    model: StateSpaceModel,
+    *,
+    batch_size: int,
+    num_steps: int,
+    initial_mean: Tensor | Sequence[float],
+    initial_cov: Tensor | Sequence[float] | Sequence[Sequence[float]],
+    seed: int | torch.Generator = 0,
+    dtype: torch.dtype | str | None = torch.float64,
+    controls: Controls = None,
+    missing_prob: float = 0.0,
+    dt: float | None = None,
+) -> SampledTrajectories:
+    """Draw ``batch_size`` trajectories of ``num_steps`` steps from ``model``.
+
+    Args:
+        model: any state-space model (its parameters are read, never changed).
+        batch_size, num_steps: ``B`` and ``T``.
+        initial_mean: ``[n]`` or ``[B, n]`` prior mean ``m_0``.
+        initial_cov: ``[n, n]`` prior covariance ``P_0`` (``x_0 ~ N(m_0, P_0)``), or its
+            diagonal ``[n]``.
+        seed: integer seed or a ``torch.Generator``.
+        dtype: dtype of the returned tensors (sampling itself runs in float64).
+        controls: per-step inputs ``[B, T, ...]`` (tensor or dict) passed to ``f`` and ``h``.
+        missing_prob: probability that a step's measurement is missing (``mask`` False, value
+            NaN), drawn independently per step.
+        dt: sampling period to record in the result.
+
+    Returns:
+        :class:`SampledTrajectories`.
+    """
+    if batch_size < 1 or num_steps < 1:
+        raise ValueError(f"batch_size and num_steps must be >= 1, got {batch_size}, {num_steps}")
+    if not 0.0 <= missing_prob < 1.0:
+        raise ValueError(f"missing_prob must lie in [0, 1), got {missing_prob}")
+    out_dtype = as_dtype(dtype)
+    f64 = torch.float64
+    gen = _generator(seed)
+    sim = copy.deepcopy(model).to(f64)
+    n, m = sim.state_dim, sim.measurement_dim
+    mean0 = torch.as_tensor(initial_mean, dtype=f64)
+    cov0 = torch.as_tensor(initial_cov, dtype=f64)
+    if cov0.ndim == 1:
+        cov0 = torch.diag(cov0)
+    if mean0.shape not in ((n,), (batch_size, n)):
+        raise ValueError(f"initial_mean must have shape [{n}] or [B, {n}] = [{batch_size}, {n}], got {tuple(mean0.shape)}")
+    if cov0.shape != (n, n):
+        raise ValueError(f"initial_cov must have shape [{n}, {n}], got {tuple(cov0.shape)}")
+    mean0 = mean0.expand(batch_size, n)
+    u_all = _cast_controls(controls, f64)
+
+    chol0 = safe_cholesky(cov0).factor
+    x = mean0 + (chol0 @ torch.randn(batch_size, n, 1, generator=gen, dtype=f64))[..., 0]
+    x0 = x
+    states, meas = [], []
+    # cached(): constrained values are computed once for the whole run, as inside a filter.
+    with parametrize.cached():
+        for t in range(num_steps):
+            u = slice_controls(u_all, t)
+            lq = _noise_factor(sim.dynamics.process_noise(x, u), batch_size, n)
+            x = sim.dynamics(x, u) + (lq @ torch.randn(batch_size, n, 1, generator=gen, dtype=f64))[..., 0]
+            lr = _noise_factor(sim.measurement.measurement_noise(x, u), batch_size, m)
+            z = sim.measurement(x, u) + (lr @ torch.randn(batch_size, m, 1, generator=gen, dtype=f64))[..., 0]
+            states.append(x)
+            meas.append(z)
+    truth = torch.stack(states, 1)
+    measurements = torch.stack(meas, 1)
+    mask = None
+    if missing_prob > 0:
+        mask = torch.rand(batch_size, num_steps, generator=gen, dtype=f64) >= missing_prob
+        measurements = torch.where(mask[..., None], measurements, torch.full_like(measurements, float("nan")))
+    return SampledTrajectories(
+        truth=truth.to(out_dtype),
+        measurements=measurements.to(out_dtype),
+        mask=mask,
+        controls=_cast_controls(controls, out_dtype),
+        initial_mean=mean0.to(out_dtype).clone(),
+        initial_cov=cov0.to(out_dtype),
+        initial_state=x0.to(out_dtype),
+        true_params={k: v.to(out_dtype) for k, v in constrained_values(sim).items()},
+        dt=dt,
+        model=sim,
+    )
+
+
+class ModelSimulator:
+    """A simulator ``(batch_size, seed, dtype) -> SampledTrajectories`` over a fixed model.
+
+    The convention every difffilter simulator follows, so that
+    :class:`~difffilter.learn.data.TrajectoryDataModule` can draw train/val/test sets from
+    different seeds.  ``true_params`` sets constrained values on (a copy of) ``model`` first,
+    using the name matching of :func:`difffilter.learn.selection.assign_parameters`
+    (``{"Q": ..., "R": [4.0, 4.0]}``), so one model config can serve as both the filter and the
+    truth with different values.
+
+    Args:
+        model: the truth model.
+        num_steps: trajectory length ``T``.
+        initial_mean, initial_cov: prior ``N(m_0, P_0)`` (``initial_cov`` ``[n, n]`` or its diagonal).
+        true_params: optional constrained values to set on the copy of ``model``.
+        controls: optional ``(batch_size, num_steps, generator, dtype) -> controls`` callable or
+            a fixed ``[1, T, ...]`` tensor broadcast over the batch.
+        missing_prob: probability of a missing measurement step.
+        dt: sampling period recorded in the result.
+    """
+
+    def __init__(
+        self,
+        *,
+        model: StateSpaceModel,
+        num_steps: int,
+        initial_mean: Tensor | Sequence[float],
+        initial_cov: Tensor | Sequence[float] | Sequence[Sequence[float]],
+        true_params: Mapping[str, Any] | None = None,
+        controls: Callable[..., Controls] | Tensor | None = None,
+        missing_prob: float = 0.0,
+        dt: float | None = None,
+    ) -> None:
+        self.model = copy.deepcopy(model).to(torch.float64)
+        if true_params:
+            from ..learn.selection import assign_parameters  # local: keeps sim free of learn at import
+
+            assign_parameters(self.model, dict(true_params))
+        self.num_steps = int(num_steps)
+        self.initial_mean = torch.as_tensor(initial_mean, dtype=torch.float64)
+        self.initial_cov = torch.as_tensor(initial_cov, dtype=torch.float64)
+        self.controls = controls
+        self.missing_prob = float(missing_prob)
+        self.dt = dt
+
+    def __call__(
+        self,
+        batch_size: int = 32,
+        seed: int | torch.Generator = 0,
+        dtype: torch.dtype | str | None = torch.float64,
+        num_steps: int | None = None,
+    ) -> SampledTrajectories:
+        """Draw ``batch_size`` trajectories (``num_steps`` overrides the constructor's length)."""
+        gen = _generator(seed)
+        steps = self.num_steps if num_steps is None else int(num_steps)
+        controls: Controls
+        if callable(self.controls) and not isinstance(self.controls, Tensor):
+            controls = self.controls(batch_size, steps, gen, torch.float64)
+        elif isinstance(self.controls, Tensor):
+            fixed = self.controls[:, :steps]
+            controls = fixed.expand(batch_size, *fixed.shape[1:])
+        else:
+            controls = None
+        return sample_trajectories(
+            self.model,
+            batch_size=batch_size,
+            num_steps=steps,
+            initial_mean=self.initial_mean,
+            initial_cov=self.initial_cov,
+            seed=gen,
+            dtype=dtype,
+            controls=controls,
+            missing_prob=self.missing_prob,
+            dt=self.dt,
+        )

@@ -1,0 +1,130 @@
+"""Smoke tests of the benchmark (experiments/benchmark.py, difffilter.bench): tiny sizes, no timing asserts.
+
+They check that the Hydra config composes, that every configured case produces a row with the
+expected columns, that the written tables are complete, and that difffilter and its peers compute
+the same log-likelihood on the same data (the fairness condition of the comparison).
+"""
+
+from __future__ import annotations
+
+import csv
+import importlib.util
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from difffilter.bench.gpsdr import make_gpsdr_model, simulate_gpsdr
+from difffilter.bench.memory import training_step_memory
+from difffilter.bench.runner import MAIN_COLUMNS
+from difffilter.bench.suite import run_suite
+from difffilter.filters.ekf import autodiff_jacobian
+
+ROOT = Path(__file__).resolve().parents[1]
+HAS_JAX = importlib.util.find_spec("jax") is not None and importlib.util.find_spec("dynamax") is not None
+HAS_FILTERPY = importlib.util.find_spec("filterpy") is not None
+
+
+def _compose(*overrides: str) -> dict:
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        cfg = compose(config_name="benchmark", overrides=["benchmark=smoke", *overrides])
+    return OmegaConf.to_container(cfg.benchmark, resolve=True)
+
+
+def _read_csv(path: Path) -> list[dict[str, str]]:
+    with open(path, newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+def test_full_config_composes_with_the_documented_cases() -> None:
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        cfg = compose(config_name="benchmark")
+    b = cfg.benchmark
+    assert list(b.batch_sizes) == [1, 16, 256, 4096] and b.steps == 500
+    assert set(b.filters) == {"kf", "ekf", "ukf", "imm"} and set(b.dtypes) == {"float64", "float32"}
+    assert b.memory.steps == 5000 and b.memory.batch == 1024
+
+
+def test_smoke_difffilter_and_filterpy(tmp_path: Path) -> None:
+    libs = ["difffilter", "filterpy"] if HAS_FILTERPY else ["difffilter"]
+    cfg = _compose(f"benchmark.libraries=[{','.join(libs)}]")
+    md = run_suite(cfg, tmp_path, command="smoke", log=lambda s: None)
+    rows = _read_csv(tmp_path / "benchmark.csv")
+    assert list(rows[0]) == MAIN_COLUMNS
+    ours = {(r["filter"], r["mode"]) for r in rows if r["library"] == "difffilter"}
+    assert ours == {(k, m) for k in ("kf", "ekf", "ukf", "imm") for m in ("forward", "fwd+bwd")}
+    for r in rows:
+        assert r["B"] == "2" and r["T"] == "5" and r["dtype"] == "float64"
+        assert math.isfinite(float(r["steps_per_s"])) and float(r["steps_per_s"]) > 0
+        if r["library"] == "difffilter" and r["mode"] == "fwd+bwd":
+            assert float(r["fb_over_f"]) > 0
+    if HAS_FILTERPY:
+        fp = [r for r in rows if r["library"] == "filterpy"]
+        assert {r["filter"] for r in fp} == {"kf", "ekf", "ukf", "imm"}
+        assert all(r["mode"] == "forward" and float(r["difffilter_over_peer"]) > 0 for r in fp)
+        agree = _read_csv(tmp_path / "agreement.csv")
+        assert {a["filter"] for a in agree if a["peer"] == "filterpy"} == {"kf", "ekf", "ukf", "imm"}
+        # Same model, same data, same conventions: the log-likelihoods agree to rounding.
+        assert max(float(a["max_rel_diff"]) for a in agree) < 1e-10
+    targets = _read_csv(tmp_path / "targets.csv")
+    assert any(t["target"].startswith("UKF B=2: backward / forward") and t["met"] in ("yes", "NO") for t in targets)
+    text = (tmp_path / "results.md").read_text()
+    assert text == md and "## Throughput and memory" in text and "| ukf | difffilter | float64 | 2 | 5 | forward |" in text
+
+
+@pytest.mark.skipif(not HAS_JAX, reason="dynamax/jax not installed")
+def test_smoke_dynamax_matches_difffilter(tmp_path: Path) -> None:
+    cfg = _compose("benchmark.libraries=[difffilter,dynamax]", "benchmark.filters=[kf,ukf]", "benchmark.modes=[forward]")
+    run_suite(cfg, tmp_path, log=lambda s: None)
+    rows = _read_csv(tmp_path / "benchmark.csv")
+    dx = [r for r in rows if r["library"] == "dynamax"]
+    assert {r["filter"] for r in dx} == {"kf", "ukf"}
+    assert all(float(r["compile_s"]) > 0 and float(r["difffilter_over_peer"]) > 0 for r in dx)
+    agree = {a["filter"]: float(a["max_rel_diff"]) for a in _read_csv(tmp_path / "agreement.csv") if a["peer"] == "dynamax"}
+    # dynamax adds 1e-9 to the innovation covariance's diagonal before solving for the gain.
+    assert set(agree) == {"kf", "ukf"} and max(agree.values()) < 1e-7
+
+
+def test_benchmark_model_jacobian_and_simulator() -> None:
+    data = simulate_gpsdr(batch_size=3, steps=20, seed=1)
+    again = simulate_gpsdr(batch_size=3, steps=20, seed=1)
+    assert torch.equal(data.measurements, again.measurements)
+    speed = data.truth[..., [1, 4]].norm(dim=-1)
+    assert bool((speed > 5).all()) and bool((speed < 20).all())
+    model = make_gpsdr_model()
+    x = data.truth[:, 5]
+    analytic = model.measurement.jacobian(x)
+    auto = autodiff_jacobian(model.measurement, x, None)
+    torch.testing.assert_close(analytic, auto, rtol=0, atol=1e-10)
+    # Noise-free measurements of the truth are the simulator's measurements minus its noise.
+    resid = data.measurements - model.measurement(data.truth[:, 1:])
+    assert resid[..., 0].std() == pytest.approx(15.0, rel=0.3)
+
+
+def test_tbptt_memory_step_runs_in_process() -> None:
+    out = training_step_memory(kind="ekf", dtype="float64", steps=20, batch=2, window=10, threads=1)
+    assert out["windows_run"] == 2 and out["peak_rss_mb"] > 0 and out["seconds"] > 0
+
+
+@pytest.mark.slow
+def test_benchmark_script_end_to_end(tmp_path: Path) -> None:
+    """The Hydra entry point with every installed peer, the compile section and a memory subprocess."""
+    cmd = [
+        sys.executable, str(ROOT / "experiments" / "benchmark.py"), "benchmark=smoke", f"hydra.run.dir={tmp_path}",
+        "benchmark.compile.enabled=true", "benchmark.compile.filters=[ekf]", "benchmark.compile.batch_size=2",
+        "benchmark.compile.steps=3", "benchmark.memory.enabled=true",
+    ]  # fmt: skip
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=1200, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "## Throughput and memory" in (tmp_path / "results.md").read_text()
+    assert len(_read_csv(tmp_path / "compile.csv")) == 3
+    mem = _read_csv(tmp_path / "memory.csv")
+    assert len(mem) == 1 and float(mem[0]["peak_rss_mb"]) > 0

@@ -8,7 +8,9 @@ jitter added only to the failing batch elements.
 
 from __future__ import annotations
 
+import contextlib
 import math
+from collections.abc import Iterator
 from typing import NamedTuple
 
 import torch
@@ -16,6 +18,8 @@ from torch import Tensor
 
 __all__ = [
     "CholeskyResult",
+    "cholesky_failure_count",
+    "jitter_bound",
     "chol_rank1_update",
     "joseph_update",
     "psd_solve",
@@ -27,6 +31,32 @@ __all__ = [
 
 #: Relative jitter levels tried by :func:`safe_cholesky`, multiplied by the mean diagonal.
 JITTER_LEVELS: tuple[float, ...] = (1e-12, 1e-10, 1e-8, 1e-6, 1e-4, 1e-2)
+
+# Process-wide settings of safe_cholesky: the largest relative jitter, and how many batch
+# elements could not be factorised even with it (so that callers can report them, never hide).
+_MAX_JITTER = [JITTER_LEVELS[-1]]
+_FAILURES = [0]
+
+
+@contextlib.contextmanager
+def jitter_bound(max_jitter: float | None) -> Iterator[None]:
+    """Inside the block, :func:`safe_cholesky` adds at most ``max_jitter`` (relative to the mean
+    diagonal) unless a call passes its own bound.  ``None`` keeps the current bound."""
+    saved = _MAX_JITTER[0]
+    if max_jitter is not None:
+        if max_jitter < 0:
+            raise ValueError(f"max_jitter must be >= 0, got {max_jitter}")
+        _MAX_JITTER[0] = float(max_jitter)
+    try:
+        yield
+    finally:
+        _MAX_JITTER[0] = saved
+
+
+def cholesky_failure_count() -> int:
+    """Batch elements that :func:`safe_cholesky` could not factorise within its jitter bound
+    since the process started (they were given an identity factor and ``jitter = inf``)."""
+    return _FAILURES[0]
 
 
 def symmetrize(a: Tensor) -> Tensor:
@@ -46,7 +76,7 @@ def _chol_ok(chol: Tensor, info: Tensor) -> Tensor:
     return (info == 0) & finite
 
 
-def safe_cholesky(a: Tensor, *, max_jitter: float = JITTER_LEVELS[-1]) -> CholeskyResult:
+def safe_cholesky(a: Tensor, *, max_jitter: float | None = None) -> CholeskyResult:
     """Cholesky factor of symmetric ``a [..., n, n]`` with bounded, per-element jitter.
 
     The common case costs one ``cholesky_ex``.  Batch elements whose factorisation fails
@@ -55,8 +85,12 @@ def safe_cholesky(a: Tensor, *, max_jitter: float = JITTER_LEVELS[-1]) -> Choles
     the final factor is computed once, differentiably, on ``a + jitter * I``.  Elements still
     failing at the largest jitter (e.g. containing NaN) are replaced by the identity so that
     their garbage cannot propagate NaN into the gradients of the other batch elements; their
-    ``jitter`` entry is ``inf`` so callers can flag them.
+    ``jitter`` entry is ``inf`` so callers can flag them, and
+    :func:`cholesky_failure_count` counts them.  ``max_jitter=None`` uses the bound set by
+    :func:`jitter_bound` (default ``1e-2``).
     """
+    if max_jitter is None:
+        max_jitter = _MAX_JITTER[0]
     a = symmetrize(a)
     chol, info = torch.linalg.cholesky_ex(a)
     ok = _chol_ok(chol, info)
@@ -78,6 +112,7 @@ def safe_cholesky(a: Tensor, *, max_jitter: float = JITTER_LEVELS[-1]) -> Choles
             jitter = torch.where(fixed, trial, jitter)
             pending = pending & ~fixed
         jitter = torch.where(pending, torch.full_like(jitter, math.inf), jitter)
+        _FAILURES[0] += int(pending.sum())
     usable = torch.isfinite(jitter)
     safe_a = torch.where(usable[..., None, None], a + jitter.where(usable, 0.0)[..., None, None] * eye, eye)
     chol = torch.linalg.cholesky_ex(safe_a)[0]

@@ -88,3 +88,17 @@ def test_joseph_equals_standard_update_for_optimal_gain_and_stays_psd(vals, hv):
     # any (suboptimal) gain keeps Joseph PSD
     jos2 = joseph_update(P, 3 * K, H, R)
     assert float(torch.linalg.eigvalsh(jos2).min()) > -1e-9 * float(jos2.abs().max())
+
+
+def test_jitter_bound_limits_repair_and_failures_are_counted():
+    from difffilter.linalg import cholesky_failure_count, jitter_bound
+
+    near_singular = torch.ones(1, 3, 3, dtype=torch.float64) + 1e-9 * torch.eye(3, dtype=torch.float64)
+    near_singular[0, 0, 1] = near_singular[0, 1, 0] = 1.0 + 1e-5  # indefinite by ~1e-5
+    before = cholesky_failure_count()
+    assert torch.isfinite(safe_cholesky(near_singular).jitter).all()  # default bound repairs it
+    with jitter_bound(1e-8):
+        res = safe_cholesky(near_singular)
+    assert torch.isinf(res.jitter).all()
+    assert cholesky_failure_count() == before + 1
+    assert torch.isfinite(safe_cholesky(near_singular).jitter).all()  # bound restored on exit

@@ -34,6 +34,7 @@ import pytorch_lightning as pl
 import torch
 from torch import Tensor, nn
 
+from .. import linalg
 from ..filters.base import Belief, FilterResult, GaussianFilter, detach_belief
 from ..sim.sampling import as_dtype
 from .losses import FilterLoss, MSELoss, NEESLoss, NLLLoss, Prior
@@ -280,6 +281,9 @@ class FilterLearner(pl.LightningModule):
         for name, value in learnable_values(self.filter).items():
             scalars.update(parameter_scalars(f"params/{name}", value, self.max_logged_elements))
         scalars["stability/nonfinite_trajectories"] = float(self.nonfinite_trajectories)
+        # covariance factorisations that failed even at the largest allowed jitter (identity
+        # factor substituted): process-wide count from difffilter.linalg
+        scalars["stability/cholesky_failures"] = float(linalg.cholesky_failure_count())
         self.log_dict(scalars, on_step=False, on_epoch=True, rank_zero_only=True, batch_size=1)
 
     def _eval_step(self, batch: Mapping[str, Any], batch_idx: int, stage: str) -> None:

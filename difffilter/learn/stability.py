@@ -14,23 +14,17 @@ __all__ = ["OnceWarner", "bounded_jitter"]
 @contextlib.contextmanager
 def bounded_jitter(max_jitter: float | None) -> Iterator[None]:
     """Limit the relative jitter :func:`difffilter.linalg.safe_cholesky` may add (its ladder
-    :data:`~difffilter.linalg.JITTER_LEVELS` is cut at ``max_jitter``) inside the block.
+    :data:`~difffilter.linalg.JITTER_LEVELS` is cut at ``max_jitter``) inside the block
+    (:func:`difffilter.linalg.jitter_bound`).
 
     A smaller bound keeps an ill-conditioned covariance from being silently regularised by a
     large jitter (up to 1e-2 of its mean diagonal by default); what then happens to a matrix that
     still fails is ``safe_cholesky``'s rule (an identity factor for that batch element), so use a
     bound only where the covariances are known to be well conditioned.  ``None`` leaves the
-    library default.  The levels are restored on exit; not thread-safe (a module global).
+    library default.  The bound is restored on exit; process-wide (not thread-safe).
     """
-    if max_jitter is None:
+    with linalg.jitter_bound(max_jitter):
         yield
-        return
-    saved = linalg.JITTER_LEVELS
-    linalg.JITTER_LEVELS = tuple(level for level in saved if level <= max_jitter)
-    try:
-        yield
-    finally:
-        linalg.JITTER_LEVELS = saved
 
 
 class OnceWarner:

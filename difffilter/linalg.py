@@ -18,6 +18,7 @@ from torch import Tensor
 
 __all__ = [
     "CholeskyResult",
+    "block_diag",
     "cholesky_failure_count",
     "jitter_bound",
     "chol_rank1_update",
@@ -194,3 +195,16 @@ def gaussian_log_density(residual: Tensor, chol: Tensor) -> tuple[Tensor, Tensor
     maha = (w * w).sum(-1)
     logdet = 2.0 * torch.log(torch.diagonal(chol, dim1=-2, dim2=-1)).sum(-1)
     return -0.5 * (maha + logdet + m * math.log(2.0 * math.pi)), maha
+
+
+def block_diag(*blocks: Tensor) -> Tensor:
+    """Block-diagonal matrix of ``[..., d_i, d_i]`` blocks whose leading dims broadcast."""
+    shape = torch.broadcast_shapes(*(b.shape[:-2] for b in blocks))
+    total = sum(b.shape[-1] for b in blocks)
+    out = blocks[0].new_zeros(*shape, total, total)
+    start = 0
+    for b in blocks:
+        d = b.shape[-1]
+        out[..., start : start + d, start : start + d] = b
+        start += d
+    return out

@@ -194,7 +194,7 @@ class FilterContract:
         names = [n for n, _ in named]
 
         def fn(*values):
-            out = torch.func.functional_call(flt, dict(zip(names, values)), (z, m0, P0))
+            out = torch.func.functional_call(flt, dict(zip(names, values, strict=True)), (z, m0, P0))
             return out.log_likelihood.sum()
 
         inputs = tuple(p.detach().clone().requires_grad_(True) for _, p in named)

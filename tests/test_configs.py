@@ -34,13 +34,6 @@ ROUNDS = [{g: OPTIONS[g][i % len(OPTIONS[g])] for g in GENERIC} for i in range(m
 EXPERIMENTS = sorted(p.stem for p in (CONF / "experiment").glob("*.yaml"))
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
 
 def _compose(tmp_path: Path, overrides: list[str], name: str = "train", **kw) -> DictConfig:
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):

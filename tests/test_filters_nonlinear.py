@@ -95,14 +95,14 @@ def test_ekf_matches_filterpy_every_step():
 
 
 def test_kalman_matches_filterpy_kalman():
-    from filterpy.kalman import KalmanFilter as FPKF
+    from filterpy.kalman import KalmanFilter as FilterpyKF
 
     H = np.array([[1.0, 0, 0, 0], [0, 0, 1.0, 0]])
     Rl = np.array([[1.0, 0.3], [0.3, 2.0]])
     rng = np.random.default_rng(3)
     z = rng.normal(size=(30, 2)).cumsum(0)
     x0, P0 = np.array([0.5, 0.0, -0.5, 0.1]), np.eye(4) * 3
-    ref = FPKF(dim_x=4, dim_z=2)
+    ref = FilterpyKF(dim_x=4, dim_z=2)
     ref.x, ref.P, ref.F, ref.H, ref.Q, ref.R = x0.copy(), P0.copy(), F_CV, H, Q, Rl
     model = LinearModel(F=torch.tensor(F_CV), H=torch.tensor(H), Q=torch.tensor(Q), R=torch.tensor(Rl))
     res = KalmanFilter(model)(torch.tensor(z)[None], torch.tensor(x0), torch.tensor(P0))

@@ -41,13 +41,6 @@ CV_PRIOR = ([0.0, 10.0, 0.0, 5.0], [100.0, 4.0, 100.0, 4.0])
 SINGER_PRIOR = ([0.0, 10.0, 0.0, 0.0, 5.0, 0.0], [100.0, 4.0, 1.0, 100.0, 4.0, 1.0])
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
 
 def cv_model(q: float = 0.5, r: float = 25.0, *, time_invariant: bool = True) -> StateSpaceModel:
     return tracking_model(dynamics=ConstantVelocity(axes=2, dt=1.0, q=q, dtype=f64), R=[r, r], time_invariant=time_invariant)

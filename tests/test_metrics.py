@@ -20,14 +20,6 @@ from difffilter.sim.sampling import sample_trajectories
 f64 = torch.float64
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    # Tiny batched matrices: intra-op threads only add overhead (see conf/train.yaml).
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
 
 def _result(mean, cov, nis=None, ll=None, nobs=None) -> FilterResult:
     b, t = mean.shape[:2]

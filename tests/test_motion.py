@@ -10,13 +10,13 @@ import scipy.linalg
 import torch
 from torch.func import jacrev, vmap
 
+from difffilter.linalg import block_diag
 from difffilter.models.motion import (
     ConstantAcceleration,
     ConstantVelocity,
     CurrentStatistical,
     Singer,
     axis_block_diag,
-    block_diag,
     constant_acceleration_noise,
     constant_acceleration_transition,
     current_statistical_variance,

@@ -29,13 +29,6 @@ ROOT = Path(__file__).resolve().parents[1]
 f64 = torch.float64
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
 
 def _events(directory: Path) -> EventAccumulator:
     files = list(directory.rglob("events.out.tfevents.*"))

@@ -6,8 +6,8 @@ from .colored import ColoredNoiseUKF
 from .ekf import EKF
 from .kalman import KalmanFilter
 from .sigma_points import Cubature, Julier, MerweScaled, SigmaPoints
-from .ukf import UKF, SimplifiedUKF
 from .square_root import SquareRootUKF
+from .ukf import UKF, SimplifiedUKF
 
 __all__ = [
     "EKF",

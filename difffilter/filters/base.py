@@ -35,6 +35,7 @@ __all__ = [
     "GaussianFilter",
     "StepInfo",
     "gaussian_update",
+    "mask_measurement_system",
     "slice_controls",
     "detach_belief",
 ]
@@ -106,6 +107,29 @@ def detach_belief(belief: Belief) -> Belief:
     return {k: v.detach() for k, v in belief.items()}
 
 
+def mask_measurement_system(
+    innovation: Tensor, cov: Tensor, deviations: Tensor, mask: Tensor | None
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Remove unobserved measurement components exactly from an update.
+
+    ``innovation [B, m]``, ``cov [B, m, m]`` (innovation or noise covariance), ``deviations
+    [..., m]`` (anything indexed by measurement component last: ``P_xz``, sigma-point
+    deviations); ``mask [B, m]`` True = observed.  Missing components get a zero innovation
+    (``where``, so NaN never propagates), zero deviations, zero covariance rows/columns and a unit
+    diagonal: the padded system's update equals the update on the observed subset, and each
+    missing component adds exactly ``log N(0; 0, 1)`` to the log-density.  Returns the masked
+    ``(innovation, cov, deviations, num_observed [B])``.
+    """
+    m = innovation.shape[-1]
+    if mask is None:
+        num_obs = torch.full(innovation.shape[:-1], float(m), dtype=innovation.dtype, device=innovation.device)
+        return innovation, cov, deviations, num_obs
+    mo = mask.to(innovation.dtype)
+    innovation = torch.where(mask, innovation, torch.zeros_like(innovation))
+    cov = cov * (mo[..., :, None] * mo[..., None, :]) + torch.diag_embed(1.0 - mo)
+    return innovation, cov, deviations * mo[..., None, :], mo.sum(-1)
+
+
 def gaussian_update(
     mean: Tensor,
     cov: Tensor,
@@ -131,15 +155,7 @@ def gaussian_update(
     formed through an inverse: with ``S = L L^T``, ``W = L^{-1} P_xz^T`` gives
     ``K e = W^T L^{-1} e`` and ``K S K^T = W^T W``.
     """
-    m = innovation.shape[-1]
-    if mask is not None:
-        mo = mask.to(innovation.dtype)
-        innovation = torch.where(mask, innovation, torch.zeros_like(innovation))
-        cross_cov = cross_cov * mo[..., None, :]
-        innovation_cov = innovation_cov * (mo[..., :, None] * mo[..., None, :]) + torch.diag_embed(1.0 - mo)
-        num_obs = mo.sum(-1)
-    else:
-        num_obs = torch.full(innovation.shape[:-1], float(m), dtype=innovation.dtype, device=innovation.device)
+    innovation, innovation_cov, cross_cov, num_obs = mask_measurement_system(innovation, innovation_cov, cross_cov, mask)
     chol = safe_cholesky(innovation_cov).factor
     rhs = torch.cat([cross_cov.mT, innovation[..., None]], -1)  # [B, m, n+1]
     sol = torch.linalg.solve_triangular(chol, rhs, upper=False)
@@ -151,6 +167,7 @@ def gaussian_update(
         h, r = joseph
         gain = torch.linalg.solve_triangular(chol.mT, w, upper=True).mT  # K = W^T L^{-1}
         if mask is not None:
+            mo = mask.to(h.dtype)
             h = h * mo[..., :, None]
             r = r * (mo[..., :, None] * mo[..., None, :])
         new_cov = joseph_update(cov, gain, h, r)
@@ -237,7 +254,9 @@ class GaussianFilter(nn.Module):
             if mask.shape == (bsz, steps):
                 mask = mask[..., None].expand(bsz, steps, m)
             elif mask.shape != (bsz, steps, m):
-                raise ValueError(f"mask must have shape [B, T] = [{bsz}, {steps}] or [B, T, m] = [{bsz}, {steps}, {m}], got {tuple(mask.shape)}")
+                raise ValueError(
+                    f"mask must have shape [B, T] = [{bsz}, {steps}] or [B, T, m] = [{bsz}, {steps}, {m}], got {tuple(mask.shape)}"
+                )
             if mask.dtype != torch.bool:
                 if mask.is_floating_point() and not bool(((mask == 0) | (mask == 1)).all()):
                     raise ValueError("mask must be boolean (True = observed)")
@@ -315,7 +334,11 @@ class GaussianFilter(nn.Module):
         """
         z = measurement[:, None]
         mk = None if mask is None else (mask[:, None] if mask.ndim == 1 else mask[:, None, :])
-        u = None if controls is None else (controls[:, None] if isinstance(controls, Tensor) else {k: v[:, None] for k, v in controls.items()})
+        u = (
+            None
+            if controls is None
+            else (controls[:, None] if isinstance(controls, Tensor) else {k: v[:, None] for k, v in controls.items()})
+        )
         z, mk, _, _ = self.check_inputs(z, None, None, mk, u)
         with parametrize.cached():
             prior = self.predict(belief, controls)

@@ -8,10 +8,10 @@ import torch
 from torch import Tensor
 from torch.func import jacrev, jvp, vmap
 
+from ..linalg import symmetrize
 from ..models.base import Controls, StateSpaceModel
 from .base import Belief, GaussianFilter, StepInfo, gaussian_update
 from .ukf import expand_controls
-from ..linalg import symmetrize
 
 __all__ = ["EKF", "autodiff_jacobian"]
 

@@ -7,7 +7,7 @@ from torch import Tensor
 
 from ..linalg import chol_rank1_update, gaussian_log_density, safe_cholesky, tria
 from ..models.base import Controls, StateSpaceModel
-from .base import Belief, StepInfo
+from .base import Belief, StepInfo, mask_measurement_system
 from .sigma_points import SigmaPoints
 from .ukf import UKF, expand_controls, weighted_mean
 
@@ -71,14 +71,7 @@ class SquareRootUKF(UKF):
         r = r.expand(*mean.shape[:-1], *r.shape[-2:])
         e = hm.residual(z, zhat)
         m = e.shape[-1]
-        if mask is not None:
-            mo = mask.to(e.dtype)
-            e = torch.where(mask, e, torch.zeros_like(e))
-            dz = dz * mo[..., None, :]
-            r = r * (mo[..., :, None] * mo[..., None, :]) + torch.diag_embed(1.0 - mo)
-            num_obs = mo.sum(-1)
-        else:
-            num_obs = torch.full(e.shape[:-1], float(m), dtype=e.dtype, device=e.device)
+        e, r, dz, num_obs = mask_measurement_system(e, r, dz, mask)
         sr = safe_cholesky(r).factor
         szz = self._compound(dz, wc, sr)
         pxz = (dx * wc[:, None]).mT @ dz

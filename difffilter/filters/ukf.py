@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ..linalg import safe_cholesky, symmetrize
+from ..linalg import block_diag, safe_cholesky, symmetrize
 from ..models.base import Controls, DynamicsModel, StateSpaceModel
 from .base import Belief, GaussianFilter, StepInfo, gaussian_update
 from .sigma_points import MerweScaled, SigmaPoints
@@ -36,19 +36,6 @@ def weighted_moments(points: Tensor, wm: Tensor, wc: Tensor) -> tuple[Tensor, Te
     dev = points - mean[..., None, :]
     cov = (dev * wc[:, None]).mT @ dev
     return mean, dev, cov
-
-
-def _block_diag(*mats: Tensor) -> Tensor:
-    """Batched block-diagonal matrix of ``[..., d_i, d_i]`` blocks (leading dims broadcast)."""
-    shape = torch.broadcast_shapes(*(m.shape[:-2] for m in mats))
-    total = sum(m.shape[-1] for m in mats)
-    out = mats[0].new_zeros(*shape, total, total)
-    i = 0
-    for m in mats:
-        d = m.shape[-1]
-        out[..., i : i + d, i : i + d] = m
-        i += d
-    return out
 
 
 class UKF(GaussianFilter):
@@ -131,7 +118,7 @@ class UKF(GaussianFilter):
             reuse = not self.redraw_after_predict
             blocks = [cov, q, r] if reuse else [cov, q]
             aug_mean = torch.cat([mean, mean.new_zeros(*mean.shape[:-1], n + (m if reuse else 0))], -1)
-            chi = self._points(aug_mean, _block_diag(*blocks))
+            chi = self._points(aug_mean, block_diag(*blocks))
             dim = aug_mean.shape[-1]
             wm, wc = self._weights(dim, mean)
             prop = f(chi[..., :n], u1) + chi[..., n : 2 * n]
@@ -156,7 +143,7 @@ class UKF(GaussianFilter):
             _, r = self._noise_matrices(mean, u)
             m = r.shape[-1]
             aug_mean = torch.cat([mean, mean.new_zeros(*mean.shape[:-1], m)], -1)
-            chi = self._points(aug_mean, _block_diag(cov, r))
+            chi = self._points(aug_mean, block_diag(cov, r))
             wm, wc = self._weights(n + m, mean)
             return chi[..., :n], chi[..., n:], wm, wc, False
         wm, wc = self._weights(n, mean)

@@ -15,8 +15,8 @@ dimensions with ``...`` indexing, which is all the filters and ``torch.func`` ne
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
-
 
 import torch
 from torch import Tensor, nn
@@ -30,9 +30,16 @@ __all__ = [
     "LinearModel",
     "MeasurementModel",
     "StateSpaceModel",
+    "wrap_angle",
 ]
 
 Controls = Tensor | dict[str, Tensor] | None
+
+
+def wrap_angle(angle: Tensor) -> Tensor:
+    """Angle reduced to ``(-pi, pi]`` (gradient 1 almost everywhere)."""
+    two_pi = 2.0 * math.pi
+    return angle - two_pi * torch.ceil((angle - math.pi) / two_pi)
 
 
 class DynamicsModel(nn.Module):
@@ -263,5 +270,3 @@ class LinearModel(StateSpaceModel):
         if H.ndim == 2 and F.ndim == 2 and H.shape[1] != F.shape[0]:
             raise ValueError(f"H must have shape [m, {F.shape[0]}], got {tuple(H.shape)}")
         super().__init__(_LinearDynamics(F, Q, B, Q_structure), _LinearMeasurement(H, R, R_structure))
-
-

@@ -26,9 +26,9 @@ import math
 import torch
 from torch import Tensor
 
+from ..linalg import block_diag
 from ..params import Positive, register_constrained, register_covariance
-from .base import Controls, DynamicsModel, MeasurementModel, StateSpaceModel
-from .motion import block_diag
+from .base import Controls, DynamicsModel, MeasurementModel, StateSpaceModel, wrap_angle
 
 __all__ = [
     "GNSS_IMU_PAPER",
@@ -63,11 +63,6 @@ GNSS_IMU_PAPER: dict[str, float] = {
     "sigma_gnss_velocity": 0.05,
     "sigma_heading": math.radians(1.0),
 }
-
-
-def wrap_angle(a: Tensor) -> Tensor:
-    """Angles wrapped to ``[-pi, pi)``."""
-    return torch.remainder(a + math.pi, 2.0 * math.pi) - math.pi
 
 
 def quaternion_multiply(p: Tensor, q: Tensor) -> Tensor:

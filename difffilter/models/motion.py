@@ -35,7 +35,6 @@ __all__ = [
     "CurrentStatistical",
     "Singer",
     "axis_block_diag",
-    "block_diag",
     "constant_acceleration_noise",
     "constant_acceleration_transition",
     "constant_velocity_noise",
@@ -195,19 +194,6 @@ def axis_block_diag(blocks: Tensor) -> Tensor:
     eye = torch.eye(a, dtype=blocks.dtype, device=blocks.device)
     full = blocks[..., :, :, None, :] * eye[:, None, :, None]  # [..., A, k, A, k]
     return full.reshape(*blocks.shape[:-3], a * k, a * k)
-
-
-def block_diag(*blocks: Tensor) -> Tensor:
-    """Block-diagonal matrix of ``[..., d_i, d_i]`` blocks whose leading dims broadcast."""
-    shape = torch.broadcast_shapes(*(b.shape[:-2] for b in blocks))
-    total = sum(b.shape[-1] for b in blocks)
-    out = blocks[0].new_zeros(*shape, total, total)
-    start = 0
-    for b in blocks:
-        d = b.shape[-1]
-        out[..., start : start + d, start : start + d] = b
-        start += d
-    return out
 
 
 def current_statistical_variance(a_hat: Tensor, a_max: Tensor, sigma_min: float = 0.0) -> Tensor:

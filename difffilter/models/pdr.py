@@ -18,7 +18,7 @@ import torch
 from torch import Tensor
 
 from ..params import check_covariance, register_covariance
-from .base import Controls, DynamicsModel, MeasurementModel, StateSpaceModel
+from .base import Controls, DynamicsModel, MeasurementModel, StateSpaceModel, wrap_angle
 
 __all__ = [
     "PDRMeasurement",
@@ -29,12 +29,6 @@ __all__ = [
     "wrap_angle",
     "wrap_measurement",
 ]
-
-
-def wrap_angle(angle: Tensor) -> Tensor:
-    """Angle reduced to ``(-pi, pi]`` (gradient 1 almost everywhere)."""
-    two_pi = 2.0 * math.pi
-    return angle - two_pi * torch.ceil((angle - math.pi) / two_pi)
 
 
 def wrap_measurement(z: Tensor, z_pred: Tensor, angular_components: tuple[int, ...] = (2,)) -> Tensor:

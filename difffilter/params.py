@@ -210,9 +210,7 @@ class RowStochastic(nn.Module):
 Structure = Literal["full", "diagonal", "scalar", "fixed"]
 
 
-def register_constrained(
-    module: nn.Module, name: str, value: Tensor, constraint: nn.Module | None
-) -> None:
+def register_constrained(module: nn.Module, name: str, value: Tensor, constraint: nn.Module | None) -> None:
     """Register ``module.<name>`` as a constrained learnable parameter with initial ``value``.
 
     ``constraint=None`` registers a fixed buffer instead (not learnable).

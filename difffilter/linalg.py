@@ -94,11 +94,14 @@ def safe_cholesky(a: Tensor, *, max_jitter: float | None = None) -> CholeskyResu
     """
     if max_jitter is None:
         max_jitter = _MAX_JITTER[0]
-    a = symmetrize(a)
+    # cholesky_ex reads only the lower triangle (and its gradient is symmetric), so the common
+    # path needs no symmetrisation; one reduction decides whether any element needs repair
+    # (a NaN/inf anywhere reaches the diagonal; an overflowing sum only costs the slow path).
     chol, info = torch.linalg.cholesky_ex(a)
+    if not bool(info.any()) and bool(torch.isfinite(torch.diagonal(chol, dim1=-2, dim2=-1).sum())):
+        return CholeskyResult(chol, torch.zeros(info.shape, dtype=a.dtype, device=a.device))
+    a = symmetrize(a)
     ok = _chol_ok(chol, info)
-    if bool(ok.all()):
-        return CholeskyResult(chol, torch.zeros(ok.shape, dtype=a.dtype, device=a.device))
     n = a.shape[-1]
     eye = torch.eye(n, dtype=a.dtype, device=a.device)
     with torch.no_grad():

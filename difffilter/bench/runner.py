@@ -76,6 +76,7 @@ class BenchSettings:
     filterpy_steps: int = 500
     target_batch: int = 256
     max_memory_mb: float = 8000.0
+    xla_flags: str = ""
 
     def __post_init__(self) -> None:
         for name, allowed, got in (
@@ -148,11 +149,8 @@ class _Bench:
             if self.peer_ok[lib] is not None:
                 self.message(f"skipping {lib}: {self.peer_ok[lib]}")
         self.filterpy_rate: dict[str, tuple[float, float, str]] = {}
-        if s.threads == 1 and "jax" not in sys.modules:
-            # Single-threaded Eigen kernels for XLA too (only effective before jax is first imported).
-            # Not intra_op_parallelism_threads=1: with it large vmapped gradients deadlocked in XLA's
-            # thread pool (observed with jax 0.10.2, EKF value_and_grad at B=4096).
-            os.environ.setdefault("XLA_FLAGS", "--xla_cpu_multi_thread_eigen=false")
+        if s.xla_flags and "jax" not in sys.modules:
+            os.environ.setdefault("XLA_FLAGS", s.xla_flags)  # only effective before jax is first imported
 
     def message(self, text: str) -> None:
         self.report.messages.append(text)

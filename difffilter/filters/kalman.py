@@ -24,9 +24,8 @@ class KalmanFilter(EKF):
             raise TypeError("KalmanFilter needs a linear model: dynamics and measurement must implement matrix() (e.g. LinearModel)")
 
     def transition_jacobian(self, x: Tensor, u: Controls) -> Tensor:
-        f = self.model.dynamics.matrix(u)
-        return f.expand(*x.shape[:-1], *f.shape[-2:])
+        # un-expanded [n, n] (or per-batch [B, n, n]): broadcasting matmuls are cheaper
+        return self.model.dynamics.matrix(u)
 
     def measurement_jacobian(self, x: Tensor, u: Controls) -> Tensor:
-        h = self.model.measurement.matrix(u)
-        return h.expand(*x.shape[:-1], *h.shape[-2:])
+        return self.model.measurement.matrix(u)

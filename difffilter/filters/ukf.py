@@ -27,7 +27,7 @@ def weighted_mean(points: Tensor, wm: Tensor) -> Tensor:
     ``p_0 + sum_i wm_i (p_i - p_0)``: large centre weights (scaled sets with small alpha have
     ``|W_0| ~ 1e6``) then multiply exact zeros instead of cancelling in float32."""
     ref = points[..., :1, :]
-    return ref[..., 0, :] + torch.einsum("s,...sd->...d", wm, points - ref)
+    return ref[..., 0, :] + ((points - ref) * wm[:, None]).sum(-2)
 
 
 def weighted_moments(points: Tensor, wm: Tensor, wc: Tensor) -> tuple[Tensor, Tensor, Tensor]:

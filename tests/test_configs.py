@@ -5,6 +5,7 @@ few filter steps.  Running each experiment end-to-end is the slow variant."""
 from __future__ import annotations
 
 import inspect
+import re
 from pathlib import Path
 
 import pytest
@@ -89,9 +90,19 @@ def test_group_options_compose_and_instantiate(tmp_path, choice):
         _check_node(group, cfg.get(group), as_dtype(cfg.dtype))
 
 
+def _owning_experiment(group: str, option: str) -> str | None:
+    for path in sorted((CONF / "experiment").glob("*.yaml")):
+        if re.search(rf"override /{group}: {re.escape(option)}\s*$", path.read_text(), re.M):
+            return path.stem
+    return None
+
+
 @pytest.mark.parametrize(("group", "option"), [(g, o) for g in ("model", "scenario") for o in OPTIONS.get(g, [])])
 def test_model_and_scenario_options_instantiate(tmp_path, group, option):
-    cfg = _compose(tmp_path, [f"{group}={option}"])
+    # A paper's model/scenario option is composed with the experiment overlay that selects it
+    # (its settings interpolate the overlay's model); the others with the default experiment.
+    owner = _owning_experiment(group, option)
+    cfg = _compose(tmp_path, ([f"experiment={owner}"] if owner else []) + [f"{group}={option}"])
     _check_node(group, cfg.get(group), as_dtype(cfg.dtype))
 
 

@@ -29,6 +29,8 @@ The ``experiment`` config node (per-paper overlays set it)::
       truth_index: null
       metric: rmse_pos            # learned-filter metric run_experiment returns (Optuna)
       eval_batch_size: null       # test trajectories per evaluation batch (null: all)
+      error_quantiles: null       # e.g. [0.5, 0.95]: extra columns pos_err_p50, pos_err_p95 =
+                                  # quantiles of the position error norm over all test steps
 
 Names in ``hand_tuned``/``params`` follow :func:`difffilter.learn.selection.assign_parameters`
 (a vector sets a covariance's diagonal; a scalar sets ``s I`` or a ScaledMatrix's scale).
@@ -51,7 +53,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from ..filters.base import GaussianFilter
 from ..sim.sampling import as_dtype
 from .data import TrajectorySet
-from .metrics import finalize_metrics, metric_sums
+from .metrics import component_error, finalize_metrics, metric_sums
 from .selection import assign_parameters, match_parameters, parameter_owners
 from .stability import bounded_jitter
 
@@ -89,14 +91,18 @@ def evaluate_filter(
     truth_position_index: list[int] | None = None,
     state_index: list[int] | None = None,
     truth_index: list[int] | None = None,
+    error_quantiles: list[float] | None = None,
 ) -> dict[str, float]:
     """Metrics of ``filt`` on every trajectory of ``data`` (see :func:`finalize_metrics`) plus
     ``time_per_step_ms``: wall time of one filter step on a batch of ``batch_size`` trajectories
-    (default: all of them at once)."""
+    (default: all of them at once), and for each ``q`` of ``error_quantiles`` ``pos_err_p{100 q}``:
+    the ``q``-quantile of the position error norm ``||e_{b,t}||`` over all steps with a truth
+    (median and tail of the error, which ``rmse_pos`` averages away)."""
     n = len(data)
     size = batch_size or n
     sums: dict[str, torch.Tensor] = {}
     elapsed, batches = 0.0, 0
+    norms: list[torch.Tensor] = []
     for first in range(0, n, size):
         batch = data.batch(torch.arange(first, min(first + size, n)))
         mean0 = batch["initial_mean"] if batch["initial_mean"] is not None else initial_mean
@@ -108,6 +114,11 @@ def evaluate_filter(
             res = filt(batch["measurements"], mean0, cov0, mask=batch["mask"], controls=batch["controls"])
         elapsed += time.perf_counter() - tic
         batches += 1
+        if error_quantiles and batch["truth"] is not None:
+            pos_idx = position_index if position_index is not None else state_index
+            pos_tidx = truth_position_index if position_index is not None else truth_index
+            err, valid = component_error(res.mean, batch["truth"], pos_idx, pos_tidx)
+            norms.append(torch.linalg.vector_norm(err, dim=-1)[valid].to(torch.float64))
         for k, v in metric_sums(
             res,
             batch["truth"],
@@ -119,6 +130,10 @@ def evaluate_filter(
             sums[k] = sums.get(k, torch.zeros((), dtype=torch.float64)) + v
     out = finalize_metrics(sums)
     out["time_per_step_ms"] = 1e3 * elapsed / (batches * data.num_steps)
+    if norms and sum(v.numel() for v in norms) > 0:
+        all_norms = torch.cat(norms)
+        for q in error_quantiles or []:
+            out[f"pos_err_p{100 * float(q):g}"] = float(torch.quantile(all_norms, float(q)))
     return out
 
 
@@ -138,7 +153,8 @@ def _parameter_summary(filt: GaussianFilter, names: list[str]) -> str:
 
 def format_results(rows: list[dict[str, Any]], *, title: str = "results", note: str = "") -> str:
     """A markdown table of evaluation rows."""
-    cols = [c for c in COLUMNS if any(c in r for r in rows)] + (["parameters"] if any("parameters" in r for r in rows) else [])
+    extra = sorted({k for r in rows for k in r} - set(COLUMNS) - {"parameters"})
+    cols = [c for c in COLUMNS if any(c in r for r in rows)] + extra + (["parameters"] if any("parameters" in r for r in rows) else [])
     fmt = lambda v: v if isinstance(v, str) else ("nan" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.4g}")  # noqa: E731
     lines = [f"# {title}", "", note, "", "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
     lines += ["| " + " | ".join(fmt(r.get(c, float("nan"))) for c in cols) + " |" for r in rows]
@@ -226,6 +242,7 @@ def run_experiment(cfg: DictConfig) -> dict[str, Any]:
                 initial_cov=cov0,
                 batch_size=exp.get("eval_batch_size"),
                 max_jitter=cfg.learner.get("max_jitter"),
+                error_quantiles=None if exp.get("error_quantiles") is None else [float(q) for q in exp.error_quantiles],
                 **indices,
             )
         )

@@ -1,0 +1,207 @@
+"""Glue between the p004 GNSS/IMU simulator, the EKF/UKF blend and the learning stack
+(``experiment=p004_blend``).
+
+* :func:`p004_simulator` wraps :func:`~difffilter.sim.p004_vehicle.simulate_p004` into
+  :class:`P004Trajectories`, which carries the initial belief the data module expects and the
+  simulator's true noise levels as ``true_params`` (the oracle's values).  The truth is the
+  scripted drive integrated on a fine grid, the filter integrates the same IMU readings, so the
+  filter family contains the truth up to the trapezoidal position step (which ``Q`` absorbs)
+  and the constant biases (modelled as slow random walks): an oracle row is meaningful.
+  Optionally the initial heading is unknown (``initial_heading_std_deg``): the belief's mean
+  heading is drawn around the truth with that spread and its variance set to match, the
+  alignment case where EKF and UKF can differ.
+* :func:`blend_filter` builds the :class:`~difffilter.mixers.blend.Blend` of an EKF and a UKF
+  that share *one* model (two Hydra nodes interpolating ``${model}`` would build two models with
+  separately learned copies of ``Q`` and ``R``).
+* :class:`ImuSwitchingStatistics` is the ``statistics`` callable of
+  :class:`~difffilter.mixers.blend.Blend`: p004's ``(gamma, mu)`` (eqs. (1), (2)) from the
+  step's IMU controls.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from ..filters.ekf import EKF
+from ..filters.sigma_points import SigmaPoints
+from ..filters.ukf import UKF
+from ..mixers.blend import Blend, Statistics, switching_statistics
+from ..models.base import Controls, StateSpaceModel
+from ..models.gnss_imu import GNSS_IMU_PAPER, GRAVITY, GnssImuModel
+from ..sim.p004_vehicle import GnssImuScenario, simulate_p004
+from ..sim.sampling import as_dtype
+
+__all__ = ["ImuSwitchingStatistics", "P004Trajectories", "blend_filter", "p004_simulator"]
+
+
+@dataclass
+class P004Trajectories:
+    """p004 drives in the data module's layout.
+
+    Attributes:
+        truth: ``[B, T, 8]`` planar ``[p_e, p_n, v_e, v_n, psi, b_f, b_l, b_g]`` (3-D: ``[B, T, 16]``).
+        measurements: ``[B, T, m]`` GNSS fixes (NaN where masked).
+        mask: ``[B, T, m]`` True = observed.
+        controls: ``{"accel": [B, T, k], "gyro": [B, T, k]}`` IMU readings.
+        initial_mean: ``[B, n]``; initial_cov: ``[n, n]``.
+        true_params: the simulator's noise levels by filter parameter name.
+        scenario: the simulator's own output.
+    """
+
+    truth: Tensor
+    measurements: Tensor
+    mask: Tensor
+    controls: dict[str, Tensor]
+    initial_mean: Tensor
+    initial_cov: Tensor
+    scenario: GnssImuScenario
+    true_params: dict[str, Any] = field(default_factory=dict)
+
+    def make_model(self, **kwargs: Any) -> GnssImuModel:
+        """The filter model with the simulator's true noise levels (see
+        :meth:`GnssImuScenario.make_model`)."""
+        return self.scenario.make_model(**kwargs)
+
+
+def _true_params(data: GnssImuScenario) -> dict[str, Any]:
+    p = data.params
+    d = 2 if data.planar else 3
+    r = [p["sigma_gnss"] ** 2] * d
+    if p["velocity"]:
+        r += [p["sigma_gnss_velocity"] ** 2] * d
+    if p["heading"]:
+        r += [p["sigma_heading"] ** 2]
+    return {"sigma_accel": p["sigma_accel"], "sigma_gyro": p["sigma_gyro"], "R": r}
+
+
+def p004_simulator(
+    *,
+    batch_size: int,
+    seed: int | torch.Generator = 0,
+    dtype: torch.dtype | str = torch.float64,
+    randomize: bool = False,
+    planar: bool = True,
+    gnss_outages: Sequence[Sequence[float]] = (),
+    initial_heading_std_deg: float | None = None,
+    **options: Any,
+) -> P004Trajectories:
+    """Simulate p004 drives for learning.
+
+    Args:
+        batch_size, seed: as :func:`simulate_p004`.
+        dtype: dtype (or its name) of every returned tensor.
+        randomize: randomised drives (training sets) instead of the fixed p004 script.
+        planar: planar 8-state layout (else the 16-state quaternion one).
+        gnss_outages: ``(start, end)`` windows in seconds without GNSS.
+        initial_heading_std_deg: if given, the initial belief's heading is the truth plus
+            ``N(0, std^2)`` and its variance ``std^2`` (else the simulator's belief).
+        **options: further :func:`simulate_p004` arguments (``velocity``, noise levels...).
+    """
+    dt = as_dtype(dtype)
+    gen = seed if isinstance(seed, torch.Generator) else torch.Generator().manual_seed(int(seed))
+    data = simulate_p004(
+        batch_size=batch_size,
+        seed=gen,
+        randomize=randomize,
+        planar=planar,
+        gnss_outages=[tuple(w) for w in gnss_outages],  # type: ignore[misc]
+        dtype=dt,
+        **options,
+    )
+    mean0, cov0 = data.initial_belief()
+    if initial_heading_std_deg is not None:
+        if not planar:
+            raise ValueError("initial_heading_std_deg needs the planar layout (heading is a state there)")
+        std = math.radians(float(initial_heading_std_deg))
+        err = std * torch.randn(batch_size, generator=gen, dtype=torch.float64)
+        mean0 = mean0.clone()
+        mean0[:, 4] = mean0[:, 4] + err.to(dt)
+        cov0 = cov0.clone()
+        cov0[4, 4] = std * std
+    return P004Trajectories(
+        truth=data.truth,
+        measurements=data.measurements,
+        mask=data.mask,
+        controls=data.controls,
+        initial_mean=mean0,
+        initial_cov=cov0,
+        scenario=data,
+        true_params=_true_params(data),
+    )
+
+
+class ImuSwitchingStatistics:
+    """p004's switching statistics from the step's IMU controls, for :class:`Blend`.
+
+    ``gamma = max(sigma_accel, sigma_gyro) / max(sigma_gnss, sigma_imu)`` (eq. (1), constant
+    here: the configured noise levels) and ``mu = sqrt(|f|^2 / 9.8^2 + |omega|^2 / pi^2)``
+    (eq. (2)) with ``f`` the accelerometer reading without gravity and ``omega`` the gyro
+    reading.  Readings of 3-axis IMUs include gravity on the up axis; it is removed.
+
+    Args:
+        sigma_accel, sigma_gyro, sigma_gnss: noise levels in eq. (1) (defaults: p004's).
+        sigma_imu: IMU observation noise in eq. (1) (default: ``sigma_accel``).
+    """
+
+    def __init__(
+        self,
+        *,
+        sigma_accel: float = GNSS_IMU_PAPER["sigma_accel"],
+        sigma_gyro: float = GNSS_IMU_PAPER["sigma_gyro"],
+        sigma_gnss: float = GNSS_IMU_PAPER["sigma_gnss"],
+        sigma_imu: float | None = None,
+    ) -> None:
+        self.sigma_accel, self.sigma_gyro, self.sigma_gnss = float(sigma_accel), float(sigma_gyro), float(sigma_gnss)
+        self.sigma_imu = float(sigma_accel if sigma_imu is None else sigma_imu)
+
+    def __call__(self, u: Controls) -> tuple[Tensor, Tensor]:
+        if not isinstance(u, dict) or "accel" not in u or "gyro" not in u:
+            raise ValueError('ImuSwitchingStatistics needs controls {"accel": [B, k], "gyro": [B, k]}')
+        accel, gyro = u["accel"], u["gyro"]
+        if accel.shape[-1] == 3:
+            accel = torch.cat([accel[..., :2], accel[..., 2:] - GRAVITY], -1)
+        return switching_statistics(
+            torch.linalg.vector_norm(accel, dim=-1),
+            torch.linalg.vector_norm(gyro, dim=-1),
+            sigma_accel=self.sigma_accel,
+            sigma_gyro=self.sigma_gyro,
+            sigma_gnss=self.sigma_gnss,
+            sigma_imu=self.sigma_imu,
+        )
+
+    def __repr__(self) -> str:
+        return f"ImuSwitchingStatistics(sigma_accel={self.sigma_accel}, sigma_gyro={self.sigma_gyro}, sigma_gnss={self.sigma_gnss})"
+
+
+def blend_filter(
+    *,
+    model: StateSpaceModel,
+    sigma_points: SigmaPoints | None = None,
+    redraw_after_predict: bool = True,
+    mode: str = "fixed",
+    delta: float = 0.85,
+    statistics: Statistics | None = None,
+    thresholds: Sequence[float] = (3.0, 0.1),
+    temperature: float | Sequence[float] = 0.1,
+    spread: bool = False,
+) -> Blend:
+    """:class:`~difffilter.mixers.blend.Blend` of ``EKF(model)`` and ``UKF(model, sigma_points)``
+    on the same ``model`` object (one set of learnable ``Q``/``R``); other arguments as
+    :class:`Blend`."""
+    temps = float(temperature) if isinstance(temperature, int | float) else tuple(float(t) for t in temperature)
+    return Blend(
+        EKF(model),
+        UKF(model, sigma_points=sigma_points, redraw_after_predict=redraw_after_predict),
+        mode=mode,
+        delta=delta,
+        statistics=statistics,
+        thresholds=(float(thresholds[0]), float(thresholds[1])),
+        temperature=temps,  # type: ignore[arg-type]
+        spread=spread,
+    )

@@ -1,0 +1,93 @@
+"""experiments/report.py: collects results/<name>.md sections and run directories' results.csv
+into results/REPORT.md with the papers' published numbers beside ours."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import pytest
+
+from difffilter.learn.experiment import write_results
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def report():
+    spec = importlib.util.spec_from_file_location("difffilter_report", ROOT / "experiments" / "report.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses resolve annotations through sys.modules
+    spec.loader.exec_module(module)
+    yield module
+    sys.modules.pop(spec.name, None)
+
+
+def _row(name, rmse, anees=8.0):
+    return {
+        "filter": name,
+        "rmse_pos": rmse,
+        "anees": anees,
+        "anees_lo": 7.5,
+        "anees_hi": 8.5,
+        "nis": 2.0,
+        "nll": 1.0,
+        "time_per_step_ms": 3.0,
+    }
+
+
+def test_markdown_tables_are_parsed(report):
+    text = "# t\n\nintro\n\n| filter | rmse_pos | paper |\n|---|---|---|\n| hand-tuned | 0.12 | 2.36 cm |\n| learned | 0.11 |  |\n\ntext\n"
+    tables = report.parse_markdown_tables(text)
+    assert tables == [
+        [{"filter": "hand-tuned", "rmse_pos": "0.12", "paper": "2.36 cm"}, {"filter": "learned", "rmse_pos": "0.11", "paper": ""}]
+    ]
+    assert report.parse_markdown_tables("| a | b |\nno rule\n") == []
+
+
+def test_report_from_run_directory_and_sections(report, tmp_path):
+    # a run directory as experiments/train.py writes it
+    run = tmp_path / "run"
+    rows = [_row("hand-tuned", 0.125, 7.0), _row("learned", 0.100), _row("oracle", 0.099), _row("ekf", 0.126), _row("ukf", 0.127)]
+    write_results(rows, run, title="difffilter results: p004_blend")
+    # a hand-written section in results/
+    results = tmp_path / "results"
+    results.mkdir()
+    section = "# p000_gpsdr\n\n| filter | rmse_pos | anees | anees_lo | anees_hi |\n|---|---|---|---|---|\n"
+    section += "| hand-tuned | 6.0 | 44 | 7.98 | 8.02 |\n| learned | 4.5 | 9.0 | 7.98 | 8.02 |\n"
+    (results / "p000_gpsdr.md").write_text(section)
+    text = report.main([str(run), "--results-dir", str(results)])
+    written = (results / "REPORT.md").read_text()
+    assert written == text
+    lines = text.splitlines()
+    # summary: one line per experiment, learned vs hand-tuned in percent, ANEES against its band
+    p004 = next(x for x in lines if x.startswith("| p004_blend |"))
+    assert "| 0.125 | 0.1 | 0.099 | -20.0 % | 8 [7.5, 8.5] in |" in p004 and "9.53" in p004
+    p000 = next(x for x in lines if x.startswith("| p000_gpsdr |"))
+    assert "| 6 | 4.5 | - | -25.0 % | 9 [7.98, 8.02] out |" in p000
+    # the run's table puts each published number beside the matching filter
+    assert any(x.startswith("| ekf | 0.126 |") and x.endswith("| 9.53 cm |") for x in lines)
+    assert any(x.startswith("| ukf | 0.127 |") and x.endswith("| 5.68 cm |") for x in lines)
+    assert any(x.startswith("| learned | 0.1 |") and x.endswith("|  |") for x in lines)
+    # the section is included with its headings nested below the report's
+    assert "\n## p000_gpsdr\n" in text and "(from `results/p000_gpsdr.md`)" in text and "\n# p000_gpsdr" not in text
+    # a section without a heading gets one; an experiment given as run and section is summarised once
+    (results / "p004_blend.md").write_text("| filter | rmse_pos |\n|---|---|\n| hand-tuned | 0.2 |\n| learned | 0.1 |\n")
+    text = report.main([str(run), "--results-dir", str(results), "--no-write"])
+    assert sum(x.startswith("| p004_blend |") for x in text.splitlines()) == 1 and "\n## p004_blend\n" in text
+    # hand-written tables: units and bands in the headers, roles inside longer names, bold cells
+    table = "| filter (4 runs) | rmse_pos (m) | anees (band 19.85-20.15) |\n|---|---|---|\n"
+    table += "| IMM, hand-tuned | 3.500 [3.9] | 218 |\n| **IMM, learned** | **3.150** | 20.0 |\n| IMM, oracle | 3.0 | 20.1 |\n"
+    (results / "p003_imm.md").write_text("## p003\n\n" + table)
+    text = report.main(["--results-dir", str(results), "--no-write"])
+    p003 = next(x for x in text.splitlines() if x.startswith("| p003_imm |"))
+    assert "| 3.5 | 3.15 | 3 | -10.0 % | 20 [19.85, 20.15] in |" in p003 and "5 vs 7 steps" in p003
+    # a second run does not read its own REPORT.md back as a section
+    again = report.main(["--results-dir", str(results), "--no-write"])
+    assert "REPORT" not in again
+
+
+def test_missing_run_is_an_error(report, tmp_path):
+    with pytest.raises(FileNotFoundError):
+        report.load_run(tmp_path / "nothing")

@@ -34,12 +34,12 @@ from difffilter.models import LinearModel
 from difffilter.models.base import DynamicsModel, StateSpaceModel
 from difffilter.models.motion import ConstantVelocity, Singer
 from difffilter.sim.sampling import ModelSimulator, sample_trajectories
+from tests import memory_probe
 
 f64 = torch.float64
 ROOT = Path(__file__).resolve().parents[1]
 CV_PRIOR = ([0.0, 10.0, 0.0, 5.0], [100.0, 4.0, 100.0, 4.0])
 SINGER_PRIOR = ([0.0, 10.0, 0.0, 0.0, 5.0, 0.0], [100.0, 4.0, 1.0, 100.0, 4.0, 1.0])
-
 
 
 def cv_model(q: float = 0.5, r: float = 25.0, *, time_invariant: bool = True) -> StateSpaceModel:
@@ -447,42 +447,58 @@ def test_recovery_singer_full_scale(loss):
 
 
 # -- long trajectories: bounded memory with TBPTT ------------------------------------------------
-_MEMORY_SCRIPT = """
-import resource, sys, torch
-torch.set_num_threads(1)
-sys.path.insert(0, {root!r})
-from tests.test_learn import cv_model, CV_PRIOR
-from difffilter.filters import KalmanFilter
-from difffilter.filters.base import detach_belief
-from difffilter.learn import NLLLoss
-from difffilter.sim.sampling import sample_trajectories
-window = int(sys.argv[1])
-data = sample_trajectories(cv_model(), batch_size=8, num_steps=5000, initial_mean=CV_PRIOR[0], initial_cov=CV_PRIOR[1], seed=0)
-kf = KalmanFilter(cv_model(q=2.0))
-base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-belief = None
-for start in range(0, 5000, window):
-    z = data.measurements[:, start:start + window]
-    res = kf(z, data.initial_mean, data.initial_cov, belief=belief)
-    NLLLoss()(res, {{}}).mean().backward()
-    belief = detach_belief(res.final_belief)
-print(base, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
-"""
+# Each configuration runs in its own fresh interpreter (tests/memory_probe.py), which reads its
+# own peak RSS from /proc/self/status: the pytest process's peak (raised by earlier tests) and the
+# ru_maxrss a child inherits from it must not enter the measurement.
+needs_proc_status = pytest.mark.skipif(not memory_probe.available(), reason="needs /proc/self/status (Linux)")
+
+
+def _probe(*args: int) -> tuple[int, int]:
+    out = subprocess.run(
+        [sys.executable, "-m", "tests.memory_probe", *map(str, args)], cwd=ROOT, capture_output=True, text=True, timeout=600
+    )
+    assert out.returncode == 0, out.stderr[-2000:]
+    base, peak = map(int, out.stdout.split())
+    return base, peak
+
+
+@needs_proc_status
+def test_memory_probe_measures_only_its_own_process():
+    # The parent holds ~256 MiB; a fresh child's peak must not include it (ru_maxrss would).
+    held = bytearray(256 * 1024 * 1024)
+    held[::4096] = b"\x01" * len(held[::4096])
+    assert memory_probe.peak_kib() > 256 * 1024
+    child = (
+        "from tests import memory_probe as m\n"
+        "first = m.peak_kib()\n"
+        "x = bytearray(64 * 1024 * 1024); x[::4096] = b'\\x01' * len(x[::4096]); grown = m.peak_kib(); del x\n"
+        "reset = m.reset_peak()\n"
+        "print(first, grown, m.peak_kib() if reset else -1, m.current_kib())\n"
+    )
+    out = subprocess.run([sys.executable, "-c", child], cwd=ROOT, capture_output=True, text=True, check=True, timeout=120)
+    first, grown, after_reset, now = map(int, out.stdout.split())
+    del held
+    assert first < 128 * 1024  # a bare interpreter, not the parent's 256+ MiB
+    assert grown - first > 60 * 1024  # the child's own 64 MiB is seen
+    if after_reset >= 0:  # clear_refs accepted: the peak is back near the current RSS
+        assert after_reset < now + 8 * 1024
+    with pytest.raises(ValueError, match="window must be >= 1"):
+        memory_probe.measure(0)
+    with pytest.raises(TypeError, match="window must be an int"):
+        memory_probe.measure(1.5)
 
 
 @pytest.mark.slow
+@needs_proc_status
 def test_tbptt_memory_is_bounded_for_T_5000():
-    peaks = {}
-    for window in (100, 5000):
-        out = subprocess.run(
-            [sys.executable, "-c", _MEMORY_SCRIPT.format(root=str(ROOT)), str(window)], capture_output=True, text=True, check=True
-        )
-        base, peak = map(int, out.stdout.split())
-        peaks[window] = (base, peak)  # KiB: after data/model setup, and at the end
+    peaks = {window: _probe(window, 8, 5000) for window in (100, 5000)}  # KiB: after setup, peak of the pass
     growth = {w: p - b for w, (b, p) in peaks.items()}
-    print(f"\npeak RSS (KiB), B=8, T=5000, CV Kalman filter: baseline/peak window 100 {peaks[100]}, full BPTT {peaks[5000]}")
+    print(
+        f"\nRSS (KiB), B=8, T=5000, CV Kalman filter, NLL: after setup / peak of the pass: window 100 {peaks[100]},"
+        f" full BPTT {peaks[5000]}; growth {growth}"
+    )
     assert growth[5000] > 50 * 1024  # the full graph of 5000 steps
-    assert growth[100] * 10 < growth[5000]
+    assert growth[100] * 10 < growth[5000]  # 100-step windows: the graph of one window only
 
 
 @pytest.mark.filterwarnings("ignore:You are trying to `self.log\\(\\)`")

@@ -29,3 +29,6 @@ def test_ci_runs_the_readme_test_command():
     command = "python -m pytest -q"
     assert f"&& {command}\n" in readme
     assert f"\n{command}\n" in ci
+    # the slow suite runs as its own step, after the default suite
+    slow = f"\n{command} -m slow\n"
+    assert slow in ci and ci.index(slow) > ci.index(f"\n{command}\n")

@@ -224,3 +224,29 @@ def test_p003_ins_error_growth_is_plausible(flight) -> None:  # type: ignore[no-
         assert all(p[1] == pytest.approx(q[0]) for p, q in zip(phases[:-1], phases[1:], strict=True))
     speed = sc.nav_truth["vel"].norm(dim=-1)
     assert bool((speed[:, 30:] > 30.0).all()) and bool((speed < 210.0).all())
+
+
+def test_p003_closed_loop_feedback_bounds_the_errors_and_stays_in_the_model_family() -> None:
+    kw = {"duration": 300, "imu_rate": 5, "position_in_metres": True, "profile": "random"}
+    closed = simulate_p003(2, seed=6, feedback="imm", **kw)
+    open_loop = simulate_p003(2, seed=6, **kw)
+    assert "feedback" in closed.controls and "feedback" not in open_loop.controls
+    assert closed.controls["feedback"].shape == (2, 300, 20) and bool((closed.controls["feedback"][:, 0] == 0).all())
+    assert bool((closed.controls["feedback"][..., 9:] == 0).all())  # sensor errors are not fed back
+    # same initial errors and sensors; the open loop drifts hundreds of metres, the closed loop stays at the GNSS level
+    torch.testing.assert_close(closed.initial_truth, open_loop.initial_truth)
+    assert open_loop.truth[:, -1, :2].abs().max() > 200.0 and closed.truth[:, -60:, :3].abs().max() < 20.0
+    # noise-free: the measurement model reproduces the closed-loop measurements and the linear model with
+    # the feedback input x_k = Phi (x_{k-1} - c_{k-1}) the truth, one step at a time
+    quiet = {"imu_noise": False, "measurement_noise": False}
+    for metres in (True, False):
+        sc = simulate_p003(1, seed=7, duration=100, imu_rate=5, position_in_metres=metres, feedback="imm", **quiet)
+        model = make_p003_model(position_in_metres=metres)
+        assert (model.measurement(sc.truth, sc.controls) - sc.measurements).abs().max() < 1e-6
+        x = torch.cat([sc.initial_truth[:, None], sc.truth], 1)
+        step = x[:, 1:] - model.dynamics(x[:, :-1], sc.controls)
+        to_m = 1.0 if metres else 6.37e6
+        assert (step[..., :2] * to_m).abs().max() < 2e-3 and step[..., 2].abs().max() < 2e-3  # metres per step
+        assert sc.controls["feedback"][..., :2].abs().max() * to_m > 1.0  # the corrections are not trivial
+    with pytest.raises(ValueError, match="feedback"):
+        simulate_p003(1, duration=5, feedback="truth")

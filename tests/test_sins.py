@@ -102,15 +102,87 @@ def test_batched_matrix_equals_loop_and_metre_units_are_similar() -> None:
         )
         assert torch.equal(one, F[b])
     rad, met = SinsErrorDynamics(), SinsErrorDynamics(position_in_metres=True)
-    # the same error expressed in metres propagates to the same error
-    lat, h = u["llh"][:, 0], u["llh"][:, 2]
+    # The same error expressed in metres propagates to the same error.  The metre scale is taken at
+    # the INS position, which moves during the step (velocities ~100 m/s here): the error enters in
+    # the scale of the previous position and leaves in the scale of the current one.
     a, e2 = 6378137.0, 6.69437999014e-3
-    w = torch.sqrt(1 - e2 * torch.sin(lat) ** 2)
-    scale = torch.ones(3, 20, dtype=F64)
-    scale[:, 0] = a * (1 - e2) / w**3 + h
-    scale[:, 1] = (a / w + h) * torch.cos(lat)
+
+    def scale(llh: torch.Tensor) -> torch.Tensor:
+        lat, h = llh[:, 0], llh[:, 2]
+        w = torch.sqrt(1 - e2 * torch.sin(lat) ** 2)
+        out = torch.ones(3, 20, dtype=F64)
+        out[:, 0] = a * (1 - e2) / w**3 + h
+        out[:, 1] = (a / w + h) * torch.cos(lat)
+        return out
+
+    s_now = scale(u["llh"])
+    vel = u["vel"]
+    prev = u["llh"] - torch.stack([vel[:, 1] / s_now[:, 0], vel[:, 0] / s_now[:, 1], vel[:, 2]], -1)  # dt = 1 s
     x = _state(3, False)
-    assert torch.allclose(met(x * scale, u), rad(x, u) * scale, rtol=1e-9, atol=1e-12)
+    exact = rad(x, u) * s_now
+    got = met(x * scale(prev), u)
+    assert torch.allclose(got[:, 3:], exact[:, 3:], rtol=1e-6, atol=1e-12)
+    assert (got[:, :3] - exact[:, :3]).abs().max() < 2e-4  # metres, on position errors of ~1 km
+    # without the scale-rate term (frozen scale) the position error is off by ~1 cm per step
+    frozen = met(x * s_now, u)
+    assert (frozen[:, :3] - exact[:, :3]).abs().max() > 5e-3
+
+
+def test_linear_prediction_builds_F_once_and_matches_the_separate_calls(monkeypatch: pytest.MonkeyPatch) -> None:
+    import difffilter.models.sins as sins
+
+    u = _nav_inputs()
+    u["feedback"] = _state(3, True, scale=0.01, seed=4)
+    dyn = SinsErrorDynamics(position_in_metres=True)
+    x = _state(3, True)
+    calls = []
+    real = sins.sins_error_matrix
+    monkeypatch.setattr(sins, "sins_error_matrix", lambda *a, **k: calls.append(1) or real(*a, **k))
+    xm, phi, qd = dyn.linear_prediction(x, u)
+    assert len(calls) == 1
+    torch.testing.assert_close(phi, dyn.matrix(u), rtol=0, atol=0)
+    torch.testing.assert_close(qd, dyn.process_noise(x, u), rtol=0, atol=0)
+    torch.testing.assert_close(xm, dyn(x, u), rtol=0, atol=0)
+    # closed-loop feedback: the error restarts from x - feedback
+    torch.testing.assert_close(xm, (phi @ (x - u["feedback"])[..., None])[..., 0])
+    assert len(calls) == 4
+
+
+def test_simplified_ukf_builds_F_once_per_predict_with_unchanged_results(monkeypatch: pytest.MonkeyPatch) -> None:
+    import difffilter.models.sins as sins
+    from difffilter.filters.ukf import symmetrize
+    from difffilter.mixers import IMM
+
+    class ThreeCallSUKF(SimplifiedUKF):
+        """The prediction as three separate model calls (matrix, process_noise, f)."""
+
+        def predict(self, belief, u):  # type: ignore[no-untyped-def]
+            mean, cov = belief["mean"], belief["cov"]
+            f = self.model.dynamics.matrix(u)
+            q = self.model.dynamics.process_noise(mean, u)
+            return {**belief, "mean": self.model.dynamics(mean, u), "cov": symmetrize(f @ cov @ f.mT + q)}
+
+    sc = simulate_p003(2, seed=3, duration=30, imu_rate=5, position_in_metres=True, feedback="imm")
+    calls = []
+    real = sins.sins_error_matrix
+    monkeypatch.setattr(sins, "sins_error_matrix", lambda *a, **k: calls.append(1) or real(*a, **k))
+    args = (sc.measurements, sc.initial_mean, sc.initial_cov)
+    kw = {"mask": sc.mask, "controls": sc.controls}
+    model = make_p003_model(position_in_metres=True)
+    new = SimplifiedUKF(model)(*args, **kw)
+    assert len(calls) == 30  # one F per predict
+    calls.clear()
+    old = ThreeCallSUKF(model)(*args, **kw)
+    assert len(calls) == 90
+    torch.testing.assert_close(new.mean, old.mean, rtol=0, atol=0)
+    torch.testing.assert_close(new.cov, old.cov, rtol=0, atol=0)
+    torch.testing.assert_close(new.log_likelihood, old.log_likelihood, rtol=0, atol=0)
+    calls.clear()
+    pi = torch.tensor([[0.95, 0.05], [0.05, 0.95]], dtype=F64)
+    high = make_p003_model(q_scale=1e4, position_in_metres=True)
+    imm = IMM([SimplifiedUKF(model), SimplifiedUKF(high)], pi, torch.tensor([0.9, 0.1], dtype=F64))
+    imm(*args, **kw)
+    assert len(calls) == 60  # one per mode and step
 
 
 def test_schuler_oscillation_of_a_stationary_ins() -> None:

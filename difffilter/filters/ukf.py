@@ -179,6 +179,11 @@ class SimplifiedUKF(UKF):
     ``P- = F P F^T + Q`` exactly as a Kalman filter, then ``2n + 1`` points drawn once from
     ``N(x-, P-)`` for the measurement update with additive ``R``.  Learnable: the model's
     parameters.
+
+    When the dynamics offer ``linear_prediction(x, u) -> (f(x, u), F, Q)`` (e.g.
+    :class:`~difffilter.models.sins.SinsErrorDynamics`), the prediction takes all three from that
+    one call, so a model whose ``F`` is expensive (matrix exponential) builds it once per step
+    instead of once each in ``matrix``, ``process_noise`` and ``f``.
     """
 
     def __init__(self, model: StateSpaceModel, *, sigma_points: SigmaPoints | None = None) -> None:
@@ -188,6 +193,12 @@ class SimplifiedUKF(UKF):
 
     def predict(self, belief: Belief, u: Controls) -> Belief:
         mean, cov = belief["mean"], belief["cov"]
-        f = self.model.dynamics.matrix(u)
-        q = self.model.dynamics.process_noise(mean, u)
-        return {**belief, "mean": self.model.dynamics(mean, u), "cov": symmetrize(f @ cov @ f.mT + q)}
+        dyn = self.model.dynamics
+        joint = getattr(dyn, "linear_prediction", None)
+        if callable(joint):
+            xm, f, q = joint(mean, u)
+        else:
+            f = dyn.matrix(u)
+            q = dyn.process_noise(mean, u)
+            xm = dyn(mean, u)
+        return {**belief, "mean": xm, "cov": symmetrize(f @ cov @ f.mT + q)}

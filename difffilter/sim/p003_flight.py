@@ -21,6 +21,17 @@ How the truth is produced (nothing is sampled from the filter's error model):
 Option (default on, the premise of p003's two-mode IMM): during manoeuvres the IMU white noise is
 multiplied by ``manoeuvre_imu_noise_scale`` (100, p003's ``sigma_Q`` ratio) and the GPS noise by
 ``manoeuvre_measurement_noise_scale`` (10, the ``sigma_R`` ratio): vibration and tracking-loop stress.
+
+Option ``feedback="imm"`` (closed-loop integration, as a GPS/SINS navigation computer runs it): at
+every 1 Hz epoch a reference error-state filter inside the simulator (p003's hand-tuned two-mode IMM
+of simplified UKFs, :func:`reference_imm`) processes that epoch's measurements, and its estimated
+position, velocity and attitude errors are subtracted from the INS solution (the sensor-error states
+are not fed back).  The INS errors then stay at the GNSS level instead of drifting freely (the
+0.1 deg initial tilt alone drives a Schuler oscillation of ~10 km), so the linear error model stays
+valid.  Controls get ``"feedback" [B, T, 20]``: the correction applied at the previous epoch, which
+:class:`~difffilter.models.sins.SinsErrorDynamics` subtracts (``x_k = Phi (x_{k-1} - c_{k-1})``), so
+any filter under test sees the same corrected INS and knows the corrections.  ``truth``, the
+measurements and the INS controls at epoch ``k`` are *before* that epoch's correction.
 """
 
 from __future__ import annotations
@@ -35,7 +46,16 @@ from torch import Tensor
 from . import geometry as geo
 from .p001_static import as_generator
 
-__all__ = ["P003_CONFIG", "PAPER_PHASES", "P003Scenario", "flight_profile", "make_p003_model", "manoeuvre_flags", "simulate_p003"]
+__all__ = [
+    "P003_CONFIG",
+    "PAPER_PHASES",
+    "P003Scenario",
+    "flight_profile",
+    "make_p003_model",
+    "manoeuvre_flags",
+    "reference_imm",
+    "simulate_p003",
+]
 
 #: (start s, end s, kind, magnitude): accelerate -> delta-V (m/s), climb/descend -> peak flight-path
 #: angle (deg), turn -> heading change (deg, left negative).  Times from the paper; magnitudes chosen.
@@ -251,6 +271,79 @@ def _clock_discrete(dt: float, tau: float, qb: float, qd: float) -> tuple[np.nda
     return phi.numpy(), (phi @ e[:2, 2:]).numpy()
 
 
+def _gnss_differences(
+    ins_llh: Tensor, ins_vel: Tensor, t_llh: Tensor, t_vel: Tensor, sp: Tensor, sv: Tensor, clock: Tensor
+) -> tuple[Tensor, Tensor]:
+    """Noise-free ``drho, drhodot [..., K]`` for INS/true ``llh, vel [..., 3]``, satellites
+    ``sp, sv [..., K, 3]`` and clock ``[..., 2]`` (see the module docstring)."""
+    p_ins, p_true = geo.geodetic_to_ecef(ins_llh), geo.geodetic_to_ecef(t_llh)
+    ci = geo.enu_rotation(ins_llh[..., 0], ins_llh[..., 1])
+    ct = geo.enu_rotation(t_llh[..., 0], t_llh[..., 1])
+    vi_e = (ins_vel[..., None, :] @ ci)[..., 0, :]
+    vt_e = (t_vel[..., None, :] @ ct)[..., 0, :]
+    a, b = p_ins[..., None, :] - sp, p_true[..., None, :] - sp
+    na, nb = a.norm(dim=-1), b.norm(dim=-1)
+    drho = na - nb - clock[..., 0, None]
+    rate = (a * (vi_e[..., None, :] - sv)).sum(-1) / na - (b * (vt_e[..., None, :] - sv)).sum(-1) / nb - clock[..., 1, None]
+    return drho, rate
+
+
+def reference_imm(config: dict[str, float] | None = None, num_satellites: int = 8) -> torch.nn.Module:
+    """The simulator's closed-loop navigation filter (``feedback="imm"``): p003's hand-tuned IMM of
+    two simplified UKFs in metre units, float64 - low mode at the sensor specification, high mode
+    PSD x 1e4 and R x 100 (p003's sigma ratios), ``Pi = diag(0.95)``, initial (0.9, 0.1)."""
+    from ..filters import SimplifiedUKF
+    from ..mixers import IMM
+
+    modes = [
+        SimplifiedUKF(make_p003_model(num_satellites=num_satellites, q_scale=qs, r_scale=rs, position_in_metres=True, config=config))
+        for qs, rs in ((1.0, 1.0), (1.0e4, 100.0))
+    ]
+    pi = torch.tensor([[0.95, 0.05], [0.05, 0.95]], dtype=torch.float64)
+    return IMM(modes, transition=pi, initial_probs=torch.tensor([0.9, 0.1], dtype=torch.float64)).double()
+
+
+def _feed_back(
+    ref: torch.nn.Module,
+    belief: dict[str, Tensor],
+    k: int,
+    ins_llh: np.ndarray,
+    ins_v: np.ndarray,
+    ins_c: np.ndarray,
+    f_n: np.ndarray,
+    fb: np.ndarray,
+    z_out: Tensor,
+    vis2: Tensor,
+    t_llh: Tensor,
+    t_vel: Tensor,
+    sp: Tensor,
+    sv: Tensor,
+    clock: Tensor,
+    range_noise: Tensor,
+    rate_noise: Tensor,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, Tensor]]:
+    """One closed-loop epoch ``k >= 1``: measure with the (uncorrected) INS, run the reference filter
+    (which subtracts the previous correction ``fb[:, k - 1]`` itself), record its position/velocity/
+    attitude estimate as ``fb[:, k]`` (metres) and return the corrected INS state and the belief."""
+    llh_t, vel_t = torch.from_numpy(ins_llh), torch.from_numpy(ins_v)
+    drho, rate = _gnss_differences(llh_t, vel_t, t_llh, t_vel, sp[:, k], sv[:, k], clock[:, k])
+    z = torch.cat([drho - range_noise[:, k - 1], rate - rate_noise[:, k - 1]], -1)
+    z_out[:, k - 1] = z
+    bsz = ins_llh.shape[0]
+    u = {
+        "llh": llh_t, "vel": vel_t, "f_n": torch.from_numpy(f_n), "C_bn": torch.from_numpy(ins_c),
+        "dt": torch.ones(bsz, 1, dtype=torch.float64), "sat_pos": sp[:, k], "sat_vel": sv[:, k],
+        "feedback": torch.from_numpy(fb[:, k - 1]),
+    }  # fmt: skip
+    with torch.no_grad():
+        belief, _, _ = ref.step(belief, z, vis2[:, k - 1], u)
+    c = belief["mean"].numpy()
+    fb[:, k, :9] = c[:, :9]
+    _, _, rm, rn = _frame(ins_llh, ins_v)
+    dllh = np.stack([c[:, 0] / rm, c[:, 1] / (rn * np.cos(ins_llh[:, 0])), c[:, 2]], -1)
+    return ins_llh - dllh, ins_v - c[:, 3:6], _rot(c[:, 6:9]) @ ins_c, belief
+
+
 def simulate_p003(
     batch_size: int = 1,
     seed: int | torch.Generator | None = 0,
@@ -267,6 +360,7 @@ def simulate_p003(
     manoeuvre_imu_noise_scale: float = 100.0,
     manoeuvre_measurement_noise_scale: float = 10.0,
     position_in_metres: bool = False,
+    feedback: str = "none",
     config: dict[str, float] | None = None,
 ) -> P003Scenario:
     """Simulate ``batch_size`` flights (see the module docstring).
@@ -280,7 +374,11 @@ def simulate_p003(
             switches off the INS equals the truth to rounding); ``imu_noise=False`` keeps the
             biases but drops the white noises and Markov driving noises (deterministic errors).
         position_in_metres: express truth and covariances in the ``models.sins`` metre layout.
+        feedback: ``"none"`` (open-loop INS, free-inertial drift) or ``"imm"`` (closed loop, see
+            the module docstring; adds ``controls["feedback"]``).
     """
+    if feedback not in ("none", "imm"):
+        raise ValueError(f"feedback must be 'none' or 'imm', got {feedback!r}")
     gen = as_generator(seed)
     cfg = {**P003_CONFIG, **(config or {})}
     dur = float(duration if duration is not None else cfg["duration"])
@@ -342,6 +440,47 @@ def simulate_p003(
     _, _, rm0, rn0 = _frame(llh[:, 0], vel[:, 0])
     ins_llh = llh[:, 0] + np.stack([d_neu[:, 0] / rm0, d_neu[:, 1] / (rn0 * np.cos(llh[:, 0, 0])), d_neu[:, 2]], -1)
     ins_v, ins_c = vel[:, 0] + d_v, _rot(-phi0) @ c_true[:, 0]
+    # clock, satellites and measurement noise (drawn in this order, before the INS loop: the
+    # closed loop needs each epoch's measurement inside it)
+    phi_c, q_c = _clock_discrete(1.0, cfg["clock_time"], cfg["clock_bias_psd"], cfg["clock_drift_psd"])
+    lq, cn = np.linalg.cholesky(q_c), randn(bsz, steps, 2)
+    clk = np.zeros((bsz, steps + 1, 2))
+    clk[:, 0] = randn(bsz, 2) * np.array([cfg["clock_bias"], cfg["clock_drift"]])
+    for k in range(steps):
+        clk[:, k + 1] = clk[:, k] @ phi_c.T + cn[:, k] @ lq.T
+    f64 = torch.float64
+    ke = np.arange(steps + 1) * imu_rate
+    t_llh, t_vel, t_c = llh[:, ke], vel[:, ke], c_true[:, ke]
+    tt = torch.arange(steps + 1, dtype=f64).expand(bsz, steps + 1)
+    sp, sv = geo.CircularOrbitConstellation().state(tt, torch.tensor(earth_angle)[:, None], torch.tensor(orbit_phase)[:, None])
+    p_true = geo.geodetic_to_ecef(torch.from_numpy(t_llh))
+    elev = geo.azimuth_elevation(p_true, sp)[1]
+    best = torch.argsort(elev[:, 1:].amin(1), dim=-1, descending=True)[:, :k_sat]  # [B, K]
+    pick = best[:, None, :, None].expand(bsz, steps + 1, k_sat, 3)
+    sp, sv, elev = sp.gather(2, pick), sv.gather(2, pick), elev.gather(2, best[:, None].expand(bsz, steps + 1, k_sat))
+    man = np.stack([manoeuvre_flags(p, np.arange(1, steps + 1) - 0.5) for p in phases])
+    nscale = torch.from_numpy(np.where(man, manoeuvre_measurement_noise_scale, 1.0))[..., None] * float(measurement_noise)
+    range_noise = torch.from_numpy(randn(bsz, steps, k_sat)) * cfg["sigma_range"] * nscale
+    rate_noise = torch.from_numpy(randn(bsz, steps, k_sat)) * cfg["sigma_rate"] * nscale
+    vis = elev[:, 1:] > math.radians(cfg["elevation_mask_deg"])
+    clock = torch.from_numpy(clk)
+    closed = feedback == "imm"
+    fb = np.zeros((bsz, steps + 1, 20))  # metres layout; fb[:, k] = correction applied at epoch k
+    z_closed = torch.zeros(bsz, steps, 2 * k_sat, dtype=f64)
+    if closed:
+        ref = reference_imm(cfg, k_sat)
+        sd_ref = np.concatenate(
+            [
+                np.full(3, cfg["init_position"]),
+                np.full(3, cfg["init_velocity"]),
+                np.full(3, math.radians(cfg["init_attitude_deg"])),
+                np.full(6, cfg["gyro_constant_dph"] * math.radians(1.0) / 3600.0),
+                np.full(3, cfg["accel_bias_mg"] * 9.80665e-3),
+                [cfg["clock_bias"], cfg["clock_drift"]],
+            ]
+        )
+        belief = ref.initial_belief(torch.zeros(bsz, 20, dtype=f64), torch.diag(torch.from_numpy(sd_ref**2)), bsz)
+        vis2 = torch.cat([vis, vis], -1)
     rec = {k: np.zeros((bsz, steps + 1, 3)) for k in ("llh", "vel", "f_n", "eps_r", "nabla")}
     rec_c = np.zeros((bsz, steps + 1, 3, 3))
     rec["llh"][:, 0], rec["vel"][:, 0], rec["eps_r"][:, 0], rec["nabla"][:, 0], rec_c[:, 0] = ins_llh, ins_v, eps_r, nabla, ins_c
@@ -361,47 +500,32 @@ def simulate_p003(
             k = (i + 1) // imu_rate
             rec["llh"][:, k], rec["vel"][:, k], rec["eps_r"][:, k], rec["nabla"][:, k], rec_c[:, k] = ins_llh, ins_v, eps_r, nabla, ins_c
             rec["f_n"][:, k], f_acc = f_acc, np.zeros((bsz, 3))
+            if closed:
+                ins_llh, ins_v, ins_c, belief = _feed_back(
+                    ref, belief, k, ins_llh, ins_v, ins_c, rec["f_n"][:, k], fb, z_closed, vis2,
+                    torch.from_numpy(t_llh[:, k]), torch.from_numpy(t_vel[:, k]), sp, sv, clock, range_noise, rate_noise,
+                )  # fmt: skip
     # --- error truth at the 1 Hz epochs ------------------------------------------------------------
-    ke = np.arange(steps + 1) * imu_rate
-    t_llh, t_vel, t_c = llh[:, ke], vel[:, ke], c_true[:, ke]
     err = np.zeros((bsz, steps + 1, 20))
     err[..., 0:3], err[..., 3:6] = rec["llh"] - t_llh, rec["vel"] - t_vel
     err[..., 6:9] = -_log(rec_c @ np.swapaxes(t_c, -1, -2))
     err[..., 9:12], err[..., 12:15], err[..., 15:18] = eps_b[:, None], rec["eps_r"], rec["nabla"]
-    phi_c, q_c = _clock_discrete(1.0, cfg["clock_time"], cfg["clock_bias_psd"], cfg["clock_drift_psd"])
-    lq, cn = np.linalg.cholesky(q_c), randn(bsz, steps, 2)
-    err[:, 0, 18:20] = randn(bsz, 2) * np.array([cfg["clock_bias"], cfg["clock_drift"]])
-    for k in range(steps):
-        err[:, k + 1, 18:20] = err[:, k, 18:20] @ phi_c.T + cn[:, k] @ lq.T
-    # --- satellites and measurements ----------------------------------------------------------
-    f64 = torch.float64
-    tt = torch.arange(steps + 1, dtype=f64).expand(bsz, steps + 1)
-    sp, sv = geo.CircularOrbitConstellation().state(tt, torch.tensor(earth_angle)[:, None], torch.tensor(orbit_phase)[:, None])
-    p_true = geo.geodetic_to_ecef(torch.from_numpy(t_llh))
-    elev = geo.azimuth_elevation(p_true, sp)[1]
-    best = torch.argsort(elev[:, 1:].amin(1), dim=-1, descending=True)[:, :k_sat]  # [B, K]
-    pick = best[:, None, :, None].expand(bsz, steps + 1, k_sat, 3)
-    sp, sv, elev = sp.gather(2, pick), sv.gather(2, pick), elev.gather(2, best[:, None].expand(bsz, steps + 1, k_sat))
-    ins_llh_t = torch.from_numpy(rec["llh"])
-    p_ins = geo.geodetic_to_ecef(ins_llh_t)
-    ci = geo.enu_rotation(ins_llh_t[..., 0], ins_llh_t[..., 1])
-    ct = geo.enu_rotation(torch.from_numpy(t_llh[..., 0]), torch.from_numpy(t_llh[..., 1]))
-    vi_e = (torch.from_numpy(rec["vel"])[..., None, :] @ ci)[..., 0, :]
-    vt_e = (torch.from_numpy(t_vel)[..., None, :] @ ct)[..., 0, :]
-    a, b = p_ins[..., None, :] - sp, p_true[..., None, :] - sp
-    na, nb = a.norm(dim=-1), b.norm(dim=-1)
-    clock = torch.from_numpy(err[..., 18:20])
-    man = np.stack([manoeuvre_flags(p, np.arange(1, steps + 1) - 0.5) for p in phases])
-    nscale = torch.from_numpy(np.where(man, manoeuvre_measurement_noise_scale, 1.0))[..., None] * float(measurement_noise)
-    drho = (na - nb - clock[..., 0, None])[:, 1:] - torch.from_numpy(randn(bsz, steps, k_sat)) * cfg["sigma_range"] * nscale
-    rate = ((a * (vi_e[..., None, :] - sv)).sum(-1) / na - (b * (vt_e[..., None, :] - sv)).sum(-1) / nb - clock[..., 1, None])[:, 1:]
-    rate = rate - torch.from_numpy(randn(bsz, steps, k_sat)) * cfg["sigma_rate"] * nscale
-    vis = elev[:, 1:] > math.radians(cfg["elevation_mask_deg"])
+    err[..., 18:20] = clk
+    # --- measurements -------------------------------------------------------------------------
+    if closed:
+        z = z_closed
+    else:
+        drho, rate = _gnss_differences(
+            torch.from_numpy(rec["llh"]), torch.from_numpy(rec["vel"]), torch.from_numpy(t_llh), torch.from_numpy(t_vel), sp, sv, clock
+        )
+        z = torch.cat([drho[:, 1:] - range_noise, rate[:, 1:] - rate_noise], -1)
     # --- units and initial belief -------------------------------------------------------------
     _, _, rm, rn = _frame(rec["llh"], rec["vel"])
     scale = np.stack([rm, rn * np.cos(rec["llh"][..., 0]), np.ones_like(rm)], -1)
     if position_in_metres:
         err[..., 0:3] *= scale
+    else:
+        fb[..., 0:3] /= scale
     sd0 = np.concatenate(
         [
             np.full((bsz, 3), cfg["init_position"]) / (1.0 if position_in_metres else scale[:, 0]),
@@ -427,9 +551,11 @@ def simulate_p003(
         "sat_pos": cast(sp[:, 1:]),
         "sat_vel": cast(sv[:, 1:]),
     }
+    if closed:
+        controls["feedback"] = cast(fb[:, :-1])
     return P003Scenario(
         truth=cast(err[:, 1:]),
-        measurements=torch.cat([drho, rate], -1).to(dtype),
+        measurements=z.to(dtype),
         mask=torch.cat([vis, vis], -1),
         controls=controls,
         manoeuvre=torch.from_numpy(man),

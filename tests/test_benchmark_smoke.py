@@ -75,9 +75,24 @@ def test_smoke_difffilter_and_filterpy(tmp_path: Path) -> None:
         # Same model, same data, same conventions: the log-likelihoods agree to rounding.
         assert max(float(a["max_rel_diff"]) for a in agree) < 1e-10
     targets = _read_csv(tmp_path / "targets.csv")
-    assert any(t["target"].startswith("UKF B=2: backward / forward") and t["met"] in ("yes", "NO") for t in targets)
+    assert any(t["target"].startswith("UKF B=2 difffilter: backward / forward") and t["met"] in ("yes", "NO") for t in targets)
     text = (tmp_path / "results.md").read_text()
     assert text == md and "## Throughput and memory" in text and "| ukf | difffilter | float64 | 2 | 5 | forward |" in text
+
+
+def test_smoke_fused_rows_agree_with_the_reference(tmp_path: Path) -> None:
+    """The difffilter-fused library (FusedFilter, here eager: benchmark.fused_compile=false in the
+    smoke config) gets its own rows, fb/f ratios and an agreement entry against the reference."""
+    cfg = _compose("benchmark.libraries=[difffilter,difffilter-fused]", "benchmark.filters=[kf,ekf,ukf,imm]")
+    run_suite(cfg, tmp_path, log=lambda s: None)
+    rows = _read_csv(tmp_path / "benchmark.csv")
+    fused = {(r["filter"], r["mode"]) for r in rows if r["library"] == "difffilter-fused"}
+    assert fused == {(k, m) for k in ("kf", "ekf", "ukf") for m in ("forward", "fwd+bwd")}  # no fused IMM
+    assert all(float(r["compile_s"]) > 0 for r in rows if r["library"] == "difffilter-fused")
+    agree = {a["filter"]: float(a["max_rel_diff"]) for a in _read_csv(tmp_path / "agreement.csv") if a["peer"] == "difffilter-fused"}
+    assert set(agree) == {"kf", "ekf", "ukf"} and max(agree.values()) < 1e-12
+    targets = {t["target"] for t in _read_csv(tmp_path / "targets.csv")}
+    assert "UKF B=2 difffilter-fused: backward / forward time ((fwd+bwd) / fwd - 1)" in targets
 
 
 @pytest.mark.skipif(not HAS_JAX, reason="dynamax/jax not installed")

@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 import os
 import sys
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -19,7 +20,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..filters import EKF, UKF, KalmanFilter, MerweScaled
+from ..filters import EKF, UKF, FusedFilter, KalmanFilter, MerweScaled
 from ..filters.base import GaussianFilter
 from .dynamax_peer import dynamax_available, prepare_dynamax
 from .filterpy_peer import filterpy_available, run_filterpy
@@ -46,6 +47,7 @@ MAIN_COLUMNS = [
     "repeats",
     "difffilter_over_peer",
     "difffilter_over_peer_cpu",
+    "fused_over_peer",
     "fb_over_f",
     "note",
 ]
@@ -56,7 +58,7 @@ class BenchSettings:
     """What to run (the Hydra group ``benchmark`` maps onto these fields)."""
 
     filters: list[str] = field(default_factory=lambda: ["kf", "ekf", "ukf", "imm"])
-    libraries: list[str] = field(default_factory=lambda: ["difffilter", "dynamax", "filterpy"])
+    libraries: list[str] = field(default_factory=lambda: ["difffilter", "difffilter-fused", "dynamax", "filterpy"])
     dtypes: list[str] = field(default_factory=lambda: ["float64", "float32"])
     batch_sizes: list[int] = field(default_factory=lambda: [1, 16, 256, 4096])
     steps: int = 500
@@ -77,11 +79,12 @@ class BenchSettings:
     target_batch: int = 256
     max_memory_mb: float = 8000.0
     xla_flags: str = ""
+    fused_compile: bool = True
 
     def __post_init__(self) -> None:
         for name, allowed, got in (
             ("filters", ("kf", "ekf", "ukf", "imm"), self.filters),
-            ("libraries", ("difffilter", "dynamax", "filterpy"), self.libraries),
+            ("libraries", ("difffilter", "difffilter-fused", "dynamax", "filterpy"), self.libraries),
             ("dtypes", tuple(DTYPES), self.dtypes),
             ("modes", MODES, self.modes),
         ):
@@ -144,7 +147,7 @@ class _Bench:
         self.s, self.log = s, log
         self.report = BenchReport()
         self.base = simulate_gpsdr(batch_size=max(s.batch_sizes + [s.filterpy_trajectories]), steps=s.steps, seed=s.seed)
-        self.peer_ok = {"difffilter": None, "dynamax": dynamax_available(), "filterpy": filterpy_available()}
+        self.peer_ok = {"difffilter": None, "difffilter-fused": None, "dynamax": dynamax_available(), "filterpy": filterpy_available()}
         for lib in s.libraries:
             if self.peer_ok[lib] is not None:
                 self.message(f"skipping {lib}: {self.peer_ok[lib]}")
@@ -204,6 +207,7 @@ class _Bench:
             "repeats": 1,
             "difffilter_over_peer": math.nan,
             "difffilter_over_peer_cpu": math.nan,
+            "fused_over_peer": math.nan,
             "fb_over_f": math.nan,
             "note": "",
         }
@@ -216,19 +220,31 @@ class _Bench:
         return r
 
     # -- cases -------------------------------------------------------------------------------
-    def run_difffilter(self, kind: str, dname: str, batch: int, mode: str) -> tuple[dict[str, Any], np.ndarray] | None:
+    def run_difffilter(
+        self, kind: str, dname: str, batch: int, mode: str, *, fused: bool = False
+    ) -> tuple[dict[str, Any], np.ndarray] | None:
+        """The reference filter (``fused=False``) or its compiled :class:`FusedFilter` twin;
+        the fused row's ``compile_s`` is the first (compiling) call on the warm-up sequence."""
         dtype = DTYPES[dname]
+        lib = "difffilter-fused" if fused else "difffilter"
         try:
-            filt = make_difffilter(kind, dtype, self.s)
+            filt: Any = make_difffilter(kind, dtype, self.s)
+            if fused:
+                filt = FusedFilter(filt, compile=self.s.fused_compile)
         except (ImportError, TypeError, ValueError) as exc:
-            self.message(f"skipping difffilter {kind}: {type(exc).__name__}: {exc}")
+            self.message(f"skipping {lib} {kind}: {type(exc).__name__}: {exc}")
             return None
-        if self.too_big(kind, "difffilter", dname, batch, mode):
+        if self.too_big(kind, lib, dname, batch, mode):
             return None
         z, m0, p0 = _inputs(kind, self.data(dtype, batch))
         warm = _torch_run(filt, z[:, : self.s.warmup_steps], m0, p0, mode)
+        t0 = time.perf_counter()
+        warm()
+        first_s = time.perf_counter() - t0
         tm = time_callable(_torch_run(filt, z, m0, p0, mode), min_time_s=self.s.min_time_s, max_repeats=self.s.max_repeats, warmup=warm)
-        r = self.row(kind, "difffilter", dname, batch, mode, tm.best_s, cpu_seconds=tm.cpu_s, peak_mb=tm.peak_mb, repeats=tm.repeats)
+        note = "torch.compile'd fused step" if self.s.fused_compile else "fused step, eager (fused_compile=false)"
+        kw: dict[str, Any] = {"compile_s": first_s, "note": note} if fused else {}
+        r = self.row(kind, lib, dname, batch, mode, tm.best_s, cpu_seconds=tm.cpu_s, peak_mb=tm.peak_mb, repeats=tm.repeats, **kw)
         return r, tm.result
 
     def run_dynamax(self, kind: str, dname: str, batch: int, mode: str) -> tuple[dict[str, Any], np.ndarray] | None:
@@ -318,6 +334,11 @@ class _Bench:
                         ours = self.run_difffilter(kind, dname, batch, mode) if "difffilter" in s.libraries else None
                         if ours is None and kind == "imm" and "difffilter" in s.libraries:
                             break
+                        fused = None
+                        if "difffilter-fused" in s.libraries and kind != "imm":
+                            fused = self.run_difffilter(kind, dname, batch, mode, fused=True)
+                            if fused is not None and ours is not None and mode == "forward":
+                                self.check_agreement(kind, "difffilter-fused", dname, self.data(DTYPES[dname], batch), fused[1], ours[1])
                         for lib in ("dynamax", "filterpy"):
                             if lib not in s.libraries or self.peer_ok[lib] is not None:
                                 continue
@@ -331,6 +352,8 @@ class _Bench:
                             if peer_row is not None and ours is not None:
                                 peer_row["difffilter_over_peer"] = ours[0]["steps_per_s"] / peer_row["steps_per_s"]
                                 peer_row["difffilter_over_peer_cpu"] = peer_row["cpu_seconds"] / ours[0]["cpu_seconds"]
+                            if peer_row is not None and fused is not None:
+                                peer_row["fused_over_peer"] = fused[0]["steps_per_s"] / peer_row["steps_per_s"]
                         for r in self.report.rows:
                             if (r["filter"], r["dtype"], r["B"]) == (kind, dname, batch):
                                 if r["mode"] == "forward":

@@ -4,6 +4,7 @@ from .adaptive import RCUKF
 from .base import Belief, FilterResult, GaussianFilter, StepInfo
 from .colored import ColoredNoiseUKF
 from .ekf import EKF
+from .fused import FusedFilter, fuse
 from .kalman import KalmanFilter
 from .sigma_points import Cubature, Julier, MerweScaled, SigmaPoints
 from .square_root import SquareRootUKF
@@ -17,6 +18,7 @@ __all__ = [
     "Belief",
     "Cubature",
     "FilterResult",
+    "FusedFilter",
     "GaussianFilter",
     "Julier",
     "KalmanFilter",
@@ -25,4 +27,5 @@ __all__ = [
     "SimplifiedUKF",
     "SquareRootUKF",
     "StepInfo",
+    "fuse",
 ]

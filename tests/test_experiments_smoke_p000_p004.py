@@ -42,7 +42,16 @@ def test_p004_simulator_oracle_values_and_heading_error():
     assert d.truth.shape == (3, 400, 8) and d.controls["accel"].shape == (3, 400, 2)
     assert d.true_params["sigma_accel"] == GNSS_IMU_PAPER["sigma_accel"] and d.true_params["sigma_gyro"] == GNSS_IMU_PAPER["sigma_gyro"]
     assert d.true_params["R"] == pytest.approx([0.1**2, 0.1**2], rel=1e-12)
-    torch.testing.assert_close(d.initial_mean[:, :5], d.scenario.initial_state[:, :5])
+    exact = p004_simulator(batch_size=3, seed=1, dtype=f64, initial_error=False)
+    torch.testing.assert_close(exact.initial_mean[:, :5], exact.scenario.initial_state[:, :5])
+    torch.testing.assert_close(exact.truth, d.truth)  # the belief's draw comes after the drive's
+    # default: the belief's mean is drawn from N(truth, P0) (consistent with its covariance)
+    w = p004_simulator(batch_size=400, seed=2, dtype=f64)
+    z = (w.initial_mean[:, :5] - w.scenario.initial_state[:, :5]) / w.initial_cov.diagonal()[:5].sqrt()
+    assert bool(((z.std(0) - 1).abs() < 5 / math.sqrt(800)).all()), z.std(0)
+    torch.testing.assert_close(w.initial_mean[:, 5:], torch.zeros(400, 3, dtype=f64))
+    with pytest.raises(TypeError, match="initial_error"):
+        p004_simulator(batch_size=1, initial_error="yes")
     e = p004_simulator(batch_size=60, seed=1, initial_heading_std_deg=30.0, dtype=f64)
     err = e.initial_mean[:, 4] - e.scenario.initial_state[:, 4]
     assert float(e.initial_cov[4, 4]) == pytest.approx(math.radians(30.0) ** 2)

@@ -169,3 +169,28 @@ def test_experiment_smoke(tmp_path: Path, experiment: str, rows: list[str], extr
     header = next(line for line in md.splitlines() if line.startswith("| filter |"))
     assert all(f" {c} " in header for c in ["rmse_pos", "anees", *extra])
     assert all(f"| {r} |" in md for r in rows)
+
+
+@needs_smartloc
+def test_constant_gate_keeps_estimates_and_drops_the_rejected_gradient() -> None:
+    from difffilter.learn.support_smartloc import SharedPsiColoredUKF, smartloc_model, smartloc_simulator
+
+    seg = {"test": {"start": 650, "stop": 720}}  # inside the canyon: ranges get rejected
+    data = smartloc_simulator(batch_size=1, seed=2, segments=seg)
+    args = (data.measurements, data.initial_mean, data.initial_cov)
+    out, grads = {}, {}
+    for flag in (True, False):
+        filt = SharedPsiColoredUKF(smartloc_model(gate_gradient=flag), psi=0.3, sigma_points=_sp())
+        res = filt(*args, mask=data.mask, controls=data.controls)
+        (-res.log_likelihood.sum()).backward()
+        out[flag] = res
+        grads[flag] = float(filt.model.measurement.parametrizations.noise_scale.original.grad)
+    torch.testing.assert_close(out[False].mean, out[True].mean, rtol=0, atol=1e-9)
+    torch.testing.assert_close(out[False].log_likelihood, out[True].log_likelihood, rtol=0, atol=1e-9)
+    # with gradients, each rejected range adds d/ds log(1e6 s var) / 2 > 0 to d(-log L)/ds, so
+    # descent shrinks the scale; without them that push is gone (here the sign even flips)
+    assert grads[True] > grads[False] + 1.0, grads
+    with pytest.raises(ValueError, match="gate_gradient"):
+        smartloc_model(gate_gradient=False, robust="huber")
+    with pytest.raises(TypeError, match="gate_gradient"):
+        smartloc_model(gate_gradient="no")

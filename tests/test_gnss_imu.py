@@ -124,16 +124,19 @@ def test_process_noise_matches_one_step_prediction_errors() -> None:
     q = model.dynamics.Q.detach()[:5, :5]
     n = err.shape[0]
     ratio = err.std(0) / q.diagonal().sqrt()
-    # velocity and heading: exactly the simulated IMU noise (3200 samples)
-    assert bool(((ratio[2:] - 1).abs() < 5 / math.sqrt(2 * n)).all()), ratio
-    # position: Q's within-interval white-noise form adds T^4/12 var (covering the trapezoid error)
-    assert bool(((ratio[:2] > 0.8) & (ratio[:2] < 1.0)).all()), ratio
+    # velocity and heading: exactly the simulated IMU noise (3200 samples); position: the
+    # sample-mean noise var T^4/4 plus the trapezoid step's own 1 cm (sigma_position_step)
+    assert bool(((ratio - 1).abs() < 5 / math.sqrt(2 * n)).all()), ratio
+    torch.testing.assert_close(q[0, 0], torch.tensor(0.1**2 / 4 + 0.01**2, dtype=F64))
+    torch.testing.assert_close(q[0, 2], torch.tensor(0.1**2 / 2, dtype=F64))
     corr = (err[:, 0] * err[:, 2]).mean() / q[0, 2]
     assert abs(float(corr) - 1) < 6 / math.sqrt(n)
     qq = model.dynamics.Q
     assert bool(torch.linalg.cholesky_ex(qq)[1] == 0)
     q3 = GnssImuModel(dtype=F64).dynamics.Q
     assert q3.shape == (16, 16) and bool(torch.linalg.cholesky_ex(q3)[1] == 0)
+    with pytest.raises(ValueError, match="sigma_position_step"):
+        GnssImuModel(planar=True, sigma_position_step=0.0)
 
 
 # ---------------------------------------------------------------------------------- measurements

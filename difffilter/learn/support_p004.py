@@ -6,10 +6,14 @@
   simulator's true noise levels as ``true_params`` (the oracle's values).  The truth is the
   scripted drive integrated on a fine grid, the filter integrates the same IMU readings, so the
   filter family contains the truth up to the trapezoidal position step (which ``Q`` absorbs)
-  and the constant biases (modelled as slow random walks): an oracle row is meaningful.
-  Optionally the initial heading is unknown (``initial_heading_std_deg``): the belief's mean
-  heading is drawn around the truth with that spread and its variance set to match, the
-  alignment case where EKF and UKF can differ.
+  (covered by ``sigma_position_step``); the constant biases are modelled with (nearly) zero random
+  walks: an oracle row is meaningful.
+  The initial belief is consistent with its covariance: its mean of position, velocity and
+  heading is the truth plus a draw from ``N(0, P0)`` (the biases' truth is already a draw from
+  their prior around the belief's 0); a belief that starts exactly at the truth while claiming
+  1 deg of heading uncertainty makes the weakly observable heading look over-estimated in NEES.
+  Optionally the initial heading is unknown (``initial_heading_std_deg``): the heading's
+  variance is set to that spread (the alignment case where EKF and UKF can differ).
 * :func:`blend_filter` builds the :class:`~difffilter.mixers.blend.Blend` of an EKF and a UKF
   that share *one* model (two Hydra nodes interpolating ``${model}`` would build two models with
   separately learned copies of ``Q`` and ``R``).
@@ -89,6 +93,7 @@ def p004_simulator(
     planar: bool = True,
     gnss_outages: Sequence[Sequence[float]] = (),
     initial_heading_std_deg: float | None = None,
+    initial_error: bool = True,
     **options: Any,
 ) -> P004Trajectories:
     """Simulate p004 drives for learning.
@@ -99,8 +104,10 @@ def p004_simulator(
         randomize: randomised drives (training sets) instead of the fixed p004 script.
         planar: planar 8-state layout (else the 16-state quaternion one).
         gnss_outages: ``(start, end)`` windows in seconds without GNSS.
-        initial_heading_std_deg: if given, the initial belief's heading is the truth plus
-            ``N(0, std^2)`` and its variance ``std^2`` (else the simulator's belief).
+        initial_heading_std_deg: if given, the initial belief's heading variance is ``std^2``
+            (else the simulator's 1 deg, p004's azimuth error).
+        initial_error: draw the belief's mean of position, velocity and heading (3-D: position
+            and velocity) from ``N(truth, P0)``; ``False``: the mean is the truth (biases 0).
         **options: further :func:`simulate_p004` arguments (``velocity``, noise levels...).
     """
     dt = as_dtype(dtype)
@@ -114,16 +121,24 @@ def p004_simulator(
         dtype=dt,
         **options,
     )
+    if not isinstance(initial_error, bool):
+        raise TypeError(f"initial_error must be a bool, got {type(initial_error).__name__}")
     mean0, cov0 = data.initial_belief()
+    mean0, cov0 = mean0.clone(), cov0.clone()
     if initial_heading_std_deg is not None:
         if not planar:
             raise ValueError("initial_heading_std_deg needs the planar layout (heading is a state there)")
         std = math.radians(float(initial_heading_std_deg))
-        err = std * torch.randn(batch_size, generator=gen, dtype=torch.float64)
-        mean0 = mean0.clone()
-        mean0[:, 4] = mean0[:, 4] + err.to(dt)
-        cov0 = cov0.clone()
+        if not (math.isfinite(std) and std > 0.0):
+            raise ValueError(f"initial_heading_std_deg must be positive, got {initial_heading_std_deg}")
         cov0[4, 4] = std * std
+    if initial_error or initial_heading_std_deg is not None:
+        k = 5 if planar else 6  # [p, v, psi] / [p, v] (the quaternion keeps the truth)
+        std0 = cov0.diagonal()[:k].to(torch.float64).sqrt()
+        err = std0 * torch.randn(batch_size, k, generator=gen, dtype=torch.float64)
+        if not initial_error:  # only the unknown heading
+            err[:, :4] = 0.0
+        mean0[:, :k] = mean0[:, :k] + err.to(dt)
     return P004Trajectories(
         truth=data.truth,
         measurements=data.measurements,

@@ -17,6 +17,7 @@ tightly coupled EKF (with :func:`smartloc_initial_belief`).
 
 from __future__ import annotations
 
+import functools
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -345,6 +346,7 @@ def make_smartloc_model(
     robust: str | None = "reject",
     gate: float = 2.5,
     gate_floor: float = 8.0,
+    gate_gradient: bool = True,
     **dynamics_kwargs: float,
 ) -> torch.nn.Module:
     """Odometry + pseudorange model of the README's tightly coupled filter.
@@ -357,13 +359,24 @@ def make_smartloc_model(
     ungated filter about three times worse (README).  ``dynamics_kwargs`` go to
     ``OdometryClockDynamics``; the default ``vertical_psd`` is 0.01 m^2/s (a car's height changes
     slowly; a free height drifts with the multipath and drags the horizontal solution along).
+
+    ``gate_gradient=False`` (``robust="reject"`` only) detaches the variance of a rejected range
+    (``1e6 R_jj``): the estimates are the same, but a rejected range's innovation-likelihood term
+    ``log(1e6 R_jj) / 2`` becomes a constant, so it no longer pulls ``R`` (``noise_scale``)
+    down during maximum-likelihood learning (with gradients, every rejected range adds
+    ``1 / (2 noise_scale)`` to the gradient towards a smaller scale, unopposed by a residual).
     """
+    if not isinstance(gate_gradient, bool):
+        raise TypeError(f"gate_gradient must be a bool, got {type(gate_gradient).__name__}")
+    if not gate_gradient and robust != "reject":
+        raise ValueError(f"gate_gradient=False needs robust='reject', got robust={robust!r}")
     dynamics_kwargs = {"vertical_psd": 1e-2, **dynamics_kwargs}
     from ..models.base import StateSpaceModel
     from ..models.pseudorange import GnssStateLayout, OdometryClockDynamics, PseudorangeMeasurement
 
     dyn = OdometryClockDynamics(dtype=dtype, **dynamics_kwargs)
-    meas = PseudorangeMeasurement(
+    cls = PseudorangeMeasurement if gate_gradient else _constant_gate_measurement_class()
+    meas = cls(
         num_satellites=data.num_slots,
         layout=GnssStateLayout.odometry(isb=True),
         sagnac=True,
@@ -377,6 +390,22 @@ def make_smartloc_model(
         dtype=dtype,
     )
     return StateSpaceModel(dyn, meas)
+
+
+@functools.lru_cache(maxsize=1)
+def _constant_gate_measurement_class() -> type:
+    """:class:`~difffilter.models.pseudorange.PseudorangeMeasurement` whose rejected ranges have
+    a parameter-free (detached) inflated variance (see ``make_smartloc_model(gate_gradient=False)``)."""
+    from ..models.pseudorange import PseudorangeMeasurement
+
+    class ConstantGatePseudorange(PseudorangeMeasurement):
+        def robust_inflation(self, x: Tensor, u: object, r: Tensor) -> Tensor:
+            out = super().robust_inflation(x, u, r)
+            eye = torch.eye(out.shape[-1], dtype=torch.bool, device=out.device)
+            rejected = (torch.diagonal(out, dim1=-2, dim2=-1) > torch.diagonal(r, dim1=-2, dim2=-1))[..., None] & eye
+            return torch.where(rejected, out.detach(), out)
+
+    return ConstantGatePseudorange
 
 
 def smartloc_initial_belief(

@@ -265,3 +265,27 @@ def test_gpsdr_model_fused_eager_equals_reference() -> None:
         ref = filt(data.measurements, data.initial_mean, data.initial_cov)
         out = fuse(filt, compile=False)(data.measurements, data.initial_mean, data.initial_cov)
         _assert_same(out, ref)
+
+
+def test_learner_trains_through_the_fused_step() -> None:
+    """``FilterLearner(fused=...)`` runs the same filter through FusedFilter: same outputs,
+    same gradients, same parameter names (checkpoints stay interchangeable)."""
+    import copy
+
+    from difffilter.learn.learner import FilterLearner
+
+    model, z, m0, p0 = _singer_data()
+    plain = FilterLearner(UKF(model), "nll", initial_mean=m0, initial_cov=p0)
+    fused = FilterLearner(UKF(copy.deepcopy(model)), "nll", initial_mean=m0, initial_cov=p0, fused="eager")
+    assert [n for n, _ in plain.named_parameters()] == [n for n, _ in fused.named_parameters()]
+    assert plain.state_dict().keys() == fused.state_dict().keys()
+    a, b = plain({"measurements": z}), fused({"measurements": z})
+    _assert_same(b, a)
+    pa = [p for p in plain.parameters() if p.requires_grad]
+    pb = [p for p in fused.parameters() if p.requires_grad]
+    for ga, gb in zip(torch.autograd.grad(a.log_likelihood.sum(), pa), torch.autograd.grad(b.log_likelihood.sum(), pb), strict=True):
+        torch.testing.assert_close(gb, ga, rtol=1e-9, atol=1e-12)
+    with pytest.raises(ValueError, match="fused must be"):
+        FilterLearner(UKF(model), "nll", fused="yes")
+    with pytest.raises(TypeError, match="FusedFilter supports"):
+        FilterLearner(SquareRootUKF(model), "nll", fused=True)

@@ -36,6 +36,7 @@ from torch import Tensor, nn
 
 from .. import linalg
 from ..filters.base import Belief, FilterResult, GaussianFilter, detach_belief
+from ..filters.fused import FusedFilter
 from ..sim.sampling import as_dtype
 from .losses import FilterLoss, MSELoss, NEESLoss, NLLLoss, Prior
 from .metrics import finalize_metrics, metric_sums
@@ -109,6 +110,10 @@ class FilterLearner(pl.LightningModule):
         state_index, truth_index: state/truth components for ``rmse_state`` and NEES.
         figure_every_n_epochs: validation figures every n epochs (0: never).
         max_logged_elements: larger parameters log only their diagonal / norm.
+        fused: run the filter through :class:`~difffilter.filters.FusedFilter` (the compiled,
+            batch-last step; same results, faster for UKF/EKF/KF): ``True`` compiles,
+            ``"eager"`` runs the fused step uncompiled, ``False`` (default) the filter itself.
+            Parameters, their names and checkpoints are the filter's either way.
     """
 
     def __init__(
@@ -133,6 +138,7 @@ class FilterLearner(pl.LightningModule):
         truth_index: Sequence[int] | None = None,
         figure_every_n_epochs: int = 1,
         max_logged_elements: int = 64,
+        fused: bool | str = False,
     ) -> None:
         super().__init__()
         if not isinstance(filter, GaussianFilter):
@@ -157,6 +163,11 @@ class FilterLearner(pl.LightningModule):
         self.prior_names = {k: match_parameters(self.filter, [k])[k] for k in self.priors}
         self.prior_weight = float(prior_weight)
         self.max_jitter = max_jitter
+        if fused not in (False, True, "eager"):
+            raise ValueError(f"fused must be False, True or 'eager', got {fused!r}")
+        # kept outside the module tree: parameter names and state_dict stay the filter's own
+        runner = FusedFilter(self.filter, compile=fused is True) if fused else self.filter
+        object.__setattr__(self, "_runner", runner)
         idx = lambda v: None if v is None else [int(i) for i in v]  # noqa: E731
         self.indices = {
             "position_index": idx(position_index),
@@ -189,7 +200,7 @@ class FilterLearner(pl.LightningModule):
         """Run the filter on a batch dict (from ``belief`` if given, else the initial belief)."""
         mean, cov = self.initial_belief(batch)
         with bounded_jitter(self.max_jitter):
-            return self.filter(
+            return self._runner(
                 batch["measurements"],
                 None if belief is not None else mean,
                 None if belief is not None else cov,

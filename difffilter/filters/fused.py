@@ -91,6 +91,15 @@ def _chol(a: Tensor) -> tuple[Tensor, Tensor]:
     return torch.stack([torch.stack(r + [zero] * (n - len(r))) for r in rows]), clamps
 
 
+def _sigma_offsets(cov: Tensor, gamma: float, has_center: bool) -> tuple[Tensor, Tensor]:
+    """Sigma-point offsets ``[S, n, B]`` from the mean (``0`` if centred, ``+-gamma L[:, i]``, the
+    order of :class:`~difffilter.filters.SigmaPoints`) of ``cov [n, n, B]``, and clamped pivots."""
+    lf, clamps = _chol(cov)
+    cols = _t(lf) * gamma  # row i = column i of L
+    centre = [torch.zeros_like(cols[:1])] if has_center else []
+    return torch.cat(centre + [cols, -cols], 0), clamps
+
+
 def _solve_lower(lf: Tensor, b: Tensor) -> Tensor:
     """``L^{-1} b`` for lower-triangular ``L [m, m, B]`` and ``b [m, k, B]`` (forward substitution)."""
     m = lf.shape[0]
@@ -256,11 +265,8 @@ class FusedFilter(nn.Module):
             sp = filt.sigma_points
             wm, wc = sp.weights(n, m.dtype, m.device)
             g = sp.gamma(n)
-            lp, c = _chol(p)
+            dx, c = _sigma_offsets(p, g, sp.has_center)
             clamps = clamps + c
-            cols = _t(lp) * g  # [n (column), n, B]
-            offs = [torch.zeros_like(cols[:1])] if sp.has_center else []
-            dx = torch.cat(offs + [cols, -cols], 0)  # [S, n, B]
             prop = _call_points(dyn, m[None] + dx, u)
             xm = _wmean(prop, wm)
             dev = prop - xm[None]
@@ -286,14 +292,9 @@ class FusedFilter(nn.Module):
         if self.kind in ("ukf", "sukf"):
             if ux is None:
                 sp = filt.sigma_points
-                wm, wc = sp.weights(n, m.dtype, m.device)
-                g = sp.gamma(n)
-                lpp, c = _chol(pp)
+                uwm, uwc = sp.weights(n, m.dtype, m.device)
+                ux, c = _sigma_offsets(pp, sp.gamma(n), sp.has_center)
                 clamps = clamps + c
-                cols = _t(lpp) * g
-                offs = [torch.zeros_like(cols[:1])] if sp.has_center else []
-                ux = torch.cat(offs + [cols, -cols], 0)
-                uwm, uwc = wm, wc
             zs = _call_points(meas, xm[None] + ux, u)
             zhat = _wmean(zs, uwm)
             dz = meas.residual(zs.transpose(1, 2), _t(zhat)[None]).transpose(1, 2)

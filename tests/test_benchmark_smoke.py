@@ -7,7 +7,6 @@ the same log-likelihood on the same data (the fairness condition of the comparis
 
 from __future__ import annotations
 
-import csv
 import importlib.util
 import math
 import subprocess
@@ -22,6 +21,7 @@ from difffilter.bench.memory import training_step_memory
 from difffilter.bench.runner import MAIN_COLUMNS
 from difffilter.bench.suite import run_suite
 from difffilter.filters.ekf import autodiff_jacobian
+from tests.smoke_helpers import read_rows
 
 ROOT = Path(__file__).resolve().parents[1]
 HAS_JAX = importlib.util.find_spec("jax") is not None and importlib.util.find_spec("dynamax") is not None
@@ -35,11 +35,6 @@ def _compose(*overrides: str) -> dict:
     with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
         cfg = compose(config_name="benchmark", overrides=["benchmark=smoke", *overrides])
     return OmegaConf.to_container(cfg.benchmark, resolve=True)
-
-
-def _read_csv(path: Path) -> list[dict[str, str]]:
-    with open(path, newline="") as fh:
-        return list(csv.DictReader(fh))
 
 
 def test_full_config_composes_with_the_documented_cases() -> None:
@@ -57,7 +52,7 @@ def test_smoke_difffilter_and_filterpy(tmp_path: Path) -> None:
     libs = ["difffilter", "filterpy"] if HAS_FILTERPY else ["difffilter"]
     cfg = _compose(f"benchmark.libraries=[{','.join(libs)}]")
     md = run_suite(cfg, tmp_path, command="smoke", log=lambda s: None)
-    rows = _read_csv(tmp_path / "benchmark.csv")
+    rows = read_rows(tmp_path / "benchmark.csv")
     assert list(rows[0]) == MAIN_COLUMNS
     ours = {(r["filter"], r["mode"]) for r in rows if r["library"] == "difffilter"}
     assert ours == {(k, m) for k in ("kf", "ekf", "ukf", "imm") for m in ("forward", "fwd+bwd")}
@@ -70,11 +65,11 @@ def test_smoke_difffilter_and_filterpy(tmp_path: Path) -> None:
         fp = [r for r in rows if r["library"] == "filterpy"]
         assert {r["filter"] for r in fp} == {"kf", "ekf", "ukf", "imm"}
         assert all(r["mode"] == "forward" and float(r["difffilter_over_peer"]) > 0 for r in fp)
-        agree = _read_csv(tmp_path / "agreement.csv")
+        agree = read_rows(tmp_path / "agreement.csv")
         assert {a["filter"] for a in agree if a["peer"] == "filterpy"} == {"kf", "ekf", "ukf", "imm"}
         # Same model, same data, same conventions: the log-likelihoods agree to rounding.
         assert max(float(a["max_rel_diff"]) for a in agree) < 1e-10
-    targets = _read_csv(tmp_path / "targets.csv")
+    targets = read_rows(tmp_path / "targets.csv")
     assert any(t["target"].startswith("UKF B=2 difffilter: backward / forward") and t["met"] in ("yes", "NO") for t in targets)
     text = (tmp_path / "results.md").read_text()
     assert text == md and "## Throughput and memory" in text and "| ukf | difffilter | float64 | 2 | 5 | forward |" in text
@@ -85,13 +80,13 @@ def test_smoke_fused_rows_agree_with_the_reference(tmp_path: Path) -> None:
     smoke config) gets its own rows, fb/f ratios and an agreement entry against the reference."""
     cfg = _compose("benchmark.libraries=[difffilter,difffilter-fused]", "benchmark.filters=[kf,ekf,ukf,imm]")
     run_suite(cfg, tmp_path, log=lambda s: None)
-    rows = _read_csv(tmp_path / "benchmark.csv")
+    rows = read_rows(tmp_path / "benchmark.csv")
     fused = {(r["filter"], r["mode"]) for r in rows if r["library"] == "difffilter-fused"}
     assert fused == {(k, m) for k in ("kf", "ekf", "ukf") for m in ("forward", "fwd+bwd")}  # no fused IMM
     assert all(float(r["compile_s"]) > 0 for r in rows if r["library"] == "difffilter-fused")
-    agree = {a["filter"]: float(a["max_rel_diff"]) for a in _read_csv(tmp_path / "agreement.csv") if a["peer"] == "difffilter-fused"}
+    agree = {a["filter"]: float(a["max_rel_diff"]) for a in read_rows(tmp_path / "agreement.csv") if a["peer"] == "difffilter-fused"}
     assert set(agree) == {"kf", "ekf", "ukf"} and max(agree.values()) < 1e-12
-    targets = {t["target"] for t in _read_csv(tmp_path / "targets.csv")}
+    targets = {t["target"] for t in read_rows(tmp_path / "targets.csv")}
     assert "UKF B=2 difffilter-fused: backward / forward time ((fwd+bwd) / fwd - 1)" in targets
 
 
@@ -99,11 +94,11 @@ def test_smoke_fused_rows_agree_with_the_reference(tmp_path: Path) -> None:
 def test_smoke_dynamax_matches_difffilter(tmp_path: Path) -> None:
     cfg = _compose("benchmark.libraries=[difffilter,dynamax]", "benchmark.filters=[kf,ukf]", "benchmark.modes=[forward]")
     run_suite(cfg, tmp_path, log=lambda s: None)
-    rows = _read_csv(tmp_path / "benchmark.csv")
+    rows = read_rows(tmp_path / "benchmark.csv")
     dx = [r for r in rows if r["library"] == "dynamax"]
     assert {r["filter"] for r in dx} == {"kf", "ukf"}
     assert all(float(r["compile_s"]) > 0 and float(r["difffilter_over_peer"]) > 0 for r in dx)
-    agree = {a["filter"]: float(a["max_rel_diff"]) for a in _read_csv(tmp_path / "agreement.csv") if a["peer"] == "dynamax"}
+    agree = {a["filter"]: float(a["max_rel_diff"]) for a in read_rows(tmp_path / "agreement.csv") if a["peer"] == "dynamax"}
     # dynamax adds 1e-9 to the innovation covariance's diagonal before solving for the gain.
     assert set(agree) == {"kf", "ukf"} and max(agree.values()) < 1e-7
 
@@ -140,6 +135,6 @@ def test_benchmark_script_end_to_end(tmp_path: Path) -> None:
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=1200, cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "## Throughput and memory" in (tmp_path / "results.md").read_text()
-    assert len(_read_csv(tmp_path / "compile.csv")) == 3
-    mem = _read_csv(tmp_path / "memory.csv")
+    assert len(read_rows(tmp_path / "compile.csv")) == 3
+    mem = read_rows(tmp_path / "memory.csv")
     assert len(mem) == 1 and float(mem[0]["peak_rss_mb"]) > 0

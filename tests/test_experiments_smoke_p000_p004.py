@@ -3,10 +3,7 @@
 
 from __future__ import annotations
 
-import csv
 import math
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -17,6 +14,7 @@ from difffilter.learn.selection import parameter_owners
 from difffilter.learn.support_p000 import p000_simulator
 from difffilter.learn.support_p004 import ImuSwitchingStatistics, blend_filter, p004_simulator
 from difffilter.models.gnss_imu import GNSS_IMU_PAPER, GnssImuModel
+from tests.smoke_helpers import run_train_smoke
 
 ROOT = Path(__file__).resolve().parents[1]
 f64 = torch.float64
@@ -98,11 +96,6 @@ def test_blend_filter_shares_one_model_and_matches_its_branches():
     assert float(w[:, :2].max()) < 0.05  # the paper's 2 m/s^2 start is "nonlinear" (mu ~ 0.2): UKF
 
 
-def _rows(path: Path) -> list[dict[str, str]]:
-    with path.open() as fh:
-        return list(csv.DictReader(fh))
-
-
 @pytest.mark.slow
 @pytest.mark.parametrize(
     ("experiment", "expected"),
@@ -112,16 +105,11 @@ def _rows(path: Path) -> list[dict[str, str]]:
     ],
 )
 def test_experiment_smoke(tmp_path, experiment, expected):
-    cmd = [sys.executable, str(ROOT / "experiments" / "train.py"), f"experiment={experiment}", "debug=smoke"]
-    cmd += [f"hydra.run.dir={tmp_path}", f"paths.log_dir={tmp_path}/logs"]
-    proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=600)
-    assert proc.returncode == 0, proc.stderr[-4000:]
-    rows = _rows(tmp_path / "results.csv")
+    rows, md = run_train_smoke(tmp_path, experiment)
     assert [r["filter"] for r in rows] == expected
     for col in ("rmse_pos", "rmse_state", "anees", "anees_lo", "anees_hi", "nis", "nll", "time_per_step_ms"):
         assert col in rows[0], col
     for r in rows:
         assert float(r["rmse_pos"]) > 0 and math.isfinite(float(r["rmse_pos"])), r
         assert math.isfinite(float(r["anees"])) and math.isfinite(float(r["nll"])) and float(r["time_per_step_ms"]) > 0, r
-    md = (tmp_path / "results.md").read_text()
     assert "| hand-tuned |" in md and "| learned |" in md

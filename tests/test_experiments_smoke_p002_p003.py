@@ -3,10 +3,7 @@
 
 from __future__ import annotations
 
-import csv
 import math
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +14,7 @@ from difffilter.learn.support_p002 import EstimatorBaseline, gps_only_estimate, 
 from difffilter.learn.support_p003 import empirical_transition, model_options, p003_imm, p003_mode_model
 from difffilter.sim.p002_pdr import gps_only_positions, pdr_only_positions, simulate_p002
 from difffilter.sim.p003_flight import PAPER_PHASES
+from tests.smoke_helpers import read_rows, run_train_smoke
 
 ROOT = Path(__file__).resolve().parents[1]
 f64 = torch.float64
@@ -99,11 +97,6 @@ def test_model_options_from_a_template_or_a_mapping():
         model_options(pdr_model(Q_std=[0.06, 0.06, 0.01, 0.5], R_std=[2.67, 2.67, 11.4]))
 
 
-def _rows(path: Path) -> list[dict[str, str]]:
-    with path.open() as fh:
-        return list(csv.DictReader(fh))
-
-
 @pytest.mark.slow
 @pytest.mark.parametrize(
     ("experiment", "expected"),
@@ -116,22 +109,17 @@ def _rows(path: Path) -> list[dict[str, str]]:
     ],
 )
 def test_experiment_smoke(tmp_path, experiment, expected):
-    cmd = [sys.executable, str(ROOT / "experiments" / "train.py"), f"experiment={experiment}", "debug=smoke"]
-    cmd += [f"hydra.run.dir={tmp_path}", f"paths.log_dir={tmp_path}/logs"]
-    proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=600)
-    assert proc.returncode == 0, proc.stderr[-4000:]
-    rows = _rows(tmp_path / "results.csv")
+    rows, md = run_train_smoke(tmp_path, experiment)
     assert [r["filter"] for r in rows] == expected
     for r in rows:
         assert float(r["rmse_pos"]) > 0 and math.isfinite(float(r["rmse_pos"])), r
         assert math.isfinite(float(r["anees"])) and float(r["time_per_step_ms"]) > 0, r
-    md = (tmp_path / "results.md").read_text()
     assert "| hand-tuned |" in md and "| learned |" in md
     if experiment == "p002_pdr":
         # the non-filter baselines have no innovation likelihood
         assert all(math.isnan(float(r["nll"])) for r in rows if r["filter"] in ("GPS only", "PDR only"))
     else:
         assert "## IMM mode switching" in md
-        switch = _rows(tmp_path / "mode_switch.csv")
+        switch = read_rows(tmp_path / "mode_switch.csv")
         assert [r["filter"] for r in switch] == ["hand-tuned", "learned", "oracle", "IMM standard UKF", "IMM augmented UKF"]
         assert all(0.0 <= float(r["mode_accuracy"]) <= 1.0 for r in switch)

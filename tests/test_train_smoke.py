@@ -3,7 +3,6 @@ events holding the promised scalars and figures (read back with EventAccumulator
 
 from __future__ import annotations
 
-import csv
 import functools
 import os
 import subprocess
@@ -24,6 +23,7 @@ from difffilter.learn.builders import tracking_model
 from difffilter.learn.experiment import _oracle, build_filter, run_experiment
 from difffilter.models.motion import ConstantVelocity
 from difffilter.sim.sampling import ModelSimulator
+from tests.smoke_helpers import read_rows
 
 ROOT = Path(__file__).resolve().parents[1]
 f64 = torch.float64
@@ -38,16 +38,11 @@ def _events(directory: Path) -> EventAccumulator:
     return acc
 
 
-def _rows(path: Path) -> list[dict[str, str]]:
-    with path.open() as fh:
-        return list(csv.DictReader(fh))
-
-
 def test_smoke_run_writes_results_and_tensorboard(tmp_path):
     with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
         cfg = compose("train", overrides=["debug=smoke", f"paths.output_dir={tmp_path}", f"paths.log_dir={tmp_path}/logs"])
     out = run_experiment(cfg)
-    rows = _rows(tmp_path / "results.csv")
+    rows = read_rows(tmp_path / "results.csv")
     assert [r["filter"] for r in rows] == ["hand-tuned", "learned", "oracle"]
     for col in ("rmse_pos", "anees", "nis", "nll", "time_per_step_ms"):
         assert all(float(r[col]) > 0 for r in rows), col
@@ -140,7 +135,7 @@ def test_cli_ddp_sim_two_processes(tmp_path):
     proc = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=tmp_path, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "MEMBER: 2/2" in proc.stderr + proc.stdout or (run_dir / "train_ddp_process_1.log").exists()
-    rows = _rows(run_dir / "results.csv")
+    rows = read_rows(run_dir / "results.csv")
     assert [r["filter"] for r in rows] == ["hand-tuned", "learned", "oracle"]
 
 

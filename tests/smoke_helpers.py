@@ -1,0 +1,26 @@
+"""Shared pieces of the end-to-end smoke tests: read a results CSV, run `experiments/train.py`."""
+
+from __future__ import annotations
+
+import csv
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def read_rows(path: Path) -> list[dict[str, str]]:
+    """The rows of a CSV file as dicts (header = keys)."""
+    with Path(path).open(newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+def run_train_smoke(tmp_path: Path, experiment: str) -> tuple[list[dict[str, str]], str]:
+    """`python experiments/train.py experiment=<experiment> debug=smoke` into ``tmp_path``;
+    asserts it exits 0 and returns ``(results.csv rows, results.md text)``."""
+    cmd = [sys.executable, str(ROOT / "experiments" / "train.py"), f"experiment={experiment}", "debug=smoke"]
+    cmd += [f"hydra.run.dir={tmp_path}", f"paths.log_dir={tmp_path}/logs"]
+    proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-4000:]
+    return read_rows(tmp_path / "results.csv"), (tmp_path / "results.md").read_text()

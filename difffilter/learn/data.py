@@ -36,7 +36,7 @@ from torch.utils.data import DataLoader, IterableDataset
 from ..models.base import Controls
 from ..sim.sampling import as_dtype
 
-__all__ = ["TrajectoryDataModule", "TrajectorySet", "WindowedTrajectories"]
+__all__ = ["SimulatedTrajectories", "TrajectoryDataModule", "TrajectorySet", "WindowedTrajectories"]
 
 Batch = dict[str, Any]
 
@@ -59,6 +59,21 @@ def _accepts(fn: Callable[..., Any], name: str) -> bool:
 
 def _cast(x: Tensor | None, dtype: torch.dtype) -> Tensor | None:
     return x.to(dtype) if x is not None and x.is_floating_point() else x
+
+
+@dataclass
+class SimulatedTrajectories:
+    """The fields a paper's simulator wrapper hands to :meth:`TrajectorySet.from_simulation`
+    (subclasses add their scenario, true parameters and ``make_model``): ``truth [B, T, ...]``,
+    ``measurements [B, T, m]``, ``mask [B, T, m]``, ``controls`` (dict of ``[B, T, ...]``),
+    ``initial_mean [B, n]`` and ``initial_cov [n, n]`` or ``[B, n, n]``."""
+
+    truth: Tensor
+    measurements: Tensor
+    mask: Tensor
+    controls: dict[str, Tensor]
+    initial_mean: Tensor
+    initial_cov: Tensor
 
 
 @dataclass

@@ -24,18 +24,18 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import torch
-from torch import Tensor
 
 from ..filters.base import GaussianFilter
 from ..sim.p001_static import P001Scenario, make_p001_model, simulate_p001
 from ..sim.sampling import as_dtype
+from .data import SimulatedTrajectories
 from .selection import assign_parameters
 
 __all__ = ["P001Trajectories", "p001_simulator", "start_learner"]
 
 
 @dataclass
-class P001Trajectories:
+class P001Trajectories(SimulatedTrajectories):
     """p001 epochs in the data module's layout.
 
     Attributes:
@@ -49,12 +49,6 @@ class P001Trajectories:
         scenario: the simulator's own output.
     """
 
-    truth: Tensor
-    measurements: Tensor
-    mask: Tensor
-    controls: dict[str, Tensor]
-    initial_mean: Tensor
-    initial_cov: Tensor
     true_params: dict[str, Any]
     scenario: P001Scenario
     model_options: dict[str, Any] = field(default_factory=dict)

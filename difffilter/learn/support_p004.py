@@ -40,12 +40,13 @@ from ..models.base import Controls, StateSpaceModel
 from ..models.gnss_imu import GNSS_IMU_PAPER, GRAVITY, GnssImuModel
 from ..sim.p004_vehicle import GnssImuScenario, simulate_p004
 from ..sim.sampling import as_dtype
+from .data import SimulatedTrajectories
 
 __all__ = ["ImuSwitchingStatistics", "P004Trajectories", "blend_filter", "p004_simulator"]
 
 
 @dataclass
-class P004Trajectories:
+class P004Trajectories(SimulatedTrajectories):
     """p004 drives in the data module's layout.
 
     Attributes:
@@ -58,12 +59,6 @@ class P004Trajectories:
         scenario: the simulator's own output.
     """
 
-    truth: Tensor
-    measurements: Tensor
-    mask: Tensor
-    controls: dict[str, Tensor]
-    initial_mean: Tensor
-    initial_cov: Tensor
     scenario: GnssImuScenario
     true_params: dict[str, Any] = field(default_factory=dict)
 

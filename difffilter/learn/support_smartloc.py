@@ -39,6 +39,7 @@ from ..models.base import Controls, StateSpaceModel
 from ..params import register_constrained
 from ..sim.sampling import as_dtype
 from ..sim.smartloc import SmartLocData, WlsSolution, load_smartloc, make_smartloc_model, single_epoch_wls, smartloc_initial_belief
+from .data import SimulatedTrajectories
 
 __all__ = [
     "SharedBounded",
@@ -68,7 +69,7 @@ def smartloc_model(*, path: str | None = None, slots: str = "satellite", dtype: 
 
 
 @dataclass
-class SmartLocTrajectories:
+class SmartLocTrajectories(SimulatedTrajectories):
     """Windows of the real drive in the data module's layout.
 
     Attributes:
@@ -80,12 +81,6 @@ class SmartLocTrajectories:
         data: the loaded drive.
     """
 
-    truth: Tensor
-    measurements: Tensor
-    mask: Tensor
-    controls: dict[str, Tensor]
-    initial_mean: Tensor
-    initial_cov: Tensor
     start: Tensor
     data: SmartLocData
     model_options: Mapping[str, Any] | None = None

@@ -289,3 +289,20 @@ def test_learner_trains_through_the_fused_step() -> None:
         FilterLearner(UKF(model), "nll", fused="yes")
     with pytest.raises(TypeError, match="FusedFilter supports"):
         FilterLearner(SquareRootUKF(model), "nll", fused=True)
+
+
+def test_nan_under_the_mask_reaches_no_gradient() -> None:
+    model, z, u, m0, p0 = _range_bearing_data()
+    filt = UKF(model)
+    mask = torch.ones(z.shape, dtype=torch.bool)
+    mask[0, 4] = False
+    mask[2, 6, 1] = False
+    params = [p for p in filt.parameters() if p.requires_grad]
+    clean = fuse(filt, compile=False)(z.masked_fill(~mask, 0.0), m0, p0, mask=mask, controls=u)
+    g_clean = torch.autograd.grad(clean.log_likelihood.sum(), params)
+    out = fuse(filt, compile=False)(z.masked_fill(~mask, float("nan")), m0, p0, mask=mask, controls=u)
+    g_out = torch.autograd.grad(out.log_likelihood.sum(), params)
+    assert all(bool(torch.isfinite(g).all()) for g in g_out)
+    for a, b in zip(g_out, g_clean, strict=True):
+        assert torch.equal(a, b)
+    assert bool(torch.isfinite(out.mean).all()) and bool(torch.isfinite(out.cov).all())

@@ -11,7 +11,7 @@ from __future__ import annotations
 import importlib
 from typing import Any
 
-from .losses import CompositeLoss, LogNormalPrior, MSELoss, NEESLoss, NLLLoss, NormalPrior
+from .losses import CompositeLoss, HuberLoss, LogNormalPrior, MSELoss, NEESLoss, NLLLoss, NormalPrior
 from .metrics import (
     anees,
     anis,
@@ -29,6 +29,7 @@ from .selection import assign_parameters, learnable_values, match_parameters, se
 __all__ = [
     "CompositeLoss",
     "FilterLearner",
+    "HuberLoss",
     "LogNormalPrior",
     "MSELoss",
     "NEESLoss",

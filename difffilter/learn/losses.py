@@ -9,6 +9,10 @@ rest.  ``batch`` holds at least ``truth [B, T, n_t]`` for the supervised losses.
   depends on ``Q`` and ``R`` through their ratio (the gain): scaling both leaves it unchanged,
   so mse alone cannot identify noise levels, only their ratio (and whatever shapes the mean,
   like ``tau``).
+* :class:`HuberLoss` - robust version of :class:`MSELoss`: Huber function of the error *norm*
+  (quadratic up to ``delta``, linear beyond), so a few large errors (lost lock, start-up
+  transients) do not dominate; for ``delta`` well below the typical error it behaves like the
+  mean error norm, whose minimiser is closer to the median error than the mse's.
 * :class:`NLLLoss` - negative innovation log-likelihood per observed step, no truth needed;
   the maximum-likelihood criterion that identifies ``Q`` and ``R`` themselves.
 * :class:`NEESLoss` - ``(log(ANEES_b / d))^2``: penalises per-trajectory average NEES away from
@@ -32,6 +36,7 @@ from .metrics import Index, component_error, nees, nll_per_step
 __all__ = [
     "CompositeLoss",
     "FilterLoss",
+    "HuberLoss",
     "LogNormalPrior",
     "MSELoss",
     "NEESLoss",
@@ -78,6 +83,33 @@ class MSELoss:
         if self.weights is not None:
             sq = sq * torch.as_tensor(self.weights, dtype=sq.dtype, device=sq.device)
         per_step = sq.mean(-1)
+        return per_step.sum(-1) / valid.sum(-1).clamp_min(1).to(per_step.dtype)
+
+
+class HuberLoss:
+    """Per-trajectory mean Huber error ``mean_t rho(||x_hat_t[index] - x_t[truth_index]||)`` with
+    ``rho(n) = n^2 / 2`` for ``n <= delta`` and ``delta (n - delta / 2)`` beyond (continuous, with a
+    continuous slope).  Steps whose truth is not finite are left out, as in :class:`MSELoss`.
+
+    Args:
+        state_index, truth_index: as :class:`MSELoss`.
+        delta: the error norm (truth units, e.g. m) where the loss turns from quadratic to linear.
+    """
+
+    def __init__(self, *, state_index: Index = None, truth_index: Index = None, delta: float = 1.0) -> None:
+        if not float(delta) > 0:
+            raise ValueError(f"delta must be positive, got {delta}")
+        self.state_index = _index(state_index)
+        self.truth_index = _index(truth_index)
+        self.delta = float(delta)
+
+    def __call__(self, result: FilterResult, batch: Mapping[str, Any]) -> Tensor:
+        err, valid = component_error(result.mean, _truth(batch, "huber"), self.state_index, self.truth_index)
+        sq = (err * err).sum(-1)
+        # the norm only matters (and is differentiated) in the linear branch, where sq > delta^2
+        norm = torch.sqrt(sq.clamp_min(self.delta**2))
+        per_step = torch.where(sq <= self.delta**2, 0.5 * sq, self.delta * (norm - 0.5 * self.delta))
+        per_step = torch.where(valid, per_step, torch.zeros_like(per_step))
         return per_step.sum(-1) / valid.sum(-1).clamp_min(1).to(per_step.dtype)
 
 

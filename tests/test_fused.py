@@ -119,10 +119,15 @@ def test_fused_equals_reference_with_controls_masks_and_angles(make) -> None:  #
     mask[2, 7:10, 0] = False
     z = z.masked_fill(~mask, float("nan"))  # values under a False mask never matter
     ref = filt(z, m0, p0, mask=mask, controls=u)
-    out = FusedFilter(filt, compile=False)(z, m0, p0, mask=mask, controls=u)
+    fused = FusedFilter(filt, compile=False)
+    out = fused(z, m0, p0, mask=mask, controls=u)
     _assert_same(out, ref)
     assert out.log_likelihood[0, 3] == 0 and float(out.num_observed[1, 5]) == 1.0
     assert float(out.cholesky_clamps.sum()) == 0.0
+    with torch.no_grad():  # without autograd the outputs are written into preallocated buffers
+        out_ng = fused(z, m0, p0, mask=mask, controls=u)
+    _assert_same(out_ng, ref)
+    assert torch.equal(out_ng.final_belief["cov"], out.final_belief["cov"].detach())
 
 
 @pytest.mark.parametrize("kind", ["kf", "ekf", "ukf", "sukf"])

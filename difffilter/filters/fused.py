@@ -465,10 +465,10 @@ class FusedFilter(nn.Module):
 def fuse(
     filt: GaussianFilter,
     *,
-    compile: bool = True,
+    compile: bool = True,  # noqa: A002
     threads: int | None = 1,
     cpp_wrapper: bool = True,
-    **compile_options: Any,  # noqa: A002
+    **compile_options: Any,
 ) -> FusedFilter:
     """``FusedFilter(filt, compile=compile, threads=threads, cpp_wrapper=cpp_wrapper, compile_options=compile_options)``."""
     return FusedFilter(filt, compile=compile, compile_options=compile_options, threads=threads, cpp_wrapper=cpp_wrapper)

@@ -130,6 +130,36 @@ def test_fused_equals_reference_with_controls_masks_and_angles(make) -> None:  #
     assert torch.equal(out_ng.final_belief["cov"], out.final_belief["cov"].detach())
 
 
+def test_output_buffers_are_reused_only_when_no_result_holds_them() -> None:
+    model, z, u, m0, p0 = _range_bearing_data()
+    filt = UKF(model)
+    fused = FusedFilter(filt, compile=False)
+    with torch.no_grad():
+        ref = filt(z, m0, p0, controls=u)
+        first = fused(z, m0, p0, controls=u)
+        kept = first.cov.clone()
+        second = fused(z * 1.01, m0, p0, controls=u)  # `first` is alive: new memory
+        assert second.cov.data_ptr() != first.cov.data_ptr()
+        assert torch.equal(first.cov, kept)
+        ptr = second.cov.data_ptr()
+        cov_np = second.cov.numpy()  # a NumPy view keeps the memory in use
+        third = fused(z, m0, p0, controls=u)
+        assert third.cov.data_ptr() != ptr
+        del second, cov_np, first
+        ptr = third.cov.data_ptr()
+        kept = {name: getattr(third, name).clone() for name in FIELDS}
+        del third
+        fourth = fused(z, m0, p0, controls=u)  # nothing holds the last buffers: reused, results unchanged
+        assert fourth.cov.data_ptr() == ptr
+        _assert_same(fourth, ref)
+        for name in FIELDS:
+            assert torch.equal(getattr(fourth, name), kept[name]), name
+        fresh = FusedFilter(filt, compile=False, reuse_buffers=False)
+        fresh(z, m0, p0, controls=u)
+        assert fresh._kept_outputs == []
+        _assert_same(fresh(z, m0, p0, controls=u), ref)
+
+
 @pytest.mark.parametrize("kind", ["kf", "ekf", "ukf", "sukf"])
 def test_fused_equals_reference_on_learnable_singer_with_gradients(kind: str) -> None:
     """Singer's Q depends on learnable tau and sigma_a (computed inside the step); gradients of

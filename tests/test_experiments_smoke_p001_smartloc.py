@@ -194,3 +194,25 @@ def test_constant_gate_keeps_estimates_and_drops_the_rejected_gradient() -> None
         smartloc_model(gate_gradient=False, robust="huber")
     with pytest.raises(TypeError, match="gate_gradient"):
         smartloc_model(gate_gradient="no")
+
+
+@needs_smartloc
+def test_smartloc_learner_softens_the_gate_of_the_learned_copy_only() -> None:
+    import copy
+
+    from difffilter.learn.support_smartloc import SharedPsiColoredUKF, smartloc_learner, smartloc_model
+
+    hand = SharedPsiColoredUKF(smartloc_model(), psi=0.0, sigma_points=_sp())
+    plain = smartloc_learner(copy.deepcopy(hand), "nll", learn=["psi", "noise_scale"])
+    assert not plain.filter.model.measurement.soft_gate  # gate_softness=None: the model's (hard) gate
+    learner = smartloc_learner(copy.deepcopy(hand), "nll", gate_softness=0.2, start_params={"psi": 0.1}, learn=["psi", "gate_softness"])
+    meas = learner.filter.model.measurement
+    assert meas.soft_gate and float(meas.gate_softness.detach()) == pytest.approx(0.2)
+    assert meas.parametrizations.gate_softness.original.requires_grad
+    assert float(learner.filter.psi[0].detach()) == pytest.approx(0.1)
+    assert not hand.model.measurement.soft_gate and float(hand.psi[0].detach()) == 0.0
+    assert smartloc_model(gate_softness=0.0).measurement.soft_gate is False
+    with pytest.raises(ValueError, match="gate_softness"):
+        smartloc_model(gate_gradient=False, gate_softness=0.2)
+    with pytest.raises(ValueError, match="gate_softness"):
+        smartloc_learner(SharedPsiColoredUKF(smartloc_model(gate_gradient=False), sigma_points=_sp()), "nll", gate_softness=0.2)

@@ -226,3 +226,89 @@ def test_gradients_reach_learnable_noise() -> None:
     grads = [p.grad for p in model.parameters()]
     assert all(g is not None and bool(torch.isfinite(g).all()) for g in grads)
     assert model.measurement.parametrizations.R.original.grad.abs() > 0
+
+
+def _gated(softness: float | None, **kwargs: object) -> PseudorangeMeasurement:
+    lay = GnssStateLayout.constant_velocity(isb=True)
+    return PseudorangeMeasurement(
+        num_satellites=6, layout=lay, noise_from_data=True, robust="reject", gate=2.5, gate_floor=8.0, gate_softness=softness, **kwargs
+    )
+
+
+def test_soft_gate_tends_to_the_hard_gate_and_default_is_unchanged() -> None:
+    x, u = _inputs(batch=2, k=6)
+    hard = _gated(None)
+    var = u["pr_var"]
+    n = torch.tensor([0.0, 1.0, 2.3, 2.7, 4.0, 50.0], dtype=F64)  # normalised residuals, either side of 2.5
+    sign = torch.tensor([1.0, -1.0, 1.0, -1.0, 1.0, -1.0], dtype=F64)
+    z = hard(x, u).detach() + sign * n * torch.sqrt(var + 8.0**2)
+    uz = dict(u, pr_obs=z)
+    r_hard = torch.diagonal(hard.measurement_noise(x, uz), dim1=-2, dim2=-1)
+    assert torch.equal(r_hard[:, :3], var[:, :3])
+    torch.testing.assert_close(r_hard[:, 3:], 1e6 * var[:, 3:], rtol=1e-14, atol=0)
+    # the hard gate has no temperature parameter; None and 0 are the same hard gate
+    assert not hard.soft_gate and "gate_softness" not in dict(hard.named_parameters())
+    assert torch.equal(torch.diagonal(_gated(0.0).measurement_noise(x, uz), dim1=-2, dim2=-1), r_hard)
+    errors = []
+    for t in (0.5, 0.1, 0.02, 0.005):
+        soft = _gated(t)
+        assert soft.soft_gate and float(soft.gate_softness.detach()) == pytest.approx(t)
+        r_soft = torch.diagonal(soft.measurement_noise(x, uz), dim1=-2, dim2=-1)
+        assert bool((r_soft >= var).all()) and bool((r_soft <= 1e6 * var * (1 + 1e-12)).all())
+        errors.append(float((torch.log(r_soft) - torch.log(r_hard)).abs().max()))
+    assert errors == sorted(errors, reverse=True) and errors[-1] < 1e-9, errors
+    # at the gate itself the smooth factor is sqrt(1e6) = 1e3 for every temperature
+    at = dict(u, pr_obs=hard(x, u).detach() + 2.5 * torch.sqrt(var + 8.0**2))
+    r_at = torch.diagonal(_gated(0.2).measurement_noise(x, at), dim1=-2, dim2=-1)
+    torch.testing.assert_close(r_at, 1e3 * var)
+    # switching back to the hard gate removes the parameter again
+    soft.set_gate_softness(None)
+    assert not soft.soft_gate and "gate_softness" not in dict(soft.named_parameters())
+    assert torch.equal(torch.diagonal(soft.measurement_noise(x, uz), dim1=-2, dim2=-1), r_hard)
+    with pytest.raises(ValueError, match="gate_softness"):
+        PseudorangeMeasurement(num_satellites=6, layout=GnssStateLayout.constant_velocity(isb=True), robust="huber", gate_softness=0.2)
+    with pytest.raises(ValueError, match="gate_softness"):
+        _gated(-0.1)
+
+
+def test_soft_gate_position_gradient_matches_finite_differences() -> None:
+    """With the smooth gate a position loss is differentiable through the gate: autograd agrees
+    with central differences w.r.t. the noise scale and the temperature (the hard gate's step is
+    invisible to autograd, see results/smartloc_real.md)."""
+    base = make_p001_model(dtype=F64)
+    sc = simulate_p001(2, seed=5, dtype=F64, num_epochs=25)
+    meas = PseudorangeMeasurement(
+        num_satellites=7,
+        layout=GnssStateLayout.constant_velocity(),
+        reduced=True,
+        noise_from_data=True,
+        robust="reject",
+        gate=2.5,
+        gate_floor=2.0,
+        gate_softness=0.3,
+    )
+    model = StateSpaceModel(base.dynamics, meas)
+    z = sc.measurements.clone()
+    g = torch.Generator().manual_seed(3)
+    z = z + 15.0 * (torch.rand(z.shape, generator=g, dtype=F64) < 0.15) * torch.randn(z.shape, generator=g, dtype=F64)
+    controls = dict(sc.controls, pr_obs=z, pr_var=torch.full_like(z, 9.0))
+
+    def loss() -> torch.Tensor:
+        res = UKF(model)(z, sc.initial_mean, sc.initial_cov, controls=controls)
+        return (res.mean[..., :2] - sc.truth[..., :2]).norm(dim=-1).mean()
+
+    for name in ("noise_scale", "gate_softness"):
+        raw = meas.parametrizations[name].original
+        meas.zero_grad()
+        loss().backward()
+        auto = float(raw.grad)
+        h = 1e-5
+        with torch.no_grad():
+            raw += h
+            up = float(loss())
+            raw -= 2 * h
+            down = float(loss())
+            raw += h
+        numeric = (up - down) / (2 * h)
+        assert abs(numeric) > 1e-4, (name, numeric)  # the gate is active in this case
+        assert auto == pytest.approx(numeric, rel=1e-4, abs=1e-7), (name, auto, numeric)

@@ -16,7 +16,9 @@ Also here:
   over-fit the few satellites of a 283 s drive;
 * :class:`SnapshotWLS` - the single-epoch robust least-squares baseline as a (memoryless)
   :class:`~difffilter.filters.base.GaussianFilter`, so the experiment evaluates it like a filter;
-* :func:`smartloc_model` - :func:`~difffilter.sim.smartloc.make_smartloc_model` for configs.
+* :func:`smartloc_model` - :func:`~difffilter.sim.smartloc.make_smartloc_model` for configs;
+* :func:`smartloc_learner` - the learner, optionally with a smooth reject gate on the learned
+  filter only (the hand-tuned row keeps the model's gate).
 
 Data: CC BY-SA 4.0, TU Chemnitz smartLoc (Reisdorf et al., VEHICULAR 2016), see the data README.
 """
@@ -40,12 +42,14 @@ from ..params import register_constrained
 from ..sim.sampling import as_dtype
 from ..sim.smartloc import SmartLocData, WlsSolution, load_smartloc, make_smartloc_model, single_epoch_wls, smartloc_initial_belief
 from .data import SimulatedTrajectories
+from .selection import assign_parameters
 
 __all__ = [
     "SharedBounded",
     "SharedPsiColoredUKF",
     "SmartLocTrajectories",
     "SnapshotWLS",
+    "smartloc_learner",
     "smartloc_model",
     "smartloc_simulator",
 ]
@@ -64,8 +68,39 @@ def _snapshot(path: str | None) -> WlsSolution:
 
 def smartloc_model(*, path: str | None = None, slots: str = "satellite", dtype: torch.dtype | str = "float64", **options: Any) -> nn.Module:
     """:func:`~difffilter.sim.smartloc.make_smartloc_model` on the (cached) drive; ``options``
-    are its keywords (``robust``, ``gate``, ``gate_floor``, ``noise_from_data``, dynamics PSDs)."""
+    are its keywords (``robust``, ``gate``, ``gate_floor``, ``gate_gradient``, ``gate_softness``,
+    ``noise_from_data``, dynamics PSDs)."""
     return make_smartloc_model(_drive(path, slots), dtype=as_dtype(dtype), **options)
+
+
+def smartloc_learner(
+    filter: GaussianFilter,  # noqa: A002 - the field's word
+    loss: Any,
+    *,
+    gate_softness: float | None = None,
+    start_params: Mapping[str, Any] | None = None,
+    **learner_kwargs: Any,
+) -> Any:
+    """A :class:`~difffilter.learn.learner.FilterLearner` on ``filter`` (``run_experiment`` hands
+    it a copy of the hand-tuned filter) with the pseudorange reject gate of the copy set to
+    ``gate_softness`` and ``start_params`` (constrained values by name) applied.
+
+    ``gate_softness=None`` keeps the model's gate (the learner is then exactly
+    ``FilterLearner(filter, loss, ...)``); ``0``: the hard gate; ``t > 0``: the smooth gate
+    ``R_jj x 1e6 ** sigmoid((n_j - gate) / t)`` in training, validation and the final evaluation
+    of the learned filter, with ``t`` a parameter that ``learn: [..., gate_softness]`` may train.
+    The hand-tuned row (and every baseline) keeps the model config's gate.
+    """
+    from .learner import FilterLearner  # Lightning is imported lazily, as in difffilter.learn
+
+    if gate_softness is not None:
+        meas = getattr(getattr(filter, "model", None), "measurement", None)
+        if meas is None or not hasattr(meas, "set_gate_softness"):
+            raise TypeError(f"gate_softness needs a filter whose model.measurement has a reject gate, got {type(filter).__name__}")
+        meas.set_gate_softness(gate_softness)
+    if start_params:
+        assign_parameters(filter, dict(start_params))
+    return FilterLearner(filter, loss, **learner_kwargs)
 
 
 @dataclass

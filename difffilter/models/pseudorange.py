@@ -16,10 +16,12 @@ away from the receiver and mark them False in the filter's per-component mask ``
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
+from torch.nn.utils import parametrize
 
 from ..params import Positive, register_constrained, register_covariance
 from .base import Controls, DynamicsModel, MeasurementModel
@@ -60,6 +62,10 @@ class GnssStateLayout:
     def odometry(cls, *, isb: bool = True) -> GnssStateLayout:
         """``[E, N, U, yaw, clock bias, clock drift(, ISB)]`` (smartLoc with odometry)."""
         return cls(state_dim=7 if isb else 6, velocity=None, clock_bias=4, clock_drift=5, isb=6 if isb else None)
+
+
+_LOG_REJECT = math.log(1e6)  # the reject gate's variance factor 1e6, as a logarithm
+_MIN_GATE_SOFTNESS = 1e-3
 
 
 def _get(u: Controls, key: str) -> Tensor:
@@ -109,12 +115,14 @@ class PseudorangeMeasurement(MeasurementModel):
         robust: str | None = None,
         gate: float = 3.0,
         gate_floor: float = 0.0,
+        gate_softness: float | None = None,
         dtype: torch.dtype = torch.float64,
     ) -> None:
         super().__init__()
         if robust not in (None, "huber", "reject"):
             raise ValueError(f"robust must be None, 'huber' or 'reject', got {robust!r}")
         self.robust, self.gate, self.gate_floor = robust, float(gate), float(gate_floor)
+        self.soft_gate = False
         if rates and layout.velocity is None:
             raise ValueError("pseudorange rates need a velocity in the state layout")
         if frame not in ("ecef", "enu"):
@@ -144,6 +152,29 @@ class PseudorangeMeasurement(MeasurementModel):
             register_constrained(self, "noise_scale", torch.ones((), dtype=dtype), Positive(1e-6))
         else:
             register_covariance(self, "R", torch.diag(var), R_structure)
+        self.set_gate_softness(gate_softness)
+
+    def set_gate_softness(self, value: float | None) -> None:
+        """Hard (``None`` or ``0``) or smooth (``value > 0``) reject gate, see :meth:`robust_inflation`.
+
+        A smooth gate registers ``gate_softness`` (its temperature, in units of the normalised
+        residual ``n``) as a constrained parameter (``0.001 + softplus(raw)``), which ``learn:``
+        may select by name; the hard gate has no such parameter (the module is then exactly the
+        one built without the option).
+        """
+        if value is None or float(value) == 0.0:
+            if self.soft_gate:
+                parametrize.remove_parametrizations(self, "gate_softness", leave_parametrized=False)
+                delattr(self, "gate_softness")
+            self.soft_gate = False
+            return
+        if self.robust != "reject":
+            raise ValueError(f"gate_softness needs robust='reject', got robust={self.robust!r}")
+        if not float(value) > _MIN_GATE_SOFTNESS:
+            raise ValueError(f"gate_softness must be None, 0 or > {_MIN_GATE_SOFTNESS}, got {value!r}")
+        dtype = self.frame_rotation.dtype
+        register_constrained(self, "gate_softness", torch.tensor(float(value), dtype=dtype), Positive(_MIN_GATE_SOFTNESS))
+        self.soft_gate = True
 
     # -- pieces -----------------------------------------------------------------------------
     def _geometry(self, x: Tensor, u: Controls) -> tuple[Tensor, Tensor, Tensor, Tensor]:
@@ -230,6 +261,11 @@ class PseudorangeMeasurement(MeasurementModel):
         factor), ``"reject"``: ``f = 1e6`` when ``n > gate`` (a chi-square gate with one degree
         of freedom that keeps shapes fixed).  ``gate_floor`` (m) allows for the prior position
         uncertainty, which ``R`` alone ignores.
+
+        With ``gate_softness = t > 0`` (``"reject"`` only) the step is smoothed:
+        ``f = 1e6 ** sigmoid((n - gate) / t)``, which tends to the hard gate as ``t -> 0`` and is
+        differentiable in ``n``, so path-wise gradients (e.g. of a position loss) also see a range
+        moving across the gate (with the step they see only the smooth pieces between switches).
         """
         k = self.num_satellites
         z = _get(u, "pr_obs").to(x.dtype)
@@ -238,6 +274,12 @@ class PseudorangeMeasurement(MeasurementModel):
         n = res.abs() / torch.sqrt(var + self.gate_floor**2)
         if self.robust == "huber":
             f = torch.clamp(n / self.gate, min=1.0)
+        elif self.soft_gate:
+            half_log = 0.5 * _LOG_REJECT * torch.sigmoid((n - self.gate) / self.gate_softness)
+            d = torch.exp(half_log)  # sqrt(f), f = 1e6 ** sigmoid(...)
+            if self.rates:
+                d = torch.cat([d, torch.ones_like(d)], -1)
+            return r * d[..., :, None] * d[..., None, :]
         else:
             f = torch.where(n > self.gate, torch.full_like(n, 1e6), torch.ones_like(n))
         if self.rates:

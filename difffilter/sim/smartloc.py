@@ -338,6 +338,9 @@ def single_epoch_wls(
     return WlsSolution(enu=x[:, :3], clock=x[:, 3], isb=x[:, 4], residuals=r, used=used, valid=valid)
 
 
+_NO_SOFT_CONSTANT_GATE = "gate_gradient=False detaches the hard gate's rejected ranges; it cannot be combined with gate_softness > 0"
+
+
 def make_smartloc_model(
     data: SmartLocData,
     *,
@@ -347,6 +350,7 @@ def make_smartloc_model(
     gate: float = 2.5,
     gate_floor: float = 8.0,
     gate_gradient: bool = True,
+    gate_softness: float | None = None,
     **dynamics_kwargs: float,
 ) -> torch.nn.Module:
     """Odometry + pseudorange model of the README's tightly coupled filter.
@@ -365,11 +369,18 @@ def make_smartloc_model(
     ``log(1e6 R_jj) / 2`` becomes a constant, so it no longer pulls ``R`` (``noise_scale``)
     down during maximum-likelihood learning (with gradients, every rejected range adds
     ``1 / (2 noise_scale)`` to the gradient towards a smaller scale, unopposed by a residual).
+
+    ``gate_softness`` (``robust="reject"``; ``None`` or ``0``: the hard gate, the default) makes
+    the gate smooth, ``R_jj x 1e6 ** sigmoid((n_j - gate) / gate_softness)`` with ``n_j`` the
+    normalised prior residual, and registers the temperature as the learnable-by-name parameter
+    ``gate_softness`` (see ``PseudorangeMeasurement.set_gate_softness``).
     """
     if not isinstance(gate_gradient, bool):
         raise TypeError(f"gate_gradient must be a bool, got {type(gate_gradient).__name__}")
     if not gate_gradient and robust != "reject":
         raise ValueError(f"gate_gradient=False needs robust='reject', got robust={robust!r}")
+    if not gate_gradient and gate_softness:
+        raise ValueError(_NO_SOFT_CONSTANT_GATE)
     dynamics_kwargs = {"vertical_psd": 1e-2, **dynamics_kwargs}
     from ..models.base import StateSpaceModel
     from ..models.pseudorange import GnssStateLayout, OdometryClockDynamics, PseudorangeMeasurement
@@ -387,6 +398,7 @@ def make_smartloc_model(
         robust=robust,
         gate=gate,
         gate_floor=gate_floor,
+        gate_softness=gate_softness,
         dtype=dtype,
     )
     return StateSpaceModel(dyn, meas)
@@ -399,6 +411,11 @@ def _constant_gate_measurement_class() -> type:
     from ..models.pseudorange import PseudorangeMeasurement
 
     class ConstantGatePseudorange(PseudorangeMeasurement):
+        def set_gate_softness(self, value: float | None) -> None:
+            if value:
+                raise ValueError(_NO_SOFT_CONSTANT_GATE)
+            super().set_gate_softness(value)
+
         def robust_inflation(self, x: Tensor, u: object, r: Tensor) -> Tensor:
             out = super().robust_inflation(x, u, r)
             eye = torch.eye(out.shape[-1], dtype=torch.bool, device=out.device)

@@ -47,11 +47,13 @@ _MAX_CONTRACTION = 32
 
 # -- element-wise small linear algebra on batch-last tensors [..., B] ---------------------------
 def _usum(terms: list[Tensor]) -> Tensor:
-    """Sum of a short list of same-shaped tensors, written as a chain of additions.
+    """Sum of a short list of same-shaped tensors as a chain of element-wise additions.
 
-    Reductions over a tiny axis (8 state components, 17 sigma points) make the compiler pick
-    the tiny axis for the inner loop and leave the batch axis scalar; a chain of element-wise
-    additions keeps every loop vectorised over the contiguous batch axis (measured: ...)."""
+    Used for the short sums over the measurement components in the update, which stay in the
+    element-wise form of the code around them.  The sums over sigma points and matrix products
+    stay reductions: written this way they measured slower (UKF forward, B = 256: 229-232k vs
+    259-265k trajectory-steps/s), as the compiler then streams each output element's terms
+    from memory instead of keeping a trajectory's points in cache."""
     acc = terms[0]
     for t in terms[1:]:
         acc = acc + t

@@ -341,3 +341,19 @@ def test_nan_under_the_mask_reaches_no_gradient() -> None:
     for a, b in zip(g_out, g_clean, strict=True):
         assert torch.equal(a, b)
     assert bool(torch.isfinite(out.mean).all()) and bool(torch.isfinite(out.cov).all())
+
+
+def test_compile_options_plumbing() -> None:
+    """threads / cpp_wrapper become inductor options unless the caller picks a compile mode;
+    caller-given options win; bad thread counts are refused."""
+    model, _z, _m0, _p0 = _singer_data()
+    filt = KalmanFilter(model)
+    assert FusedFilter(filt).compile_options == {"options": {"cpp.threads": 1, "cpp_wrapper": True}}
+    opts = FusedFilter(filt, threads=None, cpp_wrapper=False).compile_options
+    assert opts == {"options": {"cpp_wrapper": False}}
+    given = FusedFilter(filt, compile_options={"options": {"cpp_wrapper": False, "cpp.threads": 2}}).compile_options
+    assert given == {"options": {"cpp_wrapper": False, "cpp.threads": 2}}
+    assert FusedFilter(filt, compile_options={"mode": "max-autotune"}).compile_options == {"mode": "max-autotune"}
+    assert fuse(filt, cpp_wrapper=False, reuse_buffers=False).reuse_buffers is False
+    with pytest.raises(ValueError, match="threads"):
+        FusedFilter(filt, threads=0)

@@ -275,11 +275,7 @@ class PseudorangeMeasurement(MeasurementModel):
         if self.robust == "huber":
             f = torch.clamp(n / self.gate, min=1.0)
         elif self.soft_gate:
-            half_log = 0.5 * _LOG_REJECT * torch.sigmoid((n - self.gate) / self.gate_softness)
-            d = torch.exp(half_log)  # sqrt(f), f = 1e6 ** sigmoid(...)
-            if self.rates:
-                d = torch.cat([d, torch.ones_like(d)], -1)
-            return r * d[..., :, None] * d[..., None, :]
+            f = torch.exp(_LOG_REJECT * torch.sigmoid((n - self.gate) / self.gate_softness))  # 1e6 ** sigmoid(...)
         else:
             f = torch.where(n > self.gate, torch.full_like(n, 1e6), torch.ones_like(n))
         if self.rates:

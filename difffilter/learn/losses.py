@@ -63,6 +63,11 @@ def _index(index: Index) -> list[int] | None:
     return None if index is None else [int(i) for i in index]
 
 
+def _mean_over_valid(per_step: Tensor, valid: Tensor) -> Tensor:
+    """Per-trajectory mean of ``per_step [B, T]`` (zero where invalid) over the valid steps."""
+    return per_step.sum(-1) / valid.sum(-1).clamp_min(1).to(per_step.dtype)
+
+
 class MSELoss:
     """Per-trajectory mean squared error ``mean_t ||x_hat_t[index] - x_t[truth_index]||^2 / d``.
 
@@ -82,8 +87,7 @@ class MSELoss:
         sq = err * err
         if self.weights is not None:
             sq = sq * torch.as_tensor(self.weights, dtype=sq.dtype, device=sq.device)
-        per_step = sq.mean(-1)
-        return per_step.sum(-1) / valid.sum(-1).clamp_min(1).to(per_step.dtype)
+        return _mean_over_valid(sq.mean(-1), valid)
 
 
 class HuberLoss:
@@ -108,9 +112,9 @@ class HuberLoss:
         sq = (err * err).sum(-1)
         # the norm only matters (and is differentiated) in the linear branch, where sq > delta^2
         norm = torch.sqrt(sq.clamp_min(self.delta**2))
+        # steps without truth have zero error (component_error), hence zero loss and gradient
         per_step = torch.where(sq <= self.delta**2, 0.5 * sq, self.delta * (norm - 0.5 * self.delta))
-        per_step = torch.where(valid, per_step, torch.zeros_like(per_step))
-        return per_step.sum(-1) / valid.sum(-1).clamp_min(1).to(per_step.dtype)
+        return _mean_over_valid(per_step, valid)
 
 
 class NLLLoss:

@@ -30,6 +30,7 @@ __all__ = [
     "PositiveDefinite",
     "RowStochastic",
     "register_constrained",
+    "remove_constrained",
     "softplus",
     "softplus_inverse",
     "ScaledMatrix",
@@ -214,9 +215,12 @@ def register_constrained(module: nn.Module, name: str, value: Tensor, constraint
     """Register ``module.<name>`` as a constrained learnable parameter with initial ``value``.
 
     ``constraint=None`` registers a fixed buffer instead (not learnable).
+
+    Re-registering a parametrized name removes the old parametrization with
+    :func:`remove_constrained`, which leaves deep copies of ``module`` (e.g. the hand-tuned
+    filter a learner's copy was made from) intact.
     """
-    if parametrize.is_parametrized(module, name):
-        parametrize.remove_parametrizations(module, name, leave_parametrized=False)
+    remove_constrained(module, name)
     if hasattr(module, name):
         delattr(module, name)
     if constraint is None:
@@ -224,6 +228,20 @@ def register_constrained(module: nn.Module, name: str, value: Tensor, constraint
         return
     module.register_parameter(name, nn.Parameter(value.detach().clone()))
     parametrize.register_parametrization(module, name, constraint, unsafe=True)
+
+
+def remove_constrained(module: nn.Module, name: str) -> None:
+    """Remove the parametrization of ``module.<name>`` (and its value) if there is one.
+
+    ``module`` first gets a private copy of its generated class: ``copy.deepcopy`` shares that
+    class between a module and its copies, and ``remove_parametrizations`` deletes the property
+    from the class, which would break the copies that still have the parametrization.
+    """
+    if not parametrize.is_parametrized(module, name):
+        return
+    cls = type(module)
+    module.__class__ = type(cls.__name__, cls.__bases__, dict(cls.__dict__))
+    parametrize.remove_parametrizations(module, name, leave_parametrized=False)
 
 
 def constrained_values(module: nn.Module, prefix: str = "") -> dict[str, Tensor]:

@@ -147,3 +147,38 @@ def test_covariance_structures_and_validation():
             check_covariance("R", bad)
     with pytest.raises(ValueError, match=r"R must have shape \[3, 3\]"):
         check_covariance("R", torch.eye(2), 3)
+
+
+def test_reregistering_on_a_deep_copy_leaves_the_original_working() -> None:
+    """copy.deepcopy shares a parametrized module's generated class; re-registering the copy's
+    only parametrization must not delete the property the original reads through."""
+    import copy
+
+    from torch import nn
+
+    from difffilter.params import Positive, ScaledMatrix, register_constrained
+
+    m = nn.Module()
+    register_constrained(m, "q", 2.0 * torch.eye(3, dtype=torch.float64), ScaledMatrix(torch.eye(3, dtype=torch.float64)))
+    c = copy.deepcopy(m)
+    assert type(c) is type(m)
+    register_constrained(c, "q", torch.tensor(5.0, dtype=torch.float64), Positive())
+    assert torch.allclose(m.q, 2.0 * torch.eye(3, dtype=torch.float64))
+    assert float(c.q) == pytest.approx(5.0) and c.parametrizations.q.original.requires_grad
+    assert [n for n, _ in c.named_parameters()] == ["parametrizations.q.original"]
+    # a fixed buffer replaces the parametrization (the copy's own class is restored)
+    register_constrained(c, "q", torch.tensor(1.0, dtype=torch.float64), None)
+    assert float(c.q) == 1.0 and torch.allclose(m.q, 2.0 * torch.eye(3, dtype=torch.float64))
+
+
+def test_switching_the_soft_gate_off_on_a_copy_keeps_the_original_soft_gate() -> None:
+    import copy
+
+    from difffilter.models.pseudorange import GnssStateLayout, PseudorangeMeasurement
+
+    layout = GnssStateLayout.odometry(isb=True)
+    meas = PseudorangeMeasurement(num_satellites=4, layout=layout, noise_from_data=True, robust="reject", gate_softness=0.2)
+    twin = copy.deepcopy(meas)
+    twin.set_gate_softness(None)
+    assert twin.soft_gate is False and not hasattr(twin, "gate_softness")
+    assert float(meas.gate_softness) == pytest.approx(0.2)

@@ -21,9 +21,8 @@ from dataclasses import dataclass
 
 import torch
 from torch import Tensor
-from torch.nn.utils import parametrize
 
-from ..params import Positive, register_constrained, register_covariance
+from ..params import Positive, register_constrained, register_covariance, remove_constrained
 from .base import Controls, DynamicsModel, MeasurementModel
 
 __all__ = [
@@ -164,8 +163,9 @@ class PseudorangeMeasurement(MeasurementModel):
         """
         if value is None or float(value) == 0.0:
             if self.soft_gate:
-                parametrize.remove_parametrizations(self, "gate_softness", leave_parametrized=False)
-                delattr(self, "gate_softness")
+                remove_constrained(self, "gate_softness")
+                if hasattr(self, "gate_softness"):
+                    delattr(self, "gate_softness")
             self.soft_gate = False
             return
         if self.robust != "reject":

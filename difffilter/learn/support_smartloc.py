@@ -16,6 +16,9 @@ Also here:
   over-fit the few satellites of a 283 s drive;
 * :class:`SnapshotWLS` - the single-epoch robust least-squares baseline as a (memoryless)
   :class:`~difffilter.filters.base.GaussianFilter`, so the experiment evaluates it like a filter;
+* :func:`smartloc_synthetic_simulator` - synthetic drives on the geometry of one segment
+  (:mod:`difffilter.sim.smartloc_synthetic`, error model calibrated on that segment) for the
+  training splits, the real held-out segment for the test split;
 * :func:`smartloc_model` - :func:`~difffilter.sim.smartloc.make_smartloc_model` for configs;
 * :func:`smartloc_learner` - the learner, optionally with a smooth reject gate on the learned
   filter only (the hand-tuned row keeps the model's gate).
@@ -27,7 +30,7 @@ from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -41,6 +44,7 @@ from ..models.base import Controls, StateSpaceModel
 from ..params import register_constrained
 from ..sim.sampling import as_dtype
 from ..sim.smartloc import SmartLocData, WlsSolution, load_smartloc, make_smartloc_model, single_epoch_wls, smartloc_initial_belief
+from ..sim.smartloc_synthetic import PseudorangeErrorModel, calibrate_error_model, simulate_smartloc_drives
 from .data import SimulatedTrajectories
 from .selection import assign_parameters
 
@@ -52,6 +56,7 @@ __all__ = [
     "smartloc_learner",
     "smartloc_model",
     "smartloc_simulator",
+    "smartloc_synthetic_simulator",
 ]
 
 
@@ -198,6 +203,95 @@ def smartloc_simulator(
         initial_mean=mean0,
         initial_cov=cov0,
         start=start,
+        data=data,
+    )
+
+
+@functools.lru_cache(maxsize=8)
+def _calibrated(path: str | None, slots: str, first: int, stop: int, elevation_mask_deg: float) -> PseudorangeErrorModel:
+    return calibrate_error_model(_drive(path, slots), first, stop, elevation_mask_deg=elevation_mask_deg)
+
+
+def smartloc_synthetic_simulator(
+    *,
+    batch_size: int,
+    seed: int,
+    dtype: torch.dtype | str = torch.float64,
+    num_steps: int | None = None,
+    segments: Mapping[str, Mapping[str, Any]],
+    synthetic: Sequence[str] = ("train", "val"),
+    calibration: str = "train",
+    error_model: Mapping[str, Any] | None = None,
+    split_seeds: Mapping[str, int] | None = None,
+    elevation_mask_deg: float = 15.0,
+    slots: str = "satellite",
+    path: str | None = None,
+    true_params: Any = None,
+    initial_mean: Any = None,
+    initial_cov: Any = None,
+) -> SmartLocTrajectories:
+    """Synthetic drives for the splits in ``synthetic``, the real drive for the others.
+
+    A synthetic split's segment ``{start, stop, length}`` bounds the real epochs whose geometry
+    (reference track, satellites, visibility, receiver variances, C/N0, odometry) is used:
+    ``batch_size`` windows of ``length`` epochs start at epochs drawn uniformly in the segment
+    (seeded by the split's seed), and their pseudoranges and clock are drawn from a
+    :class:`~difffilter.sim.smartloc_synthetic.PseudorangeErrorModel`.  That model is estimated
+    by :func:`~difffilter.sim.smartloc_synthetic.calibrate_error_model` on the real epochs of the
+    segment named ``calibration`` (with the reference track), then overridden field by field by
+    ``error_model``.  Initial beliefs: centred on a draw from ``N(truth, P0)`` with the real
+    windows' ``P0``.  Other splits are :func:`smartloc_simulator`'s real windows.  The remaining
+    arguments are :func:`smartloc_simulator`'s.
+    """
+    seeds = {int(v): k for k, v in dict(split_seeds or {"train": 0, "val": 1, "test": 2}).items()}
+    split = seeds.get(int(seed))
+    bad = sorted(set(synthetic) - set(segments))
+    if bad:
+        raise ValueError(f"synthetic names splits without a segment: {bad}; segments has {sorted(segments)}")
+    if calibration not in segments:
+        raise ValueError(f"calibration must name a segment, got {calibration!r}; segments has {sorted(segments)}")
+    if split not in synthetic:
+        return smartloc_simulator(
+            batch_size=batch_size,
+            seed=seed,
+            dtype=dtype,
+            num_steps=num_steps,
+            segments=segments,
+            split_seeds=split_seeds,
+            elevation_mask_deg=elevation_mask_deg,
+            slots=slots,
+            path=path,
+        )
+    data = _drive(path, slots)
+    total = data.num_epochs
+    cal = dict(segments[calibration])
+    c0, c1 = _epoch(cal.get("start", 0.0), total), _epoch(cal.get("stop", 1.0), total)
+    model = _calibrated(path, slots, c0, c1, float(elevation_mask_deg))
+    if error_model:
+        unknown = sorted(set(error_model) - set(PseudorangeErrorModel.__dataclass_fields__))
+        if unknown:
+            raise ValueError(f"error_model has unknown fields {unknown}; known: {sorted(PseudorangeErrorModel.__dataclass_fields__)}")
+        fields = {k: getattr(model, k) for k in PseudorangeErrorModel.__dataclass_fields__}
+        model = PseudorangeErrorModel(**{**fields, **dict(error_model)})
+    spec = dict(segments[split])
+    first, stop = _epoch(spec.get("start", 0.0), total), _epoch(spec.get("stop", 1.0), total)
+    length = stop - first if spec.get("length") is None else int(spec["length"])
+    if not 0 <= first < stop <= total or length < 2 or first + length > stop:
+        raise ValueError(f"segment {split!r} must hold windows of {length} >= 2 epochs inside [0, {total}), got [{first}, {stop})")
+    gen = torch.Generator().manual_seed(int(seed))
+    starts = torch.randint(first, stop - length + 1, (int(batch_size),), generator=gen).tolist()
+    steps = length if num_steps is None else min(length, int(num_steps))
+    batch, mean0, cov0, _ = simulate_smartloc_drives(
+        data, starts, steps, model, seed=int(seed) + 1, dtype=as_dtype(dtype), elevation_mask_deg=elevation_mask_deg
+    )
+    return SmartLocTrajectories(
+        truth=batch.truth,
+        measurements=batch.measurements,
+        mask=batch.mask,
+        controls=batch.controls,
+        initial_mean=mean0,
+        initial_cov=cov0,
+        start=batch.start,
         data=data,
     )
 

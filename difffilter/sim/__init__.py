@@ -1,4 +1,5 @@
-"""Seeded, batched scenario simulators for the five papers and the smartLoc real-data loader.
+"""Seeded, batched scenario simulators for the five papers, the smartLoc real-data loader and
+synthetic pseudoranges on the smartLoc geometry.
 
 Every simulator returns truth, measurements, masks (True = observed) and per-step controls as
 tensors ready for ``filter(measurements, initial_mean, initial_cov, mask=..., controls=...)``.
@@ -33,6 +34,10 @@ _EXPORTS = {
     "single_epoch_wls": ".smartloc",
     "make_smartloc_model": ".smartloc",
     "smartloc_initial_belief": ".smartloc",
+    "PseudorangeErrorModel": ".smartloc_synthetic",
+    "calibrate_error_model": ".smartloc_synthetic",
+    "simulate_smartloc_drives": ".smartloc_synthetic",
+    "synthetic_drive": ".smartloc_synthetic",
     "sample_trajectories": ".sampling",
     "ModelSimulator": ".sampling",
 }

@@ -97,6 +97,56 @@ def test_model_options_from_a_template_or_a_mapping():
         model_options(pdr_model(Q_std=[0.06, 0.06, 0.01, 0.5], R_std=[2.67, 2.67, 11.4]))
 
 
+def test_group_scaled_covariance():
+    from difffilter.learn.support_p003 import GroupScaledCovariance
+
+    base = torch.tensor([[4.0, 1.0, 0.0], [1.0, 2.0, 0.0], [0.0, 0.0, 3.0]], dtype=f64)
+    groups = torch.tensor([[1.0, 1.0, 0.0], [0.0, 0.0, 1.0]], dtype=f64)
+    c = GroupScaledCovariance(base, groups)
+    torch.testing.assert_close(c(torch.zeros(2, dtype=f64)), base)
+    raw = torch.tensor([math.log(100.0), math.log(0.5)], dtype=f64)
+    want = base.clone()
+    want[:2, :2] *= 100.0
+    want[2, 2] *= 0.5
+    torch.testing.assert_close(c(raw), want)  # off-diagonal terms inside a group scale with it
+    torch.testing.assert_close(c.right_inverse(want), raw)
+    torch.testing.assert_close(c.right_inverse(torch.tensor(7.0, dtype=f64)), torch.full((2,), math.log(7.0), dtype=f64))
+    with pytest.raises(ValueError, match="one positive scale per group"):
+        c.right_inverse(torch.eye(3, dtype=f64))
+    with pytest.raises(ValueError, match="exactly one group"):
+        GroupScaledCovariance(base, torch.ones(2, 3, dtype=f64))
+    with pytest.raises(ValueError, match="positive"):
+        c.right_inverse(torch.tensor(-1.0, dtype=f64))
+
+
+def test_p003_learner_splits_q_of_the_learned_copy_only():
+    import copy
+
+    from difffilter.learn.support_p003 import ModeSwitchReport, p003_learner
+
+    hand = p003_imm(model={"num_satellites": 4})
+    q_hand = [f.model.dynamics.Q.detach().clone() for f in hand.filters]
+    plain = p003_learner(copy.deepcopy(hand), "nll", learn=["Q", "R", "transition"])
+    assert plain.filter.filters[1].model.dynamics.parametrizations.Q.original.shape == ()
+    learner = p003_learner(copy.deepcopy(hand), "nll", q_groups="imu_white", learn=["Q", "R", "transition"])
+    dyn = learner.filter.filters[1].model.dynamics
+    assert dyn.parametrizations.Q.original.shape == (2,)
+    torch.testing.assert_close(dyn.Q, q_hand[1])
+    with torch.no_grad():
+        dyn.parametrizations.Q.original.copy_(torch.tensor([0.0, math.log(1e-4)], dtype=f64))
+    q = torch.diagonal(dyn.Q)
+    torch.testing.assert_close(q[3:9], torch.diagonal(q_hand[1])[3:9])  # IMU white noises kept
+    torch.testing.assert_close(q[9:], 1e-4 * torch.diagonal(q_hand[1])[9:])  # the rest scaled
+    for f, q0 in zip(hand.filters, q_hand, strict=True):  # the hand-tuned filter is untouched
+        torch.testing.assert_close(f.model.dynamics.Q, q0)
+    # the report rebuilds the learned IMM from a checkpoint of this layout
+    state = {f"filter.{k}": v for k, v in learner.filter.state_dict().items()}
+    rebuilt = ModeSwitchReport._learned_from_state(hand, state, "imu_white")
+    torch.testing.assert_close(rebuilt.filters[1].model.dynamics.Q, dyn.Q)
+    with pytest.raises(ValueError, match="q_groups"):
+        p003_learner(copy.deepcopy(hand), "nll", q_groups="all")
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize(
     ("experiment", "expected"),

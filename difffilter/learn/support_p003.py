@@ -8,6 +8,8 @@ wrapper, empirical transition matrix and the mode-switch report.
 * :func:`p003_imm` / :func:`p003_single` - the IMM of two modes (``filter``: ``"simplified"`` =
   p003's UTCUKF, ``"standard"`` = additive-noise UKF, ``"augmented"`` = augmented UKF) and a
   single-mode filter, from plain config values.
+* :func:`p003_learner` - the learner, optionally with each mode's ``Q`` split into two
+  log-scaled groups (IMU white noises / everything else) on the learned copy only.
 * :func:`simulate` - :func:`~difffilter.sim.p003_flight.simulate_p003` in metres with ``num_steps``
   (what the data module passes for short debug runs) mapped to the duration.
 * :func:`empirical_transition` - the maximum-likelihood Markov matrix of a phase schedule's mode
@@ -34,12 +36,14 @@ import numpy as np
 import torch
 from hydra.experimental.callback import Callback
 from torch import Tensor
+from torch.nn.utils import parametrize
 
 from ..filters import UKF, SimplifiedUKF
 from ..filters.base import GaussianFilter
 from ..filters.sigma_points import MerweScaled
 from ..mixers import IMM
 from ..models.sins import SinsErrorDynamics, SinsPseudorangeMeasurement
+from ..params import register_constrained
 from ..sim.p003_flight import PAPER_PHASES, P003Scenario, make_p003_model, manoeuvre_flags, simulate_p003
 from ..sim.sampling import as_dtype
 from .metrics import mode_switch_delay
@@ -47,7 +51,10 @@ from .metrics import mode_switch_delay
 __all__ = [
     "PAPER_SWITCH_STEPS",
     "ModeSwitchReport",
+    "GroupScaledCovariance",
     "empirical_transition",
+    "group_scale_q",
+    "p003_learner",
     "model_options",
     "p003_imm",
     "p003_mode_model",
@@ -94,6 +101,92 @@ def p003_mode_model(
             model.dynamics.Q = torch.tensor(float(q_scale), dtype=dt)
         model.measurement.R = torch.tensor(float(r_scale), dtype=dt)
     return model
+
+
+class GroupScaledCovariance(torch.nn.Module):
+    """``value = D base D`` with ``D = diag(sqrt(exp(raw) @ groups))``: one positive scale per
+    group of state components, learned in log space (a constraint for ``register_constrained``).
+
+    ``groups [G, n]`` is a 0/1 partition of the ``n`` components; ``raw [G]`` are the log scales
+    relative to ``base`` (``raw = 0``: ``value = base``).  Log space matters for scales that
+    must move by orders of magnitude: Adam moves a raw value by about ``lr`` per step, which in
+    softplus space (``Positive``) changes a scale of ``1e4`` by ``lr`` and in log space by a
+    factor ``exp(lr)``.  ``right_inverse`` takes a scalar (every group) or a matrix of this form.
+    """
+
+    def __init__(self, base: Tensor, groups: Tensor) -> None:
+        super().__init__()
+        n = base.shape[-1]
+        g = torch.as_tensor(groups, dtype=base.dtype)
+        if g.ndim != 2 or g.shape[1] != n:
+            raise ValueError(f"groups must be [G, {n}] (one 0/1 row per group), got {tuple(g.shape)}")
+        if not bool(((g == 0) | (g == 1)).all()) or not bool((g.sum(0) == 1).all()):
+            raise ValueError("groups must put every component in exactly one group (0/1 rows summing to 1 per column)")
+        self.register_buffer("base", base.detach().clone())
+        self.register_buffer("groups", g)
+
+    def forward(self, raw: Tensor) -> Tensor:
+        d = torch.sqrt(torch.exp(raw) @ self.groups)
+        return d[:, None] * self.base * d[None, :]
+
+    def right_inverse(self, value: Tensor) -> Tensor:
+        value = torch.as_tensor(value, dtype=self.base.dtype)
+        if value.ndim == 0:
+            if not float(value) > 0.0:
+                raise ValueError(f"a group scale must be positive, got {float(value)}")
+            return torch.full((self.groups.shape[0],), math.log(float(value)), dtype=self.base.dtype)
+        ratio = torch.diagonal(value) / torch.diagonal(self.base)
+        scales = (self.groups * ratio).sum(1) / self.groups.sum(1)
+        raw = torch.log(scales)
+        if not torch.allclose(self.forward(raw), value, rtol=1e-6, atol=0.0):
+            raise ValueError("value must be the base covariance with one positive scale per group")
+        return raw
+
+
+def group_scale_q(imm: GaussianFilter, q_groups: str | None) -> GaussianFilter:
+    """Re-parametrize every mode's ``Q`` of ``imm`` in place as :func:`p003_learner` describes
+    (``q_groups=None``: nothing changes); returns ``imm``."""
+    if q_groups is None:
+        return imm
+    if q_groups != "imu_white":
+        raise ValueError(f"q_groups must be None or 'imu_white', got {q_groups!r}")
+    modes = getattr(imm, "filters", None)
+    if modes is None:
+        raise TypeError(f"q_groups needs an IMM of SINS mode filters, got {type(imm).__name__}")
+    for mode in modes:
+        dyn = mode.model.dynamics
+        if not isinstance(dyn, SinsErrorDynamics):
+            raise TypeError(f"q_groups needs SinsErrorDynamics modes, got {type(dyn).__name__}")
+        if not parametrize.is_parametrized(dyn, "Q"):
+            raise TypeError("q_groups needs a learnable Q (a parametrized SinsErrorDynamics.Q)")
+        q = dyn.Q.detach().clone()
+        white = torch.zeros(q.shape[-1], dtype=q.dtype, device=q.device)
+        white[_WHITE] = 1.0
+        register_constrained(dyn, "Q", torch.ones((), dtype=q.dtype), GroupScaledCovariance(q, torch.stack([white, 1.0 - white])))
+    return imm
+
+
+def p003_learner(
+    filter: GaussianFilter,  # noqa: A002 - the field's word
+    loss: Any,
+    *,
+    q_groups: str | None = None,
+    **learner_kwargs: Any,
+) -> Any:
+    """A :class:`~difffilter.learn.learner.FilterLearner` on ``filter`` (``run_experiment`` hands
+    it a copy of the hand-tuned IMM).
+
+    ``q_groups=None``: exactly ``FilterLearner(filter, loss, ...)``.  ``q_groups="imu_white"``:
+    every mode's ``Q`` becomes a :class:`GroupScaledCovariance` on its current (hand-tuned)
+    value with two log-scaled groups, the IMU white-noise PSD entries (accelerometer and gyro)
+    and all other entries (position floors, sensor-bias drivers, clock), both starting at 1; the
+    parameter keeps the name ``Q``.  This is the family that contains the simulator's manoeuvre
+    noise (only the IMU white noises grow), which one scalar per mode cannot express.
+    """
+    from .learner import FilterLearner  # Lightning is imported lazily, as in difffilter.learn
+
+    group_scale_q(filter, q_groups)
+    return FilterLearner(filter, loss, **learner_kwargs)
 
 
 def _mode_filter(kind: str, model: torch.nn.Module, alpha: float, beta: float, kappa: float) -> GaussianFilter:
@@ -309,7 +402,7 @@ class ModeSwitchReport(Callback):
         exp = cfg.experiment
         hand = build_filter(cfg.filter, dtype=dtype, params=plain(exp.get("hand_tuned")))
         filters: dict[str, GaussianFilter] = {"hand-tuned": hand}
-        learned = self._learned(hand, out_dir)
+        learned = self._learned(hand, out_dir, cfg.learner.get("q_groups"))
         if learned is not None:
             filters["learned"] = learned
         oracle = exp.get("oracle")
@@ -331,13 +424,19 @@ class ModeSwitchReport(Callback):
         return rows
 
     @staticmethod
-    def _learned(hand: GaussianFilter, out_dir: Path) -> GaussianFilter | None:
+    def _learned(hand: GaussianFilter, out_dir: Path, q_groups: str | None = None) -> GaussianFilter | None:
         ckpts = sorted((out_dir / "checkpoints").glob("*.ckpt"))
         if not ckpts:
             log.warning("ModeSwitchReport: no checkpoint under %s; the learned row is left out", out_dir)
             return None
         state = torch.load(ckpts[-1], map_location="cpu", weights_only=False)["state_dict"]
-        learned = copy.deepcopy(hand)
+        return ModeSwitchReport._learned_from_state(hand, state, q_groups)
+
+    @staticmethod
+    def _learned_from_state(hand: GaussianFilter, state: Mapping[str, Tensor], q_groups: str | None = None) -> GaussianFilter:
+        """A copy of ``hand`` in the learner's layout (``q_groups``, see :func:`p003_learner`)
+        with the ``filter.*`` entries of a learner's ``state``."""
+        learned = group_scale_q(copy.deepcopy(hand), q_groups)
         learned.load_state_dict({k.removeprefix("filter."): v for k, v in state.items() if k.startswith("filter.")})
         return learned
 

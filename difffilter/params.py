@@ -216,9 +216,10 @@ def register_constrained(module: nn.Module, name: str, value: Tensor, constraint
 
     ``constraint=None`` registers a fixed buffer instead (not learnable).
 
-    Re-registering a parametrized name removes the old parametrization with
-    :func:`remove_constrained`, which leaves deep copies of ``module`` (e.g. the hand-tuned
-    filter a learner's copy was made from) intact.
+    ``copy.deepcopy`` shares a parametrized module's generated class between the module and its
+    copies; registering (and re-registering, via :func:`remove_constrained`) gives ``module`` a
+    private class first, so deep copies (e.g. the hand-tuned filter a learner's copy was made
+    from) neither lose nor gain properties.
     """
     remove_constrained(module, name)
     if hasattr(module, name):
@@ -227,6 +228,7 @@ def register_constrained(module: nn.Module, name: str, value: Tensor, constraint
         module.register_buffer(name, value.detach().clone())
         return
     module.register_parameter(name, nn.Parameter(value.detach().clone()))
+    _own_class(module)  # the new property must not appear on deep copies that share the class
     parametrize.register_parametrization(module, name, constraint, unsafe=True)
 
 
@@ -239,9 +241,16 @@ def remove_constrained(module: nn.Module, name: str) -> None:
     """
     if not parametrize.is_parametrized(module, name):
         return
-    cls = type(module)
-    module.__class__ = type(cls.__name__, cls.__bases__, dict(cls.__dict__))
+    _own_class(module)
     parametrize.remove_parametrizations(module, name, leave_parametrized=False)
+
+
+def _own_class(module: nn.Module) -> None:
+    """Give a parametrized ``module`` a private copy of its generated class (same bases, same
+    properties), so that adding or removing a parametrization's property touches it alone."""
+    if parametrize.is_parametrized(module):
+        cls = type(module)
+        module.__class__ = type(cls.__name__, cls.__bases__, dict(cls.__dict__))
 
 
 def constrained_values(module: nn.Module, prefix: str = "") -> dict[str, Tensor]:

@@ -182,3 +182,18 @@ def test_switching_the_soft_gate_off_on_a_copy_keeps_the_original_soft_gate() ->
     twin.set_gate_softness(None)
     assert twin.soft_gate is False and not hasattr(twin, "gate_softness")
     assert float(meas.gate_softness) == pytest.approx(0.2)
+
+
+def test_registering_on_a_deep_copy_adds_nothing_to_the_original() -> None:
+    import copy
+
+    from torch import nn
+
+    from difffilter.params import Positive, register_constrained
+
+    m = nn.Module()
+    register_constrained(m, "a", torch.tensor(1.0, dtype=torch.float64), Positive())
+    c = copy.deepcopy(m)
+    register_constrained(c, "b", torch.tensor(2.0, dtype=torch.float64), Positive())
+    assert float(c.b) == pytest.approx(2.0) and float(c.a) == pytest.approx(1.0)
+    assert not hasattr(m, "b") and float(m.a) == pytest.approx(1.0)

@@ -233,7 +233,7 @@ def register_constrained(module: nn.Module, name: str, value: Tensor, constraint
 
 
 def remove_constrained(module: nn.Module, name: str) -> None:
-    """Remove the parametrization of ``module.<name>`` (and its value) if there is one.
+    """Remove the parametrization of ``module.<name>`` and the attribute, if there is one.
 
     ``module`` first gets a private copy of its generated class: ``copy.deepcopy`` shares that
     class between a module and its copies, and ``remove_parametrizations`` deletes the property
@@ -243,6 +243,7 @@ def remove_constrained(module: nn.Module, name: str) -> None:
         return
     _own_class(module)
     parametrize.remove_parametrizations(module, name, leave_parametrized=False)
+    delattr(module, name)  # the raw value that remove_parametrizations leaves behind
 
 
 def _own_class(module: nn.Module) -> None:

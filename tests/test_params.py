@@ -197,3 +197,15 @@ def test_registering_on_a_deep_copy_adds_nothing_to_the_original() -> None:
     register_constrained(c, "b", torch.tensor(2.0, dtype=torch.float64), Positive())
     assert float(c.b) == pytest.approx(2.0) and float(c.a) == pytest.approx(1.0)
     assert not hasattr(m, "b") and float(m.a) == pytest.approx(1.0)
+
+
+def test_remove_constrained_leaves_no_attribute() -> None:
+    from torch import nn
+
+    from difffilter.params import Positive, register_constrained, remove_constrained
+
+    m = nn.Module()
+    register_constrained(m, "a", torch.tensor(1.0, dtype=torch.float64), Positive())
+    remove_constrained(m, "a")
+    assert not hasattr(m, "a") and list(m.parameters()) == []
+    remove_constrained(m, "a")  # nothing to remove: no error

@@ -164,8 +164,6 @@ class PseudorangeMeasurement(MeasurementModel):
         if value is None or float(value) == 0.0:
             if self.soft_gate:
                 remove_constrained(self, "gate_softness")
-                if hasattr(self, "gate_softness"):
-                    delattr(self, "gate_softness")
             self.soft_gate = False
             return
         if self.robust != "reject":

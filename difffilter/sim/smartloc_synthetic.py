@@ -307,12 +307,13 @@ def simulate_smartloc_drives(
 ) -> tuple[SmartLocBatch, Tensor, Tensor, dict[str, Tensor]]:
     """Synthetic drives on windows ``[s, s + length)`` of the real drive, one per entry of ``starts``.
 
-    Returns ``(batch, initial_mean [B, 7], initial_cov [B, 7, 7], truth)``: ``batch`` is the
+    Returns ``(batch, initial_mean [B, 7], initial_cov [B, 7, 7], extra)``: ``batch`` is the
     real windows' :class:`SmartLocBatch` with synthetic ``measurements`` (and ``pr_obs``), the
     initial belief is centred on a draw from ``N(true state, diag(initial_sd^2))`` (the spread of
-    the real drive's snapshot-fix starts; yaw from the reference heading), and ``truth`` holds
+    the real drive's snapshot-fix starts; yaw from the reference heading), and ``extra`` holds
     the full true states ``state [B, T, 7]`` (position, heading, clock bias, drift, ISB), the
-    NLOS flags ``nlos [B, T, K]`` and the errors ``error [B, T, K]``.
+    NLOS flags ``nlos [B, T, K]`` and the errors ``error [B, T, K]``.  Each drive's clock
+    starts at a bias drawn from ``N(0, 100^2)`` m and a drift from ``N(clock_drift0, 2^2)`` m/s.
     """
     if length < 2:
         raise ValueError(f"length must be >= 2 epochs, got {length}")
@@ -369,7 +370,8 @@ def synthetic_drive(
     data: SmartLocData, model: PseudorangeErrorModel, *, seed: int, elevation_mask_deg: float = 15.0
 ) -> tuple[SmartLocData, dict[str, Tensor]]:
     """The whole drive with synthetic pseudoranges (ranges below ``elevation_mask_deg`` are
-    dropped from ``mask``), and the truth of :func:`simulate_smartloc_drives`."""
+    dropped from ``mask``) and the ``extra`` truth of :func:`simulate_smartloc_drives`
+    (``state``, ``nlos``, ``error``) without the batch dimension."""
     batch, _, _, extra = simulate_smartloc_drives(data, [0], data.num_epochs, model, seed=seed, elevation_mask_deg=elevation_mask_deg)
     mask = batch.mask[0]
     rho = torch.where(mask, batch.measurements[0] + torch.linalg.vector_norm(data.sat_enu, dim=-1), 0.0)

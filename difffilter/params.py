@@ -34,6 +34,7 @@ __all__ = [
     "softplus",
     "softplus_inverse",
     "ScaledMatrix",
+    "GroupScaledCovariance",
     "check_covariance",
     "register_covariance",
     "constrained_values",
@@ -288,6 +289,46 @@ class ScaledMatrix(nn.Module):
         if not torch.allclose(value, scale * self.base, rtol=1e-6, atol=0.0):
             raise ValueError("ScaledMatrix value must be a positive multiple of its base matrix")
         return self._scale.right_inverse(scale)
+
+
+class GroupScaledCovariance(nn.Module):
+    """``value = D base D`` with ``D = diag(sqrt(exp(raw) @ groups))``: one positive scale per
+    group of state components, learned in log space (a constraint for ``register_constrained``).
+
+    ``groups [G, n]`` is a 0/1 partition of the ``n`` components; ``raw [G]`` are the log scales
+    relative to ``base`` (``raw = 0``: ``value = base``).  Log space matters for scales that
+    must move by orders of magnitude: Adam moves a raw value by about ``lr`` per step, which in
+    softplus space (``Positive``) changes a scale of ``1e4`` by ``lr`` and in log space by a
+    factor ``exp(lr)``.  ``right_inverse`` takes a scalar (every group) or a matrix of this form.
+    """
+
+    def __init__(self, base: Tensor, groups: Tensor) -> None:
+        super().__init__()
+        n = base.shape[-1]
+        g = torch.as_tensor(groups, dtype=base.dtype)
+        if g.ndim != 2 or g.shape[1] != n:
+            raise ValueError(f"groups must be [G, {n}] (one 0/1 row per group), got {tuple(g.shape)}")
+        if not bool(((g == 0) | (g == 1)).all()) or not bool((g.sum(0) == 1).all()):
+            raise ValueError("groups must put every component in exactly one group (0/1 rows summing to 1 per column)")
+        self.register_buffer("base", base.detach().clone())
+        self.register_buffer("groups", g)
+
+    def forward(self, raw: Tensor) -> Tensor:
+        d = torch.sqrt(torch.exp(raw) @ self.groups)
+        return d[:, None] * self.base * d[None, :]
+
+    def right_inverse(self, value: Tensor) -> Tensor:
+        value = torch.as_tensor(value, dtype=self.base.dtype)
+        if value.ndim == 0:
+            if not float(value) > 0.0:
+                raise ValueError(f"a group scale must be positive, got {float(value)}")
+            return torch.full((self.groups.shape[0],), math.log(float(value)), dtype=self.base.dtype)
+        ratio = torch.diagonal(value) / torch.diagonal(self.base)
+        scales = (self.groups * ratio).sum(1) / self.groups.sum(1)
+        raw = torch.log(scales)
+        if not torch.allclose(self.forward(raw), value, rtol=1e-6, atol=0.0):
+            raise ValueError("value must be the base covariance with one positive scale per group")
+        return raw
 
 
 def check_covariance(name: str, value: Tensor, n: int | None = None, *, batch_ok: bool = False) -> Tensor:

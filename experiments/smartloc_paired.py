@@ -63,7 +63,6 @@ def block_bootstrap(a: torch.Tensor, b: torch.Tensor, *, block: int, draws: int,
 
 def compare(run_dir: Path, *, block: int, draws: int) -> dict[str, float]:
     cfg = OmegaConf.load(run_dir / ".hydra" / "config.yaml")
-    torch.set_default_dtype(torch.float64)
     simulator = instantiate(cfg.scenario)
     data = simulator(batch_size=int(cfg.data.test_size), seed=int(cfg.data.seeds.test), dtype=str(cfg.dtype))
     hand = instantiate(cfg.filter)

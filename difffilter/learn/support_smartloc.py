@@ -28,6 +28,7 @@ Data: CC BY-SA 4.0, TU Chemnitz smartLoc (Reisdorf et al., VEHICULAR 2016), see 
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 from collections.abc import Mapping, Sequence
@@ -136,6 +137,22 @@ def _epoch(value: float, total: int) -> int:
     return int(round(v * total)) if 0.0 <= v <= 1.0 else int(v)
 
 
+def _split_of(seed: int, split_seeds: Mapping[str, int] | None) -> str | None:
+    """The split whose seed (``split_seeds``, default ``{train: 0, val: 1, test: 2}``) is ``seed``."""
+    return {int(v): k for k, v in dict(split_seeds or {"train": 0, "val": 1, "test": 2}).items()}.get(int(seed))
+
+
+def _segment(segments: Mapping[str, Mapping[str, Any]], name: str, total: int) -> tuple[int, int, int, dict[str, Any]]:
+    """``(first, stop, length, spec)`` of segment ``name`` (bounds checked; ``length`` defaults to
+    the whole segment)."""
+    spec = dict(segments[name])
+    first, stop = _epoch(spec.get("start", 0.0), total), _epoch(spec.get("stop", 1.0), total)
+    if not 0 <= first < stop <= total:
+        raise ValueError(f"segment {name!r} must satisfy 0 <= start < stop <= {total} epochs, got [{first}, {stop})")
+    length = stop - first if spec.get("length") is None else int(spec["length"])
+    return first, stop, length, spec
+
+
 def smartloc_simulator(
     *,
     batch_size: int,
@@ -169,19 +186,13 @@ def smartloc_simulator(
         true_params, initial_mean, initial_cov: ignored (the in-family scenario's keys, which
             the default experiment writes into whichever scenario is chosen).
     """
-    seeds = {int(v): k for k, v in dict(split_seeds or {"train": 0, "val": 1, "test": 2}).items()}
-    if int(seed) not in seeds:
+    split = _split_of(seed, split_seeds)
+    if split is None:
         raise ValueError(f"seed {seed} names no split of split_seeds {dict(split_seeds or {})}")
-    split = seeds[int(seed)]
     if split not in segments:
         raise ValueError(f"no segment for split {split!r}; segments has {sorted(segments)}")
-    spec = dict(segments[split])
     data = _drive(path, slots)
-    total = data.num_epochs
-    first, stop = _epoch(spec.get("start", 0.0), total), _epoch(spec.get("stop", 1.0), total)
-    if not 0 <= first < stop <= total:
-        raise ValueError(f"segment {split!r} must satisfy 0 <= start < stop <= {total} epochs, got [{first}, {stop})")
-    length = stop - first if spec.get("length") is None else int(spec["length"])
+    first, stop, length, spec = _segment(segments, split, data.num_epochs)
     stride = length if spec.get("stride") is None else int(spec["stride"])
     starts = list(range(first, stop - length + 1, stride))[: int(batch_size)]
     if not starts:
@@ -243,8 +254,7 @@ def smartloc_synthetic_simulator(
     windows' ``P0``.  Other splits are :func:`smartloc_simulator`'s real windows.  The remaining
     arguments are :func:`smartloc_simulator`'s.
     """
-    seeds = {int(v): k for k, v in dict(split_seeds or {"train": 0, "val": 1, "test": 2}).items()}
-    split = seeds.get(int(seed))
+    split = _split_of(seed, split_seeds)
     bad = sorted(set(synthetic) - set(segments))
     if bad:
         raise ValueError(f"synthetic names splits without a segment: {bad}; segments has {sorted(segments)}")
@@ -264,20 +274,16 @@ def smartloc_synthetic_simulator(
         )
     data = _drive(path, slots)
     total = data.num_epochs
-    cal = dict(segments[calibration])
-    c0, c1 = _epoch(cal.get("start", 0.0), total), _epoch(cal.get("stop", 1.0), total)
+    c0, c1, _, _ = _segment(segments, calibration, total)
     model = _calibrated(path, slots, c0, c1, float(elevation_mask_deg))
     if error_model:
         unknown = sorted(set(error_model) - set(PseudorangeErrorModel.__dataclass_fields__))
         if unknown:
             raise ValueError(f"error_model has unknown fields {unknown}; known: {sorted(PseudorangeErrorModel.__dataclass_fields__)}")
-        fields = {k: getattr(model, k) for k in PseudorangeErrorModel.__dataclass_fields__}
-        model = PseudorangeErrorModel(**{**fields, **dict(error_model)})
-    spec = dict(segments[split])
-    first, stop = _epoch(spec.get("start", 0.0), total), _epoch(spec.get("stop", 1.0), total)
-    length = stop - first if spec.get("length") is None else int(spec["length"])
-    if not 0 <= first < stop <= total or length < 2 or first + length > stop:
-        raise ValueError(f"segment {split!r} must hold windows of {length} >= 2 epochs inside [0, {total}), got [{first}, {stop})")
+        model = dataclasses.replace(model, **dict(error_model))
+    first, stop, length, _ = _segment(segments, split, total)
+    if length < 2 or first + length > stop:
+        raise ValueError(f"segment {split!r} [{first}, {stop}) holds no window of {length} >= 2 epochs")
     gen = torch.Generator().manual_seed(int(seed))
     starts = torch.randint(first, stop - length + 1, (int(batch_size),), generator=gen).tolist()
     steps = length if num_steps is None else min(length, int(num_steps))

@@ -139,6 +139,15 @@ def _truncated_correlation(x0: Tensor, x1: Tensor, c: float) -> float:
     return float(grid[i - 1]) + t * float(grid[i] - grid[i - 1])
 
 
+def _cauchy_clock(r: Tensor, mask: Tensor, clock: Tensor, *, scale: float = 5.0, iterations: int = 10) -> Tensor:
+    """Per-epoch common offset of the residuals ``r [T, K]`` over ``mask``: a Cauchy-weighted mean
+    (``w = 1 / (1 + ((r - c) / scale)^2)``) iterated from ``clock [T]``."""
+    for _ in range(iterations):
+        w = torch.where(mask, 1.0 / (1.0 + ((r - clock[:, None]) / scale) ** 2), 0.0)
+        clock = (w * torch.nan_to_num(r)).sum(1) / w.sum(1).clamp_min(1e-12)
+    return clock
+
+
 def _range_model(data: SmartLocData) -> torch.nn.Module:
     # The filter's measurement function without gate and with the receiver's variances.
     return make_smartloc_model(data, robust=None).measurement
@@ -164,7 +173,8 @@ def calibrate_error_model(
     """Moment estimates of :class:`PseudorangeErrorModel` on epochs ``[first, stop)``.
 
     With the reference track, ``r_kj = z_kj - h_j(truth_k)`` is clock + ISB + error.  The clock
-    of each epoch is a Cauchy-weighted mean of ``r`` (scale 5 m, 10 iterations from the median);
+    of each epoch is a Cauchy-weighted mean of ``r`` (:func:`_cauchy_clock`: scale 5 m, 10 iterations
+    from the median);
     the ISB is the median over the segment of the GLONASS ranges' offset from it.  A range is
     line-of-sight when ``|e| < los_threshold * los_scale * sqrt(pr_var)`` (``los_scale`` and the
     split are iterated from ``los_scale = 1``); then:
@@ -197,16 +207,10 @@ def calibrate_error_model(
     z = data.reduced_pseudorange()[sl]
     r = torch.where(mask, z - h(x, u), torch.nan)
     glo = data.glonass[sl]
-    clock = torch.nanmedian(r, 1).values
-    for _ in range(10):
-        w = torch.where(mask, 1.0 / (1.0 + ((r - clock[:, None]) / 5.0) ** 2), 0.0)
-        clock = (w * torch.nan_to_num(r)).sum(1) / w.sum(1).clamp_min(1e-12)
+    clock = _cauchy_clock(r, mask, torch.nanmedian(r, 1).values)
     isb_all = torch.where(mask & glo, r - clock[:, None], torch.nan)
     isb = float(torch.nanmedian(isb_all)) if bool((mask & glo).any()) else 0.0
-    for _ in range(10):  # the clock again, now with the ISB removed
-        rr = r - torch.where(glo, isb, 0.0)
-        w = torch.where(mask, 1.0 / (1.0 + ((rr - clock[:, None]) / 5.0) ** 2), 0.0)
-        clock = (w * torch.nan_to_num(rr)).sum(1) / w.sum(1).clamp_min(1e-12)
+    clock = _cauchy_clock(r - torch.where(glo, isb, 0.0), mask, clock)  # again, with the ISB removed
     e = r - torch.where(glo, isb, 0.0) - clock[:, None]
     en = e / data.pr_var[sl].sqrt()
     x0, x1 = en[:-1], en[1:]

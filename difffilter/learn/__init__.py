@@ -11,6 +11,7 @@ from __future__ import annotations
 import importlib
 from typing import Any
 
+from . import replicates  # noqa: F401 - registers the `replicate_seed` resolver of the configs
 from .losses import CompositeLoss, HuberLoss, LogNormalPrior, MSELoss, NEESLoss, NLLLoss, NormalPrior
 from .metrics import (
     anees,

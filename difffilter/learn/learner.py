@@ -40,6 +40,7 @@ from ..filters.fused import FusedFilter
 from ..sim.sampling import as_dtype
 from .losses import FilterLoss, MSELoss, NEESLoss, NLLLoss, Prior
 from .metrics import finalize_metrics, metric_sums
+from .replicates import perturb_initial_values
 from .selection import learnable_values, match_parameters, parameter_owners, select_parameters
 from .stability import OnceWarner, bounded_jitter
 
@@ -114,6 +115,10 @@ class FilterLearner(pl.LightningModule):
             batch-last step; same results, faster for UKF/EKF/KF): ``True`` compiles,
             ``"eager"`` runs the fused step uncompiled, ``False`` (default) the filter itself.
             Parameters, their names and checkpoints are the filter's either way.
+        init_perturbation: log-scale standard deviation of a seeded perturbation of the learned
+            parameters' initial values (:func:`~difffilter.learn.replicates.perturb_initial_values`);
+            0 (default) starts from the given values exactly.
+        init_seed: seed of that perturbation (a multirun's ``${seed}``).
     """
 
     def __init__(
@@ -139,6 +144,8 @@ class FilterLearner(pl.LightningModule):
         figure_every_n_epochs: int = 1,
         max_logged_elements: int = 64,
         fused: bool | str = False,
+        init_perturbation: float = 0.0,
+        init_seed: int = 0,
     ) -> None:
         super().__init__()
         if not isinstance(filter, GaussianFilter):
@@ -149,6 +156,7 @@ class FilterLearner(pl.LightningModule):
         self.filter = filter if dtype is None else filter.to(as_dtype(dtype))
         self.loss_fn = make_loss(loss)
         self.learned_names = select_parameters(self.filter, None if learn is None else list(learn))
+        perturb_initial_values(self.filter, self.learned_names, init_perturbation, seed=init_seed)
         # An empty config group (scheduler: none) arrives as an empty mapping: no scheduler.
         self.optimizer_factory = optimizer or None
         self.scheduler_factory = scheduler or None
@@ -324,7 +332,7 @@ class FilterLearner(pl.LightningModule):
             packed = self.trainer.strategy.reduce(packed, reduce_op="sum")
         sums = dict(zip(keys, packed, strict=True))
         self._sums = {}
-        metrics = finalize_metrics(sums, bounds=False)
+        metrics = finalize_metrics(sums)
         count = float(sums["loss_count"])
         metrics["loss"] = float(sums["loss_sum"]) / count if count > 0 else float("nan")
         # Already summed over processes above; sync_dist only averages identical values.

@@ -16,7 +16,6 @@ from difffilter.learn import metrics as M  # noqa: N812 - short alias in formula
 from difffilter.learn.consistency import block_truth_indices, consistency, nees_by_block, run_average, step_band_fraction
 from difffilter.learn.intervals import crossed_interval, student_t_cdf, student_t_quantile, t_interval
 from difffilter.models import LinearModel
-from difffilter.sim.sampling import sample_trajectories
 
 f64 = torch.float64
 
@@ -153,26 +152,3 @@ def test_run_level_interval_and_step_band_cover_while_runs_times_steps_band_coll
     assert abs(run_cover - 0.95) < 4 * se, run_cover
     assert abs(band - 0.95) < 4 * se, band
     assert old_cover < 0.95 - 20 * se, old_cover  # the old band is several times too narrow
-
-
-def test_oracle_kalman_filter_is_consistent_and_wrong_r_is_flagged():
-    # Integration: sampler + KF + consistency verdicts on NEES and NIS (with missing steps).
-    dt = 1.0
-    F = torch.tensor([[1, dt, 0, 0], [0, 1, 0, 0], [0, 0, 1, dt], [0, 0, 0, 1]], dtype=f64)
-    qb = 0.3 * torch.tensor([[dt**3 / 3, dt**2 / 2], [dt**2 / 2, dt]], dtype=f64)
-    H = torch.tensor([[1.0, 0, 0, 0], [0, 0, 1, 0]], dtype=f64)
-    model = LinearModel(F=F, H=H, Q=torch.block_diag(qb, qb), R=4.0 * torch.eye(2, dtype=f64))
-    data = sample_trajectories(
-        model, batch_size=40, num_steps=60, initial_mean=torch.zeros(4, dtype=f64), initial_cov=torch.eye(4, dtype=f64) * 10, seed=5,
-        missing_prob=0.1,
-    )
-    res = KalmanFilter(model)(data.measurements, data.initial_mean, data.initial_cov, mask=data.mask)
-    ne = M.nees(res.mean, res.cov, data.truth)
-    nis = torch.where(res.num_observed > 0, res.nis, torch.full_like(res.nis, math.nan))
-    good = consistency(ne, 4.0), consistency(nis, res.num_observed)
-    assert all(c.consistent for c in good) and all(c.step_band_frac > 0.85 for c in good)
-    assert good[1].dof == 2.0
-    model.R = 25.0 * torch.eye(2, dtype=f64)
-    res = KalmanFilter(model)(data.measurements, data.initial_mean, data.initial_cov, mask=data.mask)
-    bad = consistency(torch.where(res.num_observed > 0, res.nis, torch.full_like(res.nis, math.nan)), res.num_observed)
-    assert bad.run_ci.hi < 2.0 and bad.step_band_frac < 0.5  # innovations far smaller than claimed

@@ -57,13 +57,15 @@ SUMMARY_MD, SUMMARY_CSV = "summary.md", "summary.csv"
 @dataclass
 class Job:
     """One finished job: its directory, overrides other than the replicate key, replicate value,
-    per-run metrics ``{filter: {metric: [N]}}`` and ``results.csv`` rows by filter."""
+    per-run metrics ``{filter: {metric: [N]}}``, ``results.csv`` rows by filter, and its group
+    (the overrides that differ between the sweep's jobs, replicate key aside)."""
 
     directory: Path
-    group: str
+    overrides: list[str]
     replicate: str
     per_run: dict[str, dict[str, Tensor]]
     results: dict[str, dict[str, str]] = field(default_factory=dict)
+    group: str = ""
 
 
 def _key(override: str) -> str:
@@ -71,7 +73,8 @@ def _key(override: str) -> str:
 
 
 def load_jobs(sweep_dir: str | Path, *, replicate_key: str = "seed") -> list[Job]:
-    """Every job below ``sweep_dir`` that wrote a ``per_run.csv``, in directory order."""
+    """Every job below ``sweep_dir`` that wrote a ``per_run.csv``, in directory order, grouped by
+    the overrides that differ between jobs (the replicate key aside)."""
     root = Path(sweep_dir)
     if not root.is_dir():
         raise FileNotFoundError(f"no sweep directory {root}")
@@ -90,7 +93,10 @@ def load_jobs(sweep_dir: str | Path, *, replicate_key: str = "seed") -> list[Job
         if (job_dir / "results.csv").exists():
             with (job_dir / "results.csv").open(newline="") as fh:
                 results = {r["filter"]: r for r in csv.DictReader(fh)}
-        jobs.append(Job(job_dir, " ".join(rest), rep[0], read_per_run(path), results))
+        jobs.append(Job(job_dir, rest, rep[0], read_per_run(path), results))
+    common = set.intersection(*(set(j.overrides) for j in jobs)) if jobs else set()
+    for j in jobs:
+        j.group = " ".join(o for o in j.overrides if o not in common)
     return jobs
 
 
@@ -181,8 +187,11 @@ def _summarize_group(group: _Group, *, metric: str, reference: str, learned: str
 
 def _markdown(groups: Sequence[_Group], *, metric: str, reference: str, learned: str, oracle: str, prob: float) -> str:
     pct = f"{100 * prob:g} %"
+    common = sorted(set.intersection(*(set(j.overrides) for g in groups for j in g.jobs)))
     out = [
         "# Sweep summary",
+        "",
+        f"Overrides of every job: `{' '.join(common) or '(none)'}`.",
         "",
         f"`{metric}`: mean over training seeds and test runs of the per-run value, [{pct} interval over seeds x runs];"
         f" difference: paired per run and seed, filter - `{reference}`; G = (e_hand - e_learned) / (e_hand - e_oracle)"
@@ -192,10 +201,10 @@ def _markdown(groups: Sequence[_Group], *, metric: str, reference: str, learned:
     ]
     for g in groups:
         seeds = sorted({j.replicate for j in g.jobs}, key=lambda s: (len(s), s))
-        out += ["", f"## {g.name or 'sweep'} (seeds {', '.join(seeds)}; jobs {', '.join(j.directory.name for j in g.jobs)})", ""]
+        out += ["", f"## {g.name or 'all jobs'} (seeds {', '.join(seeds)}; jobs {', '.join(j.directory.name for j in g.jobs)})", ""]
         if g.note:
             out += [f"Note: {g.note}.", ""]
-        out += [f"| filter | seeds | runs | {metric} | - {reference} | % of {reference} | G |", "|---|---|---|---|---|---|---|"]
+        out += [f"| filter | seeds | runs | {metric} | filter - {reference} | in % of {reference} | G |", "|---|---|---|---|---|---|---|"]
         for r in g.rows:
             gap = r.get("gap")
             g_cell = "" if gap is None else (f"{_fmt(gap.value)} [{_fmt(gap.lo)}, {_fmt(gap.hi)}]" if gap.defined else f"undefined: {gap.reason}")

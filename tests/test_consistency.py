@@ -121,17 +121,19 @@ def test_nees_by_block_equals_sub_block_nees_and_maps_truth_layout():
 
 
 # -- the point: correlated NEES --------------------------------------------------------------------
-def test_run_level_interval_and_step_band_cover_while_runs_times_steps_band_collapses():
-    """A consistent Kalman filter on a slowly mixing system (2-D random walk, small Q, large R:
-    gain ~0.03, NEES correlated over ~30 steps), started at its steady state.  In each of 400
-    simulated experiments of N = 20 runs x T = 300 steps: the run-level t-interval covers d = 2
-    in ~95 % of experiments and ~95 % of steps lie in the per-step chi2(d N)/N band, while the old
-    chi2(d N T)/(N T) band (every step independent) covers the ANEES in far fewer (measured: 94.0 %,
-    94.6 %, 26.8 % with seed 0)."""
-    reps, runs, steps, q, r, d = 400, 20, 300, 1e-3, 1.0, 2
+def correlated_kf_coverage(reps: int = 400, runs: int = 20, steps: int = 300, seed: int = 0) -> dict[str, float]:
+    """Monte Carlo of a consistent Kalman filter on a slowly mixing system (2-D random walk,
+    small Q, large R: gain ~0.03, NEES correlated over ~30 steps), started at its steady state:
+    ``reps`` experiments of ``runs`` x ``steps``.  Returns the coverage of d by the run-level
+    t-interval, the mean fraction of steps inside the per-step chi2(d N)/N band, and the
+    coverage of the ANEES by the old chi2(d N T)/(N T) band.
+
+        PYTHONPATH=. python -c "from tests.test_consistency import correlated_kf_coverage as c; print(c())"
+    """
+    q, r, d = 1e-3, 1.0, 2
     prior = 0.5 * (q + math.sqrt(q * q + 4.0 * q * r))  # steady-state predicted variance: P^2 - q P - q r = 0
     post = prior * r / (prior + r)
-    g = torch.Generator().manual_seed(0)
+    g = torch.Generator().manual_seed(seed)
     batch = reps * runs
     x0 = math.sqrt(post) * torch.randn(batch, d, generator=g, dtype=f64)
     truth = x0[:, None] + torch.cumsum(math.sqrt(q) * torch.randn(batch, steps, d, generator=g, dtype=f64), 1)
@@ -143,12 +145,24 @@ def test_run_level_interval_and_step_band_cover_while_runs_times_steps_band_coll
     ne = M.nees(res.mean, res.cov, truth).reshape(reps, runs, steps)
     old_lo, old_hi = M.chi2_interval(d, runs * steps)
     checks = [consistency(ne[k], float(d)) for k in range(reps)]
-    run_cover = np.mean([c.run_ci.contains(float(d)) for c in checks])
-    band = np.mean([c.step_band_frac for c in checks])
-    old_cover = np.mean([old_lo <= float(ne[k].mean()) <= old_hi for k in range(reps)])
+    return {
+        "run_interval_coverage": float(np.mean([c.run_ci.contains(float(d)) for c in checks])),
+        "step_band_fraction": float(np.mean([c.step_band_frac for c in checks])),
+        "old_band_coverage": float(np.mean([old_lo <= float(ne[k].mean()) <= old_hi for k in range(reps)])),
+    }
+
+
+def test_run_level_interval_and_step_band_cover_while_runs_times_steps_band_collapses():
+    """In each of 400 simulated experiments of N = 20 runs x T = 300 steps of a consistent KF with
+    correlated NEES (:func:`correlated_kf_coverage`): the run-level t-interval covers d = 2 in
+    ~95 % of experiments and ~95 % of steps lie in the per-step chi2(d N)/N band, while the old
+    chi2(d N T)/(N T) band (every step independent) covers the ANEES in far fewer (measured with
+    seed 0: 94.0 %, 94.6 %, 26.8 %)."""
+    reps = 400
+    cov = correlated_kf_coverage(reps)
     # binomial s.e. of a coverage over `reps` experiments; for the band fraction it bounds the
     # s.e. of the mean over experiments (a fraction of correlated steps varies at most like one step)
     se = math.sqrt(0.95 * 0.05 / reps)
-    assert abs(run_cover - 0.95) < 4 * se, run_cover
-    assert abs(band - 0.95) < 4 * se, band
-    assert old_cover < 0.95 - 20 * se, old_cover  # the old band is several times too narrow
+    assert abs(cov["run_interval_coverage"] - 0.95) < 4 * se, cov
+    assert abs(cov["step_band_fraction"] - 0.95) < 4 * se, cov
+    assert cov["old_band_coverage"] < 0.95 - 20 * se, cov  # the old band is several times too narrow

@@ -40,7 +40,12 @@ def _cv_model(r: float = 4.0) -> LinearModel:
 
 def _test_set(model: LinearModel, runs: int = 12, steps: int = 40) -> TrajectorySet:
     data = sample_trajectories(
-        model, batch_size=runs, num_steps=steps, initial_mean=torch.zeros(4, dtype=f64), initial_cov=10 * torch.eye(4, dtype=f64), seed=3,
+        model,
+        batch_size=runs,
+        num_steps=steps,
+        initial_mean=torch.zeros(4, dtype=f64),
+        initial_cov=10 * torch.eye(4, dtype=f64),
+        seed=3,
         missing_prob=0.1,
     )
     data.truth[2, :5, 0] = float("nan")  # a gap in one run's truth
@@ -81,12 +86,18 @@ def test_evaluate_runs_per_run_metrics_and_summary_match_direct_computation():
     assert ev.summary["nis_dof"] == 2.0 and not {"anees_lo", "anees_hi", "nis_lo", "nis_hi"} & set(ev.summary)
     assert evaluate_filter(KalmanFilter(model), data, batch_size=5, position_index=[0, 2], blocks=blocks).keys() == ev.summary.keys()
     md = format_results([{"filter": "kf", **ev.summary}])
-    assert "| filter | NEES (all) | position | velocity | NIS |" in md and "(d = 2)" in md and "nees_position" not in md.split("Consistency")[0]
+    assert (
+        "| filter | NEES (all) | position | velocity | NIS |" in md
+        and "(d = 2)" in md
+        and "nees_position" not in md.split("Consistency")[0]
+    )
 
 
 def test_per_run_csv_round_trip(tmp_path):
-    per_run = {"hand-tuned": {"rmse_pos": torch.tensor([1.0, 2.0, 3.0], dtype=f64), "anees": torch.tensor([4.0, math.nan, 1 / 3], dtype=f64)},
-               "learned": {"rmse_pos": torch.tensor([0.5, 1.5, 2.5], dtype=f64)}}
+    per_run = {
+        "hand-tuned": {"rmse_pos": torch.tensor([1.0, 2.0, 3.0], dtype=f64), "anees": torch.tensor([4.0, math.nan, 1 / 3], dtype=f64)},
+        "learned": {"rmse_pos": torch.tensor([0.5, 1.5, 2.5], dtype=f64)},
+    }
     back = read_per_run(write_per_run(per_run, tmp_path / "per_run.csv"))
     assert back.keys() == per_run.keys() and back["learned"].keys() == {"rmse_pos"}
     for f, metrics in per_run.items():
@@ -202,8 +213,13 @@ def test_perturb_initial_values_is_seeded_log_scale_and_keeps_constraints():
 
 
 def test_perturbation_factors_are_log_normal_with_the_given_sigma():
-    model = LinearModel(F=torch.eye(400, dtype=f64), H=torch.eye(400, dtype=f64), Q=torch.eye(400, dtype=f64), R=torch.eye(400, dtype=f64),
-                        Q_structure="diagonal")
+    model = LinearModel(
+        F=torch.eye(400, dtype=f64),
+        H=torch.eye(400, dtype=f64),
+        Q=torch.eye(400, dtype=f64),
+        R=torch.eye(400, dtype=f64),
+        Q_structure="diagonal",
+    )
     names = select_parameters(model, ["Q"])
     perturb_initial_values(model, names, 0.5, seed=3)
     logs = torch.log(torch.diagonal(model.Q))
@@ -212,8 +228,11 @@ def test_perturbation_factors_are_log_normal_with_the_given_sigma():
 
 
 def test_perturbation_reaches_imm_transition_rows():
-    imm = IMM([KalmanFilter(_cv_model()), KalmanFilter(_cv_model(9.0))], transition=torch.tensor([[0.9, 0.1], [0.2, 0.8]], dtype=f64),
-              initial_probs=torch.tensor([0.5, 0.5], dtype=f64))
+    imm = IMM(
+        [KalmanFilter(_cv_model()), KalmanFilter(_cv_model(9.0))],
+        transition=torch.tensor([[0.9, 0.1], [0.2, 0.8]], dtype=f64),
+        initial_probs=torch.tensor([0.5, 0.5], dtype=f64),
+    )
     names = select_parameters(imm, ["transition"])
     perturb_initial_values(imm, names, 0.4, seed=0)
     torch.testing.assert_close(imm.transition.sum(-1), torch.ones(2, dtype=f64))

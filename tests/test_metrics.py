@@ -21,7 +21,6 @@ from difffilter.sim.sampling import sample_trajectories
 f64 = torch.float64
 
 
-
 def _result(mean, cov, nis=None, ll=None, nobs=None) -> FilterResult:
     b, t = mean.shape[:2]
     z = torch.zeros(b, t, dtype=mean.dtype)

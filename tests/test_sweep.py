@@ -68,7 +68,12 @@ def test_summary_of_synthetic_sweep_matches_independent_computation(tmp_path):
     # hand-tuned does not depend on the seed: t-interval over runs
     r = rows[("experiment=x", "hand-tuned", "rmse_pos")]
     lo, hi = stats.t.interval(0.95, runs - 1, loc=hand.mean(), scale=stats.sem(hand))
-    assert (float(r["estimate"]), float(r["lo"]), float(r["hi"]), r["seeds"]) == (pytest.approx(hand.mean()), pytest.approx(lo), pytest.approx(hi), "1")
+    assert (float(r["estimate"]), float(r["lo"]), float(r["hi"]), r["seeds"]) == (
+        pytest.approx(hand.mean()),
+        pytest.approx(lo),
+        pytest.approx(hi),
+        "1",
+    )
     # learned: seeds x runs crossed interval (seed-mean and run-mean variances, Satterthwaite)
     for key, y in ((("experiment=x", "learned", "rmse_pos")), learned), ((("experiment=x", "learned", "diff")), learned - hand):
         vs, vr = y.mean(1).var(ddof=1) / seeds, y.mean(0).var(ddof=1) / runs
@@ -107,8 +112,18 @@ def test_multirun_over_seeds_writes_summary(tmp_path):
     """`experiments/train.py -m seed=0,1,2` (smoke size, seeded init perturbation): every job writes
     per_run.csv on the same test runs, the callback writes summary.md/.csv at the sweep root."""
     sweep = tmp_path / "sweep"
-    cmd = [sys.executable, str(ROOT / "experiments" / "train.py"), "-m", "debug=smoke", "seed=0,1,2", "trainer.max_epochs=1",
-           "learner.init_perturbation=0.2", "logger=csv", f"hydra.sweep.dir={sweep}", f"paths.log_dir={tmp_path}/logs"]
+    cmd = [
+        sys.executable,
+        str(ROOT / "experiments" / "train.py"),
+        "-m",
+        "debug=smoke",
+        "seed=0,1,2",
+        "trainer.max_epochs=1",
+        "learner.init_perturbation=0.2",
+        "logger=csv",
+        f"hydra.sweep.dir={sweep}",
+        f"paths.log_dir={tmp_path}/logs",
+    ]
     proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-4000:]
     jobs = [read_per_run(sweep / str(k) / "per_run.csv") for k in range(3)]

@@ -12,6 +12,8 @@ import importlib
 from typing import Any
 
 from . import replicates  # noqa: F401 - registers the `replicate_seed` resolver of the configs
+from .consistency import Consistency, consistency
+from .intervals import GapClosed, Interval, block_bootstrap_difference, crossed_interval, gap_closed, t_interval
 from .losses import CompositeLoss, HuberLoss, LogNormalPrior, MSELoss, NEESLoss, NLLLoss, NormalPrior
 from .metrics import (
     anees,
@@ -29,22 +31,31 @@ from .selection import assign_parameters, learnable_values, match_parameters, se
 
 __all__ = [
     "CompositeLoss",
+    "Consistency",
     "FilterLearner",
+    "GapClosed",
     "HuberLoss",
+    "Interval",
     "LogNormalPrior",
     "MSELoss",
     "NEESLoss",
     "NLLLoss",
     "NormalPrior",
+    "SweepSummary",
     "TrajectoryDataModule",
     "TrajectorySet",
     "WindowedTrajectories",
     "anees",
     "anis",
     "assign_parameters",
+    "block_bootstrap_difference",
     "chi2_interval",
+    "consistency",
+    "crossed_interval",
     "evaluate_filter",
+    "evaluate_runs",
     "finalize_metrics",
+    "gap_closed",
     "innovation_whiteness",
     "learnable_values",
     "match_parameters",
@@ -55,6 +66,8 @@ __all__ = [
     "rmse",
     "run_experiment",
     "select_parameters",
+    "summarize_sweep",
+    "t_interval",
 ]
 
 _LAZY = {
@@ -63,6 +76,9 @@ _LAZY = {
     "TrajectorySet": ".data",
     "WindowedTrajectories": ".data",
     "evaluate_filter": ".experiment",
+    "evaluate_runs": ".evaluation",
+    "SweepSummary": ".sweep",
+    "summarize_sweep": ".sweep",
     "run_experiment": ".experiment",
 }
 

@@ -119,7 +119,9 @@ def per_run_metrics(
                 steps[f"nees_{name}"] = value
         for key in [k for k in steps if k.startswith("nees")]:
             runs["anees" if key == "nees" else key] = run_average(steps[key])
-    return {k: v.detach().to("cpu", torch.float64) for k, v in runs.items()}, {k: v.detach().to("cpu", torch.float64) for k, v in steps.items()}
+    return {k: v.detach().to("cpu", torch.float64) for k, v in runs.items()}, {
+        k: v.detach().to("cpu", torch.float64) for k, v in steps.items()
+    }
 
 
 @torch.no_grad()
@@ -156,7 +158,12 @@ def evaluate_runs(
     norms: list[Tensor] = []
     runs: dict[str, list[Tensor]] = {}
     steps: dict[str, list[Tensor]] = {}
-    idx = {"position_index": position_index, "truth_position_index": truth_position_index, "state_index": state_index, "truth_index": truth_index}
+    idx = {
+        "position_index": position_index,
+        "truth_position_index": truth_position_index,
+        "state_index": state_index,
+        "truth_index": truth_index,
+    }
     for first in range(0, n, size):
         batch = data.batch(torch.arange(first, min(first + size, n)))
         mean0 = batch["initial_mean"] if batch["initial_mean"] is not None else initial_mean

@@ -154,7 +154,13 @@ def format_results(rows: list[dict[str, Any]], *, title: str = "results", note: 
     lines += ["| " + " | ".join(fmt(r.get(c, float("nan"))) for c in cols) + " |" for r in rows]
     table = consistency_table(rows)
     if table:
-        lines += ["", "Consistency: run-level mean [95 % t-interval over test runs] (value of a consistent filter), and the", "fraction of steps whose mean over runs lies in the per-step 95 % chi-square band.", "", table]
+        lines += [
+            "",
+            "Consistency: run-level mean [95 % t-interval over test runs] (value of a consistent filter), and the",
+            "fraction of steps whose mean over runs lies in the per-step 95 % chi-square band.",
+            "",
+            table,
+        ]
     return "\n".join(lines) + "\n"
 
 

@@ -133,7 +133,12 @@ def student_t_cdf(t: float, dof: float) -> float:
 
 
 def _student_t_log_pdf(t: float, dof: float) -> float:
-    return math.lgamma(0.5 * (dof + 1.0)) - math.lgamma(0.5 * dof) - 0.5 * math.log(dof * math.pi) - 0.5 * (dof + 1.0) * math.log1p(t * t / dof)
+    return (
+        math.lgamma(0.5 * (dof + 1.0))
+        - math.lgamma(0.5 * dof)
+        - 0.5 * math.log(dof * math.pi)
+        - 0.5 * (dof + 1.0) * math.log1p(t * t / dof)
+    )
 
 
 def student_t_quantile(prob: float, dof: float) -> float:
@@ -423,6 +428,8 @@ def gap_closed(
 
     eh, el, eo = resampled_mean(h), resampled_mean(lrn), resampled_mean(o)
     d_num, d_den = eh - el, eh - eo
-    ratio = torch.where(d_den > 0, d_num / d_den.where(d_den > 0, torch.ones_like(d_den)), torch.copysign(torch.full_like(d_num, math.inf), d_num))
+    ratio = torch.where(
+        d_den > 0, d_num / d_den.where(d_den > 0, torch.ones_like(d_den)), torch.copysign(torch.full_like(d_num, math.inf), d_num)
+    )
     lo, hi = _percentile(ratio, prob)
     return GapClosed(num / den, lo, hi, gap, True, "")

@@ -158,7 +158,12 @@ def _summarize_group(group: _Group, *, metric: str, reference: str, learned: str
         if m is None:
             continue
         varies = not bool(torch.allclose(m, m[:1].expand_as(m), rtol=1e-12, atol=0.0, equal_nan=True))
-        row: dict[str, Any] = {"filter": name, "seeds": m.shape[0] if varies else 1, "runs": m.shape[1], metric: _interval(m if varies else m[:1], crossed, prob)}
+        row: dict[str, Any] = {
+            "filter": name,
+            "seeds": m.shape[0] if varies else 1,
+            "runs": m.shape[1],
+            metric: _interval(m if varies else m[:1], crossed, prob),
+        }
         if ref is not None and name != reference:
             diff = _interval(m - ref, crossed, prob)
             base = float(ref[torch.isfinite(ref)].mean())
@@ -207,14 +212,30 @@ def _markdown(groups: Sequence[_Group], *, metric: str, reference: str, learned:
         out += [f"| filter | seeds | runs | {metric} | filter - {reference} | in % of {reference} | G |", "|---|---|---|---|---|---|---|"]
         for r in g.rows:
             gap = r.get("gap")
-            g_cell = "" if gap is None else (f"{_fmt(gap.value)} [{_fmt(gap.lo)}, {_fmt(gap.hi)}]" if gap.defined else f"undefined: {gap.reason}")
-            cells = [r["filter"], str(r["seeds"]), str(r["runs"]), _ci(r[metric]), _ci(r["diff"]) if "diff" in r else "", _ci(r["diff_pct"]) if r.get("diff_pct") else "", g_cell]
+            g_cell = (
+                ""
+                if gap is None
+                else (f"{_fmt(gap.value)} [{_fmt(gap.lo)}, {_fmt(gap.hi)}]" if gap.defined else f"undefined: {gap.reason}")
+            )
+            cells = [
+                r["filter"],
+                str(r["seeds"]),
+                str(r["runs"]),
+                _ci(r[metric]),
+                _ci(r["diff"]) if "diff" in r else "",
+                _ci(r["diff_pct"]) if r.get("diff_pct") else "",
+                g_cell,
+            ]
             out.append("| " + " | ".join(cells) + " |")
         if g.blocks:
             out += ["", "| filter | block | d | ANEES [interval] | verdict | steps in band |", "|---|---|---|---|---|---|"]
             for b in g.blocks:
                 iv = b["anees"]
-                verdict = "" if not math.isfinite(iv.lo) else ("consistent" if iv.contains(b["dof"]) else ("over-confident" if iv.lo > b["dof"] else "under-confident"))
+                verdict = (
+                    ""
+                    if not math.isfinite(iv.lo)
+                    else ("consistent" if iv.contains(b["dof"]) else ("over-confident" if iv.lo > b["dof"] else "under-confident"))
+                )
                 frac = "" if not math.isfinite(b["band_frac"]) else f"{100 * b['band_frac']:.0f} %"
                 out.append(f"| {b['filter']} | {b['block']} | {_fmt(b['dof'])} | {_ci(iv)} | {verdict} | {frac} |")
     return "\n".join(out) + "\n"
@@ -226,18 +247,62 @@ def _csv_rows(groups: Sequence[_Group], metric: str) -> list[dict[str, Any]]:
         for r in g.rows:
             for qty, iv in ((metric, r[metric]), ("diff", r.get("diff")), ("diff_pct", r.get("diff_pct"))):
                 if isinstance(iv, Interval):
-                    rows.append({"group": g.name, "filter": r["filter"], "quantity": qty, "estimate": iv.estimate, "lo": iv.lo, "hi": iv.hi,
-                                 "seeds": r["seeds"], "runs": r["runs"], "reference": ""})
+                    rows.append(
+                        {
+                            "group": g.name,
+                            "filter": r["filter"],
+                            "quantity": qty,
+                            "estimate": iv.estimate,
+                            "lo": iv.lo,
+                            "hi": iv.hi,
+                            "seeds": r["seeds"],
+                            "runs": r["runs"],
+                            "reference": "",
+                        }
+                    )
             gap = r.get("gap")
             if gap is not None:
-                rows.append({"group": g.name, "filter": r["filter"], "quantity": "gap_closed", "estimate": gap.value, "lo": gap.lo, "hi": gap.hi,
-                             "seeds": r["seeds"], "runs": r["runs"], "reference": gap.reason})
+                rows.append(
+                    {
+                        "group": g.name,
+                        "filter": r["filter"],
+                        "quantity": "gap_closed",
+                        "estimate": gap.value,
+                        "lo": gap.lo,
+                        "hi": gap.hi,
+                        "seeds": r["seeds"],
+                        "runs": r["runs"],
+                        "reference": gap.reason,
+                    }
+                )
         for b in g.blocks:
             iv = b["anees"]
-            rows.append({"group": g.name, "filter": b["filter"], "quantity": f"anees_{b['block']}", "estimate": iv.estimate, "lo": iv.lo, "hi": iv.hi,
-                         "seeds": "", "runs": "", "reference": b["dof"]})
-            rows.append({"group": g.name, "filter": b["filter"], "quantity": f"step_band_frac_{b['block']}", "estimate": b["band_frac"], "lo": "", "hi": "",
-                         "seeds": "", "runs": "", "reference": ""})
+            rows.append(
+                {
+                    "group": g.name,
+                    "filter": b["filter"],
+                    "quantity": f"anees_{b['block']}",
+                    "estimate": iv.estimate,
+                    "lo": iv.lo,
+                    "hi": iv.hi,
+                    "seeds": "",
+                    "runs": "",
+                    "reference": b["dof"],
+                }
+            )
+            rows.append(
+                {
+                    "group": g.name,
+                    "filter": b["filter"],
+                    "quantity": f"step_band_frac_{b['block']}",
+                    "estimate": b["band_frac"],
+                    "lo": "",
+                    "hi": "",
+                    "seeds": "",
+                    "runs": "",
+                    "reference": "",
+                }
+            )
     return rows
 
 
@@ -316,7 +381,9 @@ def main(argv: Sequence[str] | None = None) -> Path:
     ap.add_argument("--reference", default="hand-tuned")
     ap.add_argument("--draws", type=int, default=4000)
     args = ap.parse_args(argv)
-    md, _ = summarize_sweep(args.sweep_dir, replicate_key=args.replicate_key, metric=args.metric, reference=args.reference, draws=args.draws)
+    md, _ = summarize_sweep(
+        args.sweep_dir, replicate_key=args.replicate_key, metric=args.metric, reference=args.reference, draws=args.draws
+    )
     print(md.read_text())
     return md
 

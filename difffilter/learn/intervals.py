@@ -285,12 +285,15 @@ _STATISTICS: dict[str, Statistic] = {
 }
 
 
-def _percentile(draws: Tensor, prob: float) -> tuple[float, float]:
+def _percentile(draws: Tensor, prob: float, *, outward: bool = False) -> tuple[float, float]:
+    """Two-sided percentile interval of bootstrap draws (linear interpolation; ``outward``: the
+    order statistics just outside, which stays defined when some draws are infinite)."""
     tail = 0.5 * (1.0 - prob)
     q = torch.tensor([tail, 1.0 - tail], dtype=torch.float64)
-    lo = torch.quantile(draws, q[0], interpolation="lower")
-    hi = torch.quantile(draws, q[1], interpolation="higher")
-    return float(lo), float(hi)
+    if not outward:
+        lo, hi = torch.quantile(draws, q)
+        return float(lo), float(hi)
+    return float(torch.quantile(draws, q[0], interpolation="lower")), float(torch.quantile(draws, q[1], interpolation="higher"))
 
 
 def block_bootstrap_difference(
@@ -431,5 +434,5 @@ def gap_closed(
     ratio = torch.where(
         d_den > 0, d_num / d_den.where(d_den > 0, torch.ones_like(d_den)), torch.copysign(torch.full_like(d_num, math.inf), d_num)
     )
-    lo, hi = _percentile(ratio, prob)
+    lo, hi = _percentile(ratio, prob, outward=True)
     return GapClosed(num / den, lo, hi, gap, True, "")

@@ -3,10 +3,13 @@
     python experiments/report.py                            # results/*.md -> results/REPORT.md
     python experiments/report.py outputs/train/runs/<run>   # add run directories (results.csv)
     python experiments/report.py --print --no-write         # only print the report
+    python experiments/report.py outputs/train/multiruns/<sweep>   # add a seed sweep's summary.md
 
 Inputs: the per-experiment sections ``results/<name>.md`` (written by hand after the full-size
 runs: command, table, wall time, interpretation) and/or Hydra run directories holding the
-``results.csv`` that ``experiments/train.py`` writes (a ``.md`` or ``.csv`` path works too).
+``results.csv`` that ``experiments/train.py`` writes (a ``.md`` or ``.csv`` path works too), and/or
+multirun directories holding the ``summary.md`` of a sweep over seeds (:mod:`difffilter.learn.sweep`),
+included as sections.
 The report opens with a summary (one line per experiment: hand-tuned, learned and oracle RMSE,
 learned ANEES with its 95 % t-interval over test runs against the value of a consistent filter
 and the fraction of steps inside the per-step chi-square band, the paper's claim), then each run's table with a ``paper``
@@ -24,7 +27,17 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-__all__ = ["PUBLISHED", "Published", "build_report", "load_run", "main", "normalise_table", "parse_markdown_tables", "summary_row"]
+__all__ = [
+    "PUBLISHED",
+    "Published",
+    "build_report",
+    "load_run",
+    "load_sweep",
+    "main",
+    "normalise_table",
+    "parse_markdown_tables",
+    "summary_row",
+]
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -198,6 +211,16 @@ def load_run(path: str | Path) -> Run:
     return Run(name, results_table(parse_markdown_tables(text)) or [], p, text)
 
 
+def load_sweep(directory: str | Path) -> Run:
+    """A seed sweep's ``summary.md`` as a section named ``sweep <experiment>`` (no summary row: the
+    sweep's own tables carry the intervals over seeds)."""
+    root = Path(directory)
+    jobs = sorted(p.parent for p in root.rglob("results.md"))
+    name = _run_name(jobs[0]) if jobs else root.name
+    text = re.sub(r"^# Sweep summary", f"# Sweep summary: {name}", (root / "summary.md").read_text(), count=1, flags=re.M)
+    return Run(f"sweep {name}", [], root / "summary.md", text)
+
+
 def summary_row(run: Run) -> str:
     """One summary line: hand-tuned / learned / oracle RMSE, learned ANEES with its run-level
     interval and per-step band fraction (when the row has them), claim."""
@@ -272,7 +295,8 @@ def build_report(runs: Sequence[Run], *, sections: Sequence[Run] = ()) -> str:
         out.append(run_table(run))
     for sec in sections:
         body = re.sub(r"^(#+)", r"#\1", sec.text.strip(), flags=re.M)  # nest its headings under the report's
-        out += [""] + ([] if body.startswith("## ") else [f"## {sec.name}", ""]) + [body, "", f"(from `results/{sec.source.name}`)"]
+        origin = str(sec.source) if sec.source.name == "summary.md" else f"results/{sec.source.name}"
+        out += [""] + ([] if body.startswith("## ") else [f"## {sec.name}", ""]) + [body, "", f"(from `{origin}`)"]
     return "\n".join(out) + "\n"
 
 
@@ -288,7 +312,9 @@ def main(argv: Sequence[str] | None = None) -> str:
     results = Path(args.results_dir)
     output = Path(args.output) if args.output else results / "REPORT.md"
     sections = [load_run(p) for p in sorted(results.glob("*.md")) if p.resolve() != output.resolve()] if results.is_dir() else []
-    runs = [load_run(p) for p in args.runs]
+    sweeps = [Path(p) for p in args.runs if (Path(p) / "summary.md").exists()]
+    runs = [load_run(p) for p in args.runs if Path(p) not in sweeps]
+    sections += [load_sweep(p) for p in sweeps]
     text = build_report(runs, sections=sections)
     if not args.no_write:
         output.parent.mkdir(parents=True, exist_ok=True)

@@ -97,3 +97,15 @@ def test_report_from_run_directory_and_sections(report, tmp_path):
 def test_missing_run_is_an_error(report, tmp_path):
     with pytest.raises(FileNotFoundError):
         report.load_run(tmp_path / "nothing")
+
+
+def test_sweep_summary_is_included_as_a_section(report, tmp_path):
+    sweep = tmp_path / "sweep"
+    for k in range(2):
+        write_results([_row("hand-tuned", 0.125), _row("learned", 0.1 + 0.01 * k)], sweep / str(k), title="difffilter results: p004_blend")
+    (sweep / "summary.md").write_text(
+        "# Sweep summary\n\n## all jobs (seeds 0, 1; jobs 0, 1)\n\n| filter | seeds |\n|---|---|\n| learned | 2 |\n"
+    )
+    text = report.main([str(sweep), "--results-dir", str(tmp_path / "none"), "--no-write"])
+    assert "\n## Sweep summary: p004_blend\n" in text and "\n### all jobs (seeds 0, 1; jobs 0, 1)\n" in text
+    assert f"(from `{sweep / 'summary.md'}`)" in text and "## p004_blend (run" not in text

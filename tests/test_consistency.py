@@ -14,7 +14,8 @@ from scipy import stats
 from difffilter.filters import KalmanFilter
 from difffilter.learn import metrics as M  # noqa: N812 - short alias in formulas
 from difffilter.learn.consistency import block_truth_indices, consistency, nees_by_block, run_average, step_band_fraction
-from difffilter.learn.intervals import crossed_interval, student_t_cdf, student_t_quantile, t_interval
+from difffilter.learn.intervals import crossed_interval, t_interval
+from difffilter.learn.student_t import student_t_cdf, student_t_quantile
 from difffilter.models import LinearModel
 
 f64 = torch.float64

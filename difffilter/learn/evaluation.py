@@ -209,7 +209,7 @@ def write_per_run(per_run: Mapping[str, Mapping[str, Tensor]], path: str | Path)
     """Write ``{filter: {metric: [N]}}`` as a CSV with columns ``filter, run, <metrics>``."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    metrics = sorted({m for values in per_run.values() for m in values})
+    metrics = list(dict.fromkeys(m for values in per_run.values() for m in values))  # first-seen order: blocks as configured
     with path.open("w", newline="") as fh:
         writer = csv.writer(fh)
         writer.writerow(["filter", "run", *metrics])

@@ -1,7 +1,7 @@
 """difffilter: batched, differentiable Kalman-family filters in PyTorch."""
 
 from . import linalg, mixers, params
-from .filters import EKF, RCUKF, UKF, ColoredNoiseUKF, GaussianFilter, KalmanFilter, SimplifiedUKF, SquareRootUKF
+from .filters import EKF, RCUKF, UKF, ColoredNoiseUKF, Filter, GaussianFilter, KalmanFilter, RecursiveFilter, SimplifiedUKF, SquareRootUKF
 from .mixers import IMM, Blend
 from .models import FunctionalModel, LinearModel, StateSpaceModel
 
@@ -12,10 +12,12 @@ __all__ = [
     "UKF",
     "Blend",
     "ColoredNoiseUKF",
+    "Filter",
     "FunctionalModel",
     "GaussianFilter",
     "KalmanFilter",
     "LinearModel",
+    "RecursiveFilter",
     "SimplifiedUKF",
     "SquareRootUKF",
     "StateSpaceModel",

@@ -24,7 +24,7 @@ import torch
 from torch import Tensor, nn
 from torch.nn.utils import parametrize
 
-from ..params import ScaledMatrix
+from .params import ScaledMatrix
 
 __all__ = [
     "assign_parameters",

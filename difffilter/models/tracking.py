@@ -1,26 +1,30 @@
-"""Small constructors that let Hydra configs build models from plain numbers and lists.
+"""Model factories for configs: kinematic targets observed in position, linear measurements, and
+the time-invariant cache of linear dynamics.
 
 Configs cannot write tensors or dtypes; these functions take lists, floats and dtype names
 (``"float64"``) and return modules, so a model config reads like the paper's table::
 
-    _target_: difffilter.learn.builders.tracking_model
+    _target_: difffilter.models.tracking_model
     dynamics: {_target_: difffilter.models.motion.Singer, axes: 2, dt: 1.0, tau: 20.0, sigma_a: 1.0}
     R: [100.0, 100.0]          # position measurement variances (m^2)
+    learn: [tau, sigma_a, R]   # what `learn: null` trains (default: every parameter)
     dtype: float64
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 import torch
 from torch import Tensor
 from torch.nn.utils import parametrize
 
-from ..models.base import Controls, DynamicsModel, LinearModel, MeasurementModel, StateSpaceModel
-from ..sim.sampling import as_dtype
+from .._util import as_dtype, covariance
+from .base import Controls, DynamicsModel, LinearModel, MeasurementModel, StateSpaceModel
+from .layout import StateLayout, describe
 
-__all__ = ["TimeInvariantDynamics", "covariance", "linear_measurement", "tensor", "tracking_model"]
+__all__ = ["TimeInvariantDynamics", "linear_measurement", "tracking_model"]
 
 
 class TimeInvariantDynamics(DynamicsModel):
@@ -102,25 +106,6 @@ class TimeInvariantDynamics(DynamicsModel):
         return self._matrices()[1]
 
 
-def tensor(data: float | Sequence[float] | Sequence[Sequence[float]], dtype: torch.dtype | str | None = "float64") -> Tensor:
-    """``torch.tensor(data, dtype=dtype)`` for configs."""
-    return torch.as_tensor(data, dtype=as_dtype(dtype))
-
-
-def covariance(value: float | Sequence[float] | Sequence[Sequence[float]] | Tensor, dim: int, dtype: torch.dtype) -> Tensor:
-    """A covariance ``[dim, dim]`` from a scalar (``s I``), a vector (diagonal) or a matrix."""
-    v = torch.as_tensor(value, dtype=dtype)
-    if v.ndim == 0:
-        return v * torch.eye(dim, dtype=dtype)
-    if v.ndim == 1:
-        if v.shape[0] != dim:
-            raise ValueError(f"a diagonal covariance needs {dim} variances, got {v.shape[0]}")
-        return torch.diag(v)
-    if v.shape != (dim, dim):
-        raise ValueError(f"covariance must be [{dim}, {dim}], got {tuple(v.shape)}")
-    return v
-
-
 def linear_measurement(
     *,
     R: float | Sequence[float] | Sequence[Sequence[float]],  # noqa: N803
@@ -156,20 +141,41 @@ def tracking_model(
     observed: Sequence[int] | None = None,
     R_structure: str = "diagonal",  # noqa: N803
     time_invariant: bool = False,
+    learn: Sequence[str] | None = None,
+    initial_mean: Sequence[float] | None = None,
+    initial_var: Sequence[float] | None = None,
+    reference: Mapping[str, Any] | None = None,
+    name: str | None = None,
     dtype: torch.dtype | str | None = "float64",
 ) -> StateSpaceModel:
     """A kinematic ``dynamics`` (e.g. :class:`~difffilter.models.motion.Singer`) observed in
     position: ``observed`` defaults to the position index of every axis (``0, order, 2 order...``
     for the axis-by-axis layout of :mod:`difffilter.models.motion`).  The model is converted to
     ``dtype``.  ``time_invariant`` wraps the dynamics in :class:`TimeInvariantDynamics` (only for
-    dynamics whose ``F`` and ``Q`` depend on nothing but parameters)."""
+    dynamics whose ``F`` and ``Q`` depend on nothing but parameters).
+
+    The model carries :class:`~difffilter.models.layout.ModelDefaults`: the kinematic layout
+    (:meth:`StateLayout.kinematic`), ``learn`` (default: the dynamics' constrained parameters in
+    registration order, then ``R`` unless it is fixed), the default belief ``initial_mean`` /
+    ``initial_var``, the in-family ``reference`` parameter values and the report label ``name``.
+    """
     dt = as_dtype(dtype)
     n = int(dynamics.state_dim)
+    order = getattr(dynamics, "order", None)
     if observed is None:
-        order = getattr(dynamics, "order", None)
         if order is None:
             raise ValueError("observed is required for dynamics without an axis layout (no `order` attribute)")
         observed = list(range(0, n, int(order)))
     meas = linear_measurement(R=R, state_dim=n, observed=observed, R_structure=R_structure, dtype=dt)
     dyn: DynamicsModel = TimeInvariantDynamics(dynamics) if time_invariant else dynamics
-    return StateSpaceModel(dyn, meas).to(dt)
+    model = StateSpaceModel(dyn, meas).to(dt)
+    if order is not None:
+        layout = StateLayout.kinematic(axes=n // int(order), order=int(order))
+    else:
+        layout = StateLayout(names=tuple(f"x{i}" for i in range(n)), units=("",) * n, position=tuple(observed))
+    if learn is None:
+        own = list(dynamics.parametrizations.keys()) if parametrize.is_parametrized(dynamics) else []  # type: ignore[union-attr]
+        learn = own + (["R"] if R_structure != "fixed" else [])
+    return describe(
+        model, layout=layout, learn=learn, initial_mean=initial_mean, initial_var=initial_var, reference=reference, name=name
+    )  # type: ignore[return-value]

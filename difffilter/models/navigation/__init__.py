@@ -1,21 +1,24 @@
-"""Navigation models of the five papers, gathered in one namespace.
+"""Navigation models of the papers, gathered in one namespace.
 
-Each model lives in its own module (one concept per file); this module re-exports them:
+Each model lives in its own module (one concept per file); this package re-exports them:
 
 * :mod:`.gpsdr` - p000 GPS/dead-reckoning (Singer / current-statistical manoeuvre model, GPS
   position, gyro yaw rate, odometer).
 * :mod:`.pseudorange` - pseudorange (+ rate) measurements with clock bias/drift, inter-system
-  bias and Sagnac term (p001, p003, the smartLoc drive), and matching clock dynamics.
+  bias and Sagnac term (p001, the smartLoc drive); :mod:`.clock` - the receiver dynamics that
+  go with them.
 * :mod:`.pdr` - p002 pedestrian dead-reckoning step model with GPS and compass.
-* :mod:`.sins` - p003 20-state GPS/SINS ultra-tight error model.
+* :mod:`.sins`, :mod:`.sins_measurement` - p003 20-state GPS/SINS ultra-tight error model.
 * :mod:`.gnss_imu` - p004 GNSS/IMU vehicle model.
 """
 
-from .gnss_imu import GnssImuDynamics, GnssImuModel, GnssMeasurement, PlanarGnssImuDynamics, p004_switching_statistics
+from .clock import ConstantVelocityClock, OdometryClockDynamics, clock_process_noise
+from .gnss_imu import GnssImuDynamics, GnssImuModel, GnssMeasurement, PlanarGnssImuDynamics
 from .gpsdr import GpsDrDynamics, GpsDrMeasurement, GpsDrModel
 from .pdr import PDRMeasurement, PDRModel, PDRStepDynamics
-from .pseudorange import ConstantVelocityClock, GnssStateLayout, OdometryClockDynamics, PseudorangeMeasurement
-from .sins import SinsErrorDynamics, SinsPseudorangeMeasurement
+from .pseudorange import GnssStateLayout, PseudorangeMeasurement
+from .sins import SinsErrorDynamics
+from .sins_measurement import SinsPseudorangeMeasurement
 
 __all__ = [
     "ConstantVelocityClock",
@@ -34,5 +37,5 @@ __all__ = [
     "PseudorangeMeasurement",
     "SinsErrorDynamics",
     "SinsPseudorangeMeasurement",
-    "p004_switching_statistics",
+    "clock_process_noise",
 ]

@@ -1,4 +1,5 @@
-"""IMU-driven GNSS/IMU vehicle models of p004 (Li, Zhu, Wang & Lyu) and its switching statistics.
+"""IMU-driven GNSS/IMU vehicle models of p004 (Li, Zhu, Wang & Lyu); its switching statistics are
+in :mod:`difffilter.papers.p004.switching`.
 
 Frames: navigation frame ENU (east, north, up), body frame FLU (forward, left, up); gravity
 ``g_n = [0, 0, -9.80665]`` m/s^2, flat non-rotating earth (a 400 s, 5 km drive).  Headings are
@@ -26,9 +27,9 @@ import math
 import torch
 from torch import Tensor
 
-from ..linalg import block_diag
-from ..params import Positive, register_constrained, register_covariance
-from .base import Controls, DynamicsModel, MeasurementModel, StateSpaceModel, wrap_angle
+from ...linalg import block_diag
+from ...params import Positive, register_constrained, register_covariance
+from ..base import Controls, DynamicsModel, MeasurementModel, StateSpaceModel, wrap_angle
 
 __all__ = [
     "GNSS_IMU_PAPER",
@@ -37,7 +38,6 @@ __all__ = [
     "GnssImuModel",
     "GnssMeasurement",
     "PlanarGnssImuDynamics",
-    "p004_switching_statistics",
     "quaternion_multiply",
     "quaternion_to_rotation",
     "wrap_angle",
@@ -376,34 +376,3 @@ class GnssImuModel(StateSpaceModel):
             dtype=dtype,
         )
         super().__init__(cls(dt=dt, dtype=dtype, **noise), measurement)
-
-
-def p004_switching_statistics(
-    accel: Tensor,
-    gyro: Tensor,
-    sigma_accel: Tensor | float,
-    sigma_gyro: Tensor | float,
-    sigma_gnss: Tensor | float,
-    sigma_imu: Tensor | float,
-    *,
-    gravity: float | None = None,
-) -> tuple[Tensor, Tensor]:
-    """p004's switching statistics, eqs. (1) and (2).
-
-    ``gamma = max(sigma_alpha, sigma_beta) / max(sigma_GNSS, sigma_IMU)`` (noise regime: EKF when
-    below 3x the system-noise std) and ``mu = sqrt(|alpha|^2 / 9.8^2 + |beta|^2 / pi^2)``
-    (motion regime: UKF when above the sensor's tolerated error), with ``alpha`` the
-    accelerometer output ``[..., k]`` and ``beta`` the gyro output ``[..., k]`` (vector norms).
-
-    ``mu`` is meant for the motion-induced acceleration: pass gravity-compensated ``accel``, or
-    ``gravity=9.80665`` to subtract it from the last (up) axis of a level vehicle's reading.
-    Returns ``(gamma, mu)``; ``gamma`` has the broadcast shape of the sigmas, ``mu`` is ``[...]``.
-    """
-    if gravity is not None:
-        accel = torch.cat([accel[..., :-1], accel[..., -1:] - gravity], -1)
-    alpha = torch.linalg.vector_norm(accel, dim=-1)
-    beta = torch.linalg.vector_norm(gyro, dim=-1)
-    mu = torch.sqrt(alpha * alpha / 9.8**2 + beta * beta / math.pi**2)
-    t = lambda v: torch.as_tensor(v, dtype=accel.dtype, device=accel.device)  # noqa: E731
-    gamma = torch.maximum(t(sigma_accel), t(sigma_gyro)) / torch.maximum(t(sigma_gnss), t(sigma_imu))
-    return gamma, mu

@@ -14,10 +14,10 @@ import math
 import torch
 from torch import Tensor
 
-from ..linalg import block_diag
-from ..params import Interval, Positive, register_constrained, register_covariance
-from .base import Controls, DynamicsModel, MeasurementModel, StateSpaceModel
-from .motion import ConstantAcceleration, CurrentStatistical, Singer, _Kinematic
+from ...linalg import block_diag
+from ...params import Interval, Positive, register_constrained, register_covariance
+from ..base import Controls, DynamicsModel, MeasurementModel, StateSpaceModel
+from ..motion import ConstantAcceleration, CurrentStatistical, Singer, _Kinematic
 
 __all__ = [
     "GPSDR_PAPER",

@@ -17,8 +17,8 @@ import math
 import torch
 from torch import Tensor
 
-from ..params import check_covariance, register_covariance
-from .base import Controls, DynamicsModel, MeasurementModel, StateSpaceModel, wrap_angle
+from ...params import check_covariance, register_covariance
+from ..base import Controls, DynamicsModel, MeasurementModel, StateSpaceModel, wrap_angle
 
 __all__ = [
     "PDRMeasurement",

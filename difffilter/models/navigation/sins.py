@@ -28,38 +28,29 @@ integration); the error then restarts from ``x - feedback``, i.e. ``x_k = Phi_k 
 from __future__ import annotations
 
 import math
-from typing import Any
 
 import torch
 from torch import Tensor
 
-from ..params import register_covariance
-from .base import Controls, DynamicsModel, MeasurementModel
+from ... import geometry as geo
+from ..._util import control
+from ...params import register_covariance
+from ..base import Controls, DynamicsModel
 
 __all__ = [
     "DEG_PER_HOUR",
     "MILLI_G",
     "SinsErrorDynamics",
-    "SinsPseudorangeMeasurement",
     "sins_error_matrix",
     "sins_noise_psd",
 ]
 
 DEG_PER_HOUR = math.pi / 180.0 / 3600.0  # rad/s
 MILLI_G = 9.80665e-3  # m/s^2
-_W = 7.2921151467e-5
-
-
-def _geo() -> Any:
-    from ..sim import geometry  # lazy: difffilter.sim imports the models
-
-    return geometry
 
 
 def _get(u: Controls, key: str) -> Tensor:
-    if not isinstance(u, dict) or key not in u:
-        raise KeyError(f"the SINS model needs u[{key!r}]")
-    return u[key]
+    return control(u, key, "the SINS model")
 
 
 def _skew(v: Tensor) -> Tensor:
@@ -70,7 +61,7 @@ def _skew(v: Tensor) -> Tensor:
 
 def _position_scale(llh: Tensor) -> Tensor:
     """``[..., 3]`` metres per unit of (dL, dlambda, dh)."""
-    rm, rn = _geo().radii_of_curvature(llh[..., 0])
+    rm, rn = geo.radii_of_curvature(llh[..., 0])
     h = llh[..., 2]
     return torch.stack([rm + h, (rn + h) * torch.cos(llh[..., 0]), torch.ones_like(h)], -1)
 
@@ -81,7 +72,6 @@ def _position_scale_rate(llh: Tensor, vel: Tensor) -> Tensor:
     ``dR_N/dL = R_N e^2 sin L cos L / q``, ``dR_M/dL = 3 R_M e^2 sin L cos L / q``
     (``q = 1 - e^2 sin^2 L``):
     ``[(R_M' + h') / (R_M + h), (R_N' + h') / (R_N + h) - tan L L', 0]``."""
-    geo = _geo()
     lat, h = llh[..., 0], llh[..., 2]
     rm, rn = geo.radii_of_curvature(lat)
     sl, cl = torch.sin(lat), torch.cos(lat)
@@ -112,7 +102,6 @@ def sins_error_matrix(
     * ``eps_b' = 0``, ``eps_r' = -eps_r/T_g``, ``nabla' = -nabla/T_a``,
       ``dt_u' = dt_ru``, ``dt_ru' = -dt_ru/tau_clk`` (p003's clock model, **[fix]** of the paper).
     """
-    geo = _geo()
     lat, h = llh[..., 0], llh[..., 2]
     rm, rn = geo.radii_of_curvature(lat)
     rm, rn = rm + h, rn + h
@@ -129,8 +118,8 @@ def sins_error_matrix(
     F[..., 2, 5] = 1.0
     # d(w_ie), d(w_en) as [..., 3, 20] maps of the state
     d_ie = lat.new_zeros(*batch, 3, 20)
-    d_ie[..., 1, 0] = -_W * sl
-    d_ie[..., 2, 0] = _W * cl
+    d_ie[..., 1, 0] = -geo.EARTH_RATE * sl
+    d_ie[..., 2, 0] = geo.EARTH_RATE * cl
     d_en = lat.new_zeros(*batch, 3, 20)
     d_en[..., 0, 4] = -1.0 / rm
     d_en[..., 0, 2] = vn / rm**2
@@ -140,7 +129,7 @@ def sins_error_matrix(
     d_en[..., 2, 0] = ve / (rn * cl * cl)
     d_en[..., 2, 2] = -ve * tl / rn**2
     zero = torch.zeros_like(sl)
-    w_ie = torch.stack([zero, _W * cl, _W * sl], -1)
+    w_ie = torch.stack([zero, geo.EARTH_RATE * cl, geo.EARTH_RATE * sl], -1)
     w_en = torch.stack([-vn / rm, ve / rn, ve * tl / rn], -1)
     cbn = C_bn.expand(*batch, 3, 3)
     vel_rows = _skew(vel).expand(*batch, 3, 3) @ (2.0 * d_ie + d_en)
@@ -318,132 +307,3 @@ class SinsErrorDynamics(DynamicsModel):
         """``(f(x, u), Phi, Q_d)`` from one construction of ``F``: the Kalman prediction's inputs."""
         phi, qd = self.discrete_system(u)
         return (phi @ self._fed_back(x, u)[..., None])[..., 0], phi, qd
-
-
-class SinsPseudorangeMeasurement(MeasurementModel):
-    """Pseudorange and pseudorange-rate differences INS - GPS for ``K`` satellites (p003).
-
-    Nonlinear form (default): with ``p_I = ecef(llh_I)``, ``d = ecef(llh_I) - ecef(llh_I - dllh)``
-    (exact, :func:`~difffilter.sim.geometry.ecef_displacement`), ``a_j = p_I - s_j``,
-    ``b_j = a_j - d = p_true - s_j``, ``w_I = C_n^e(llh_I) v_I - sdot_j``,
-    ``w_G = C_n^e(llh_I - dllh) (v_I - dv) - sdot_j``:
-
-    .. math::
-        \\delta\\rho_j = \\|a_j\\| - \\|b_j\\| - dt_u, \\qquad
-        \\delta\\dot\\rho_j = \\frac{a_j^T w_I}{\\|a_j\\|} - \\frac{b_j^T w_G}{\\|b_j\\|} - dt_{ru}
-
-    (``||a|| - ||b||`` is evaluated as ``(2 a.d - |d|^2) / (||a|| + ||b||)``: no cancellation).
-    ``linearized=True`` gives the paper's ``e_j^T J_geo dllh - dt_u`` and ``e_j^T C_n^e dv - dt_ru``
-    with ``e_j = a_j/||a_j||`` (then :meth:`matrix` returns ``H``).  Output
-    ``[drho_1..K, drhodot_1..K]`` (or only ranges with ``rates=False``).  Analytic Jacobian.
-
-    Learnable: ``R`` (default ``"scalar"`` structure on ``diag(sigma_range^2, sigma_rate^2)``).
-    """
-
-    def __init__(
-        self,
-        *,
-        num_satellites: int,
-        rates: bool = True,
-        linearized: bool = False,
-        sigma_range: float = 3.0,
-        sigma_rate: float = 0.05,
-        R: Tensor | None = None,
-        R_structure: str = "scalar",
-        position_in_metres: bool = False,
-        dtype: torch.dtype = torch.float64,
-    ) -> None:
-        super().__init__()
-        self.num_satellites, self.rates, self.linearized = int(num_satellites), rates, linearized
-        self.position_in_metres = position_in_metres
-        self.measurement_dim = self.num_satellites * (2 if rates else 1)
-        if R is None:
-            var = [sigma_range**2] * self.num_satellites + ([sigma_rate**2] * self.num_satellites if rates else [])
-            R = torch.diag(torch.tensor(var, dtype=dtype))
-        register_covariance(self, "R", R, R_structure)
-
-    def _errors(self, x: Tensor, u: Controls) -> tuple[Tensor, Tensor, Tensor]:
-        llh = _get(u, "llh")
-        pos = x[..., 0:3]
-        if self.position_in_metres:
-            pos = pos / _position_scale(llh)
-        return llh, pos, x[..., 3:6]
-
-    def forward(self, x: Tensor, u: Controls = None) -> Tensor:
-        geo = _geo()
-        llh, dllh, dv = self._errors(x, u)
-        s = _get(u, "sat_pos")
-        a = geo.geodetic_to_ecef(llh)[..., None, :] - s
-        na = torch.linalg.vector_norm(a, dim=-1)
-        ea = a / na[..., None]
-        if self.linearized:
-            d = (geo.geodetic_jacobian(llh) @ dllh[..., None])[..., 0]
-            rho = (ea * d[..., None, :]).sum(-1)
-        else:
-            d = geo.ecef_displacement(llh, dllh)[..., None, :]
-            b = a - d
-            nb = torch.linalg.vector_norm(b, dim=-1)
-            rho = (2.0 * (a * d).sum(-1) - (d * d).sum(-1)) / (na + nb)
-        rho = rho - x[..., 18, None]
-        if not self.rates:
-            return rho
-        if self.linearized:
-            dve = (dv[..., None, :] @ geo.enu_rotation(llh[..., 0], llh[..., 1]))[..., 0, :]
-            rate = (ea * dve[..., None, :]).sum(-1)
-        else:
-            vel = _get(u, "vel")
-            sv = _get(u, "sat_vel")
-            c_i = geo.enu_rotation(llh[..., 0], llh[..., 1])
-            true_llh = llh - dllh
-            c_t = geo.enu_rotation(true_llh[..., 0], true_llh[..., 1])
-            w_i = (vel[..., None, :] @ c_i)[..., 0, None, :] - sv
-            w_g = ((vel - dv)[..., None, :] @ c_t)[..., 0, None, :] - sv
-            rate = (ea * w_i).sum(-1) - (b * w_g).sum(-1) / nb
-        return torch.cat([rho, rate - x[..., 19, None]], -1)
-
-    def jacobian(self, x: Tensor, u: Controls = None) -> Tensor:
-        geo = _geo()
-        llh, dllh, dv = self._errors(x, u)
-        s = _get(u, "sat_pos")
-        k = self.num_satellites
-        a = geo.geodetic_to_ecef(llh)[..., None, :] - s
-        ea = a / torch.linalg.vector_norm(a, dim=-1, keepdim=True)
-        true_llh = llh if self.linearized else llh - dllh
-        jgeo = geo.geodetic_jacobian(true_llh)  # [..., 3, 3]
-        if self.linearized:
-            e = ea
-        else:
-            b = a - geo.ecef_displacement(llh, dllh)[..., None, :]
-            nb = torch.linalg.vector_norm(b, dim=-1, keepdim=True)
-            e = b / nb
-        batch = torch.broadcast_shapes(e.shape[:-2], x.shape[:-1])
-        jac = x.new_zeros(*batch, self.measurement_dim, 20)
-        jac[..., :k, 0:3] = e @ jgeo
-        jac[..., :k, 18] = -1.0
-        if self.rates:
-            c_t = geo.enu_rotation(true_llh[..., 0], true_llh[..., 1])  # rows E, N, U in ECEF
-            jac[..., k:, 3:6] = e @ c_t.mT
-            jac[..., k:, 19] = -1.0
-            if not self.linearized:
-                vt = _get(u, "vel") - dv
-                w_g = (vt[..., None, :] @ c_t)[..., 0, None, :] - _get(u, "sat_vel")
-                proj = (w_g - e * (e * w_g).sum(-1, keepdim=True)) / nb
-                east, north, up = c_t.unbind(-2)
-                lat = true_llh[..., 0]
-                sl, cl = torch.sin(lat)[..., None], torch.cos(lat)[..., None]
-                ve, vn, vu = (vt[..., i, None] for i in range(3))
-                dvec_dlat = -vn * up + vu * north
-                dvec_dlon = ve * (sl * north - cl * up) - vn * sl * east + vu * cl * east
-                rot_part = torch.stack(
-                    [(e * dvec_dlat[..., None, :]).sum(-1), (e * dvec_dlon[..., None, :]).sum(-1), torch.zeros_like(e[..., 0])], -1
-                )
-                jac[..., k:, 0:3] = proj @ jgeo + rot_part
-        if self.position_in_metres:
-            jac[..., 0:3] = jac[..., 0:3] / _position_scale(llh)[..., None, :]
-        return jac
-
-    def matrix(self, u: Controls = None) -> Tensor | None:
-        if not self.linearized:
-            return None
-        x = _get(u, "llh").new_zeros(*_get(u, "llh").shape[:-1], 20)
-        return self.jacobian(x, u)

@@ -1,6 +1,6 @@
 """Glue between the p000 GPS/DR simulator and the learning stack (``experiment=p000_gpsdr``).
 
-:func:`~difffilter.sim.p000_gpsdr.simulate_p000` returns its initial state and leaves the
+:func:`~difffilter.papers.p000.simulator.simulate_p000` returns its initial state and leaves the
 initial belief to a method; the data module wants ``initial_mean``/``initial_cov`` attributes.
 :func:`p000_simulator` wraps it into :class:`P000Trajectories`, with p000's belief
 ``X(0|0) = truth at t = 0``, ``P(0|0) = I_8`` (or the diagonal ``initial_std^2``), so a Hydra
@@ -20,9 +20,9 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from ..models.gpsdr import GpsDrModel
-from ..sim.p000_gpsdr import GpsDrScenario, simulate_p000
-from ..sim.sampling import as_dtype
+from ..._util import as_dtype
+from ...models.navigation.gpsdr import GpsDrModel
+from .simulator import GpsDrScenario, simulate_p000
 
 __all__ = ["P000Trajectories", "p000_simulator"]
 

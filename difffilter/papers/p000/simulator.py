@@ -39,7 +39,9 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
-from ..models.gpsdr import GPSDR_PAPER, GpsDrModel
+from ..._util import generator
+from ...models.navigation.gpsdr import GPSDR_PAPER, GpsDrModel
+from ...sim.signals import cumtrapz, moving_average
 
 __all__ = ["GpsDrScenario", "SCRIPTED_DRIVE", "simulate_p000"]
 
@@ -106,10 +108,6 @@ class GpsDrScenario:
         return GpsDrModel.paper(**opts)  # type: ignore[arg-type]
 
 
-def _generator(seed: int | torch.Generator) -> torch.Generator:
-    return seed if isinstance(seed, torch.Generator) else torch.Generator().manual_seed(int(seed))
-
-
 def _fill_segments(acc: Tensor, yaw: Tensor, segments: Sequence[tuple[float, float, float, float]], h: float) -> None:
     """Write one trajectory's segment script into fine-grid profiles ``acc``/``yaw`` ``[N]``."""
     n, t0 = acc.shape[0], 0.0
@@ -150,21 +148,6 @@ def _random_segments(gen: torch.Generator, horizon: float, speed0: float) -> lis
         segs.append(seg)
         t += seg[0]
     return segs
-
-
-def _moving_average(x: Tensor, width: int) -> Tensor:
-    """Centred moving average along the last axis with edge padding (an even ``width`` is
-    rounded up to the next odd one, so the window is symmetric)."""
-    width += 1 - width % 2
-    pad = width // 2
-    xp = torch.cat([x[..., :1].expand(*x.shape[:-1], pad), x, x[..., -1:].expand(*x.shape[:-1], width - 1 - pad)], -1)
-    c = torch.cumsum(torch.nn.functional.pad(xp, (1, 0)), -1)
-    return (c[..., width:] - c[..., :-width]) / width
-
-
-def _cumtrapz(y: Tensor, h: float, y0: Tensor) -> Tensor:
-    inc = 0.5 * h * (y[..., 1:] + y[..., :-1])
-    return torch.cat([y0[..., None], y0[..., None] + torch.cumsum(inc, -1)], -1)
 
 
 def _gauss_markov(gen: torch.Generator, shape: tuple[int, int], dt: float, std: float, tau: float, start: Tensor) -> Tensor:
@@ -214,7 +197,7 @@ def simulate_p000(
     """
     if scenario not in ("straight", "scripted", "random"):
         raise ValueError(f"scenario must be 'straight', 'scripted' or 'random', got {scenario!r}")
-    gen = _generator(seed)
+    gen = generator(seed)
     b, f64 = batch_size, torch.float64
     h = dt / substeps
     n = steps * substeps + 1
@@ -235,13 +218,13 @@ def simulate_p000(
             _fill_segments(acc[i], yaw[i], _random_segments(gen, steps * dt, float(speed0[i])), h)
     if scenario != "straight":
         width = max(int(round(1.0 / h)), 1)
-        acc, yaw = _moving_average(acc, width), _moving_average(yaw, width)
-    speed = _cumtrapz(acc, h, speed0)
-    head = _cumtrapz(yaw, h, head0)
+        acc, yaw = moving_average(acc, width), moving_average(yaw, width)
+    speed = cumtrapz(acc, h, speed0)
+    head = cumtrapz(yaw, h, head0)
     sh, ch = torch.sin(head), torch.cos(head)
     ve, vn = speed * sh, speed * ch
     ae, an = acc * sh + speed * yaw * ch, acc * ch - speed * yaw * sh
-    se, sn = _cumtrapz(ve, h, torch.zeros(b, dtype=f64)), _cumtrapz(vn, h, torch.zeros(b, dtype=f64))
+    se, sn = cumtrapz(ve, h, torch.zeros(b, dtype=f64)), cumtrapz(vn, h, torch.zeros(b, dtype=f64))
     idx = torch.arange(0, n, substeps)
     kin = torch.stack([se, ve, ae, sn, vn, an], -1)[:, idx]  # [B, steps + 1, 6]
     rate = (yaw * speed * speed / (g * ve * ve + vn * vn))[:, idx]

@@ -1,6 +1,6 @@
 """Glue between the p001 static-receiver simulator and the learning stack (``experiment=p001_colored``).
 
-:func:`~difffilter.sim.p001_static.simulate_p001` returns a :class:`P001Scenario` without the
+:func:`~difffilter.papers.p001.simulator.simulate_p001` returns a :class:`P001Scenario` without the
 ``true_params`` an oracle needs.  :func:`p001_simulator` wraps it into :class:`P001Trajectories`
 (a data-module simulator through a Hydra ``_partial_``: ``batch_size``, ``seed``, ``dtype`` and
 the data module's ``num_steps``) whose ``true_params`` name the filter's parameters:
@@ -25,11 +25,12 @@ from typing import Any
 
 import torch
 
-from ..filters.base import GaussianFilter
-from ..sim.p001_static import P001Scenario, make_p001_model, simulate_p001
-from ..sim.sampling import as_dtype
-from .data import SimulatedTrajectories
-from .selection import assign_parameters
+from ..._util import as_dtype
+from ...filters.protocol import Filter
+from ...learn.data import SimulatedTrajectories
+from ...learn.learner import FilterLearner
+from ...selection import assign_parameters
+from .simulator import P001Scenario, make_p001_model, simulate_p001
 
 __all__ = ["P001Trajectories", "p001_simulator", "start_learner"]
 
@@ -93,7 +94,7 @@ def p001_simulator(
         randomize: random location and satellite geometry per trajectory (training sets); else
             p001's fixed 7-satellite geometry (PDOP ~1.9, the paper's test).
         num_satellites: ``K`` with ``randomize`` (the fixed geometry has 7).
-        config: overrides of :data:`~difffilter.sim.p001_static.P001_CONFIG` (``psi``, ``eta_sigma``...).
+        config: overrides of :data:`~difffilter.papers.p001.simulator.P001_CONFIG` (``psi``, ``eta_sigma``...).
         static_accel_psd: the oracle's acceleration PSD (module doc).
         true_params, initial_mean, initial_cov: ignored (the in-family scenario's keys, which
             the default experiment writes into whichever scenario is chosen).
@@ -132,15 +133,13 @@ def p001_simulator(
     )
 
 
-def start_learner(filter: GaussianFilter, loss: Any, *, start_params: Mapping[str, Any] | None = None, **learner_kwargs: Any) -> Any:  # noqa: A002
+def start_learner(filter: Filter, loss: Any, *, start_params: Mapping[str, Any] | None = None, **learner_kwargs: Any) -> FilterLearner:  # noqa: A002
     """A :class:`~difffilter.learn.learner.FilterLearner` on ``filter`` after setting
     ``start_params`` (constrained values by name, as ``experiment.hand_tuned``) on it.
 
     ``run_experiment`` hands the learner a copy of the hand-tuned filter, so the hand-tuned row is
     unaffected; use as ``learner._target_`` with ``start_params: {psi: 0.0}``.
     """
-    from .learner import FilterLearner  # Lightning is imported lazily, as in difffilter.learn
-
     if start_params:
         assign_parameters(filter, dict(start_params))
     return FilterLearner(filter, loss, **learner_kwargs)

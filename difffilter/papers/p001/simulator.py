@@ -27,9 +27,13 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
-from . import geometry as geo
+from ... import geometry as geo
+from ..._util import generator
+from ...models.base import StateSpaceModel
+from ...models.navigation.clock import ConstantVelocityClock
+from ...models.navigation.pseudorange import GnssStateLayout, PseudorangeMeasurement
 
-__all__ = ["P001_CONFIG", "P001Scenario", "as_generator", "make_p001_model", "simulate_p001"]
+__all__ = ["P001_CONFIG", "P001Scenario", "make_p001_model", "simulate_p001"]
 
 P001_CONFIG: dict[str, float | tuple[float, ...]] = {
     "lat_deg": 30.5283,  # a known point (chosen; the paper's location was lost)
@@ -54,18 +58,6 @@ P001_CONFIG: dict[str, float | tuple[float, ...]] = {
     "start_offset": 10.0,  # m, norm of the initial position error
     "filter_accel_psd": 1e-4,  # m^2/s^3, "small Q for a static receiver"
 }
-
-
-def as_generator(seed: int | torch.Generator | None) -> torch.Generator:
-    """A ``torch.Generator`` from an int seed (deterministic), a generator, or None (random)."""
-    if isinstance(seed, torch.Generator):
-        return seed
-    gen = torch.Generator()
-    if seed is None:
-        gen.seed()
-    else:
-        gen.manual_seed(int(seed))
-    return gen
 
 
 @dataclass
@@ -119,7 +111,7 @@ def simulate_p001(
         reduced: reduced pseudoranges and origin-relative positions (default), else absolute.
     """
     cfg: dict = {**P001_CONFIG, **(config or {})}
-    gen = as_generator(seed)
+    gen = generator(seed)
     f64 = torch.float64
     bsz, steps, dt = batch_size, int(num_epochs or cfg["num_epochs"]), float(cfg["dt"])
 
@@ -218,9 +210,6 @@ def make_p001_model(
     coloured-noise filter wraps this model with its own ``Psi``.  The clock PSDs default to the
     simulator's truth, the acceleration PSD to ``filter_accel_psd``.
     """
-    from ..models.base import StateSpaceModel
-    from ..models.pseudorange import ConstantVelocityClock, GnssStateLayout, PseudorangeMeasurement
-
     cfg = P001_CONFIG
     dyn = ConstantVelocityClock(
         dt=float(cfg["dt"]) if dt is None else dt,  # type: ignore[arg-type]

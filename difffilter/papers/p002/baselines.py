@@ -1,77 +1,44 @@
-"""Experiment support for p002 (GPS + PDR, RC-UKF): model builder, non-filter baselines, sweep table.
+"""p002's baselines that are not Gaussian filters: "GPS only" and "PDR only".
 
-* :func:`pdr_model` builds p002's :class:`~difffilter.models.pdr.PDRModel` from standard
-  deviations a config can write (metres and degrees).
-* :class:`EstimatorBaseline` is the generic hook that lets an estimator which is *not* a Gaussian
-  filter (a function of the whole measurement record) appear as a baseline row of
-  :func:`difffilter.learn.experiment.run_experiment`: it is a :class:`GaussianFilter` whose
-  ``forward`` calls ``estimator(measurements=, mask=, controls=, initial_mean=, initial_cov=)
-  -> (mean [B, T, n], variance [B, T, n])``.  The result's ``log_likelihood`` and ``nis`` are
-  NaN (such estimators have no innovation model), so the ``nll``/``nis`` columns read ``nan``;
-  ``rmse`` columns are exact, and ``anees`` refers to the estimator's own *nominal* variance.
-* :func:`gps_only_estimate` / :func:`pdr_only_estimate` wrap p002's "GPS only" and "PDR only" rows
-  (:func:`~difffilter.sim.p002_pdr.gps_only_positions`, :func:`~difffilter.sim.p002_pdr.pdr_only_positions`).
-* :func:`sweep_table` collects a ``-m scenario.blockage_prob=...`` multirun into one markdown table
-  next to p002's published numbers (``python -m difffilter.learn.support_p002 <multirun dir>``).
+* :class:`EstimatorBaseline` lets an estimator that is a function of the whole measurement record
+  appear as a baseline row of :func:`difffilter.learn.experiment.run_experiment`: it is a
+  :class:`~difffilter.filters.protocol.Filter` (not a recursive one) whose ``forward`` calls
+  ``estimator(measurements=, mask=, controls=, initial_mean=, initial_cov=) -> (mean [B, T, n],
+  variance [B, T, n])``.  The result's ``log_likelihood`` and ``nis`` are NaN (such estimators
+  have no innovation model), so the ``nll``/``nis`` columns read ``nan``; ``rmse`` columns are
+  exact, and ``anees`` refers to the estimator's own *nominal* variance.
+* :func:`gps_only_positions` / :func:`pdr_only_positions` are p002's "GPS only" and "PDR only"
+  rows on a simulated walk; :func:`gps_only_estimate` / :func:`pdr_only_estimate` wrap them as
+  estimators with a nominal variance.
 """
 
 from __future__ import annotations
 
-import csv
 import math
-import sys
-from collections.abc import Callable, Sequence
-from pathlib import Path
+from collections.abc import Callable
 from types import SimpleNamespace
 
 import torch
 from torch import Tensor
 
-from ..filters.base import Belief, FilterResult, GaussianFilter
-from ..models.base import Controls, StateSpaceModel
-from ..models.pdr import PDRModel
-from ..sim.p002_pdr import gps_only_positions, pdr_only_positions
-from ..sim.sampling import as_dtype
+from ...filters.protocol import Belief, Filter, FilterResult
+from ...models.base import Controls, StateSpaceModel
+from ...models.navigation.pdr import wrap_angle
+from .simulator import PDRScenario
 
-__all__ = ["PAPER_RMSE", "EstimatorBaseline", "gps_only_estimate", "pdr_model", "pdr_only_estimate", "sweep_table"]
-
-#: p002's position RMSE table (m), by row and outage probability P.
-PAPER_RMSE: dict[str, dict[float, float]] = {
-    "GPS only": {0.8: 12.17, 0.6: 9.42, 0.4: 5.83, 0.2: 2.88, 0.05: 2.67},
-    "PDR only": {0.8: 8.31, 0.6: 7.98, 0.4: 8.16, 0.2: 8.23, 0.05: 7.96},
-    "UKF": {0.8: 7.38, 0.6: 7.19, 0.4: 4.46, 0.2: 3.97, 0.05: 2.41},
-    "RC-UKF": {0.8: 6.78, 0.6: 6.42, 0.4: 3.12, 0.2: 2.60, 0.05: 1.94},
-}
+__all__ = [
+    "EstimatorBaseline",
+    "gps_only_estimate",
+    "gps_only_positions",
+    "pdr_only_estimate",
+    "pdr_only_positions",
+    "position_rmse",
+]
 
 Estimator = Callable[..., tuple[Tensor, Tensor]]
 
 
-def pdr_model(
-    *,
-    Q_std: Sequence[float],
-    R_std: Sequence[float],
-    Q_structure: str = "diagonal",
-    R_structure: str = "diagonal",
-    dtype: torch.dtype | str = "float64",
-) -> PDRModel:
-    """p002's PDR model from standard deviations.
-
-    Args:
-        Q_std: per-step process noise ``[E m, N m, L m, theta deg]``.
-        R_std: ``[GPS east m, GPS north m, compass deg]``.
-        Q_structure, R_structure: learnable structure (``"diagonal"``...).
-        dtype: ``"float64"`` or a torch dtype.
-    """
-    dt = as_dtype(dtype)
-    q = torch.as_tensor(list(Q_std), dtype=dt).clone()
-    r = torch.as_tensor(list(R_std), dtype=dt).clone()
-    if q.shape != (4,) or r.shape != (3,):
-        raise ValueError(f"Q_std needs 4 and R_std 3 entries, got {tuple(q.shape)}, {tuple(r.shape)}")
-    q[3], r[2] = math.radians(float(q[3])), math.radians(float(r[2]))
-    return PDRModel(Q=torch.diag(q * q), R=torch.diag(r * r), Q_structure=Q_structure, R_structure=R_structure, dtype=dt)
-
-
-class EstimatorBaseline(GaussianFilter):
+class EstimatorBaseline(Filter):
     """A whole-trajectory estimator presented as a filter, for baseline rows (see the module docstring).
 
     ``model`` only fixes the state/measurement dimensions and the dtype check; ``estimator`` gets
@@ -80,6 +47,8 @@ class EstimatorBaseline(GaussianFilter):
     nominal per-component ``variance [B, T, n]``.  Prior = posterior.  No ``belief=`` carry-over
     (it is not a recursive filter).
     """
+
+    carries_belief = False
 
     def __init__(self, model: StateSpaceModel, *, estimator: Estimator) -> None:
         super().__init__(model)
@@ -190,53 +159,41 @@ def pdr_only_estimate(
     return torch.cat([pos, steps[..., None], heading[..., None]], -1), var
 
 
-# --- multirun collection ------------------------------------------------------------------------
-_ROW_NAMES = {"hand-tuned": "RC-UKF (hand-tuned)", "learned": "RC-UKF (learned)"}
-_PAPER_ROW = {"GPS only": "GPS only", "PDR only": "PDR only", "UKF": "UKF", "RC-UKF (hand-tuned)": "RC-UKF"}
+def gps_only_positions(scenario: PDRScenario) -> Tensor:
+    """The "GPS only" row of p002: the last surviving fix held between fixes (the initial-belief
+    position before the first one).  Returns ``[B, T, 2]``."""
+    ok = scenario.mask[..., 0]
+    B, T = ok.shape
+    gps = torch.cat([scenario.initial_mean[:, None, :2], torch.nan_to_num(scenario.measurements[..., :2])], 1)
+    idx = torch.where(ok, torch.arange(1, T + 1).expand(B, T), torch.zeros(B, T, dtype=torch.long))
+    last = idx.cummax(1).values
+    return torch.gather(gps, 1, last[..., None].expand(B, T, 2))
 
 
-def _blockage_prob(run_dir: Path) -> float | None:
-    overrides = run_dir / ".hydra" / "overrides.yaml"
-    if overrides.exists():
-        for line in overrides.read_text().splitlines():
-            if "scenario.blockage_prob=" in line:
-                return float(line.split("=", 1)[1].strip().strip("'\""))
-    config = run_dir / ".hydra" / "config.yaml"
-    if config.exists():
-        from omegaconf import OmegaConf
+def pdr_only_positions(scenario: PDRScenario, *, compass_gain: float = 0.05) -> tuple[Tensor, Tensor]:
+    """The "PDR only" row of p002: dead reckoning from the initial-belief position and heading with
+    the accelerometer step lengths and a closed-loop heading (gyro increments corrected towards
+    the compass with gain ``compass_gain`` per step).
 
-        return float(OmegaConf.load(config).scenario.blockage_prob)
-    return None
-
-
-def sweep_table(multirun_dir: str | Path, column: str = "rmse_pos") -> str:
-    """Markdown table ``filter x P`` of ``column`` from every ``results.csv`` below
-    ``multirun_dir`` (one sweep job per ``P``), with p002's published RMSE in brackets."""
-    table: dict[str, dict[float, float]] = {}
-    for csv_path in sorted(Path(multirun_dir).rglob("results.csv")):
-        prob = _blockage_prob(csv_path.parent)
-        if prob is None:
-            continue
-        with csv_path.open() as fh:
-            for row in csv.DictReader(fh):
-                name = _ROW_NAMES.get(row["filter"], row["filter"])
-                value = row.get(column, "")
-                table.setdefault(name, {})[prob] = float(value) if value not in ("", None) else math.nan
-    probs = sorted({p for v in table.values() for p in v}, reverse=True)
-    head = f"{column} (m) [p002]" if column == "rmse_pos" else column
-    lines = [f"| {head} | " + " | ".join(f"P={p:g}" for p in probs) + " |", "|---|" + "---|" * len(probs)]
-    for name, vals in table.items():
-        paper = PAPER_RMSE.get(_PAPER_ROW.get(name, ""), {})
-        cells = []
-        for p in probs:
-            cell = f"{vals[p]:.3g}" if p in vals else "-"
-            if p in paper and column == "rmse_pos":
-                cell += f" [{paper[p]:.2f}]"
-            cells.append(cell)
-        lines.append(f"| {name} | " + " | ".join(cells) + " |")
-    return "\n".join(lines) + "\n"
+    Returns positions ``[B, T, 2]`` and headings ``[B, T]``.
+    """
+    dtheta = scenario.controls["dtheta"][..., 0]
+    steps = scenario.controls["step_length"][..., 0]
+    compass = scenario.measurements[..., 2]
+    pos = scenario.initial_mean[:, :2]
+    psi = scenario.initial_mean[:, 3]
+    positions, headings = [], []
+    for k in range(dtheta.shape[1]):
+        pos = pos + steps[:, k, None] * torch.stack([torch.sin(psi), torch.cos(psi)], -1)
+        psi = psi + dtheta[:, k]
+        psi = psi + compass_gain * wrap_angle(compass[:, k] - psi)
+        positions.append(pos)
+        headings.append(psi)
+    return torch.stack(positions, 1), torch.stack(headings, 1)
 
 
-if __name__ == "__main__":  # pragma: no cover - command-line helper
-    for arg in sys.argv[2:] or ["rmse_pos"]:
-        print(sweep_table(sys.argv[1], arg))
+def position_rmse(estimate: Tensor, truth: Tensor) -> Tensor:
+    """Per-run horizontal position RMSE ``sqrt(mean_t |p_hat - p|^2)`` ``[B]`` from
+    ``estimate [B, T, >=2]`` and ``truth [B, T, >=2]`` (first two components E, N)."""
+    d = estimate[..., :2] - truth[..., :2]
+    return torch.sqrt((d * d).sum(-1).mean(-1))

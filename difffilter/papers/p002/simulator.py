@@ -1,6 +1,6 @@
 """GPS + pedestrian dead reckoning scenario of p002 (Niu & Lian 2017) with GPS outages.
 
-A pedestrian walks the 360 m path of :func:`~difffilter.sim.tracks.p002_track`; every detected
+A pedestrian walks the 360 m path of :func:`~difffilter.papers.p002.track.p002_track`; every detected
 step is one filter step.  The truth is scripted (path geometry, random step lengths and step
 timing), not drawn from the filter's model.  Sensors, per trajectory:
 
@@ -18,7 +18,7 @@ timing), not drawn from the filter's model.  Sensors, per trajectory:
 * outages: time is cut into 5 s windows, each blocked with probability ``P``; fixes inside a
   blocked window are lost.
 
-Heading is the azimuth of :mod:`difffilter.models.pdr` (clockwise from north), unwrapped.  The
+Heading is the azimuth of :mod:`difffilter.models.navigation.pdr` (clockwise from north), unwrapped.  The
 compass is delivered unwrapped next to the gyro-propagated heading (starting from the
 initial-belief heading), what a real pipeline would do before filtering; the raw wrapped
 reading is kept in ``compass_raw``.
@@ -38,18 +38,11 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
-from ..models.pdr import PDRModel, default_pdr_measurement_noise, wrap_angle
-from .tracks import Track, p002_track
+from ..._util import generator
+from ...models.navigation.pdr import PDRModel, default_pdr_measurement_noise, wrap_angle
+from .track import Track, p002_track
 
-__all__ = [
-    "BLOCKAGE_PROBS",
-    "PDRScenario",
-    "gps_only_positions",
-    "pdr_only_positions",
-    "position_rmse",
-    "simulate_p002",
-    "simulate_p002_random",
-]
+__all__ = ["BLOCKAGE_PROBS", "PDRScenario", "simulate_p002", "simulate_p002_random"]
 
 #: The outage probabilities of p002's table.
 BLOCKAGE_PROBS: tuple[float, ...] = (0.8, 0.6, 0.4, 0.2, 0.05)
@@ -100,12 +93,6 @@ class PDRScenario:
         opts: dict[str, object] = {"R": r, "dtype": self.measurements.dtype}
         opts.update(kwargs)
         return PDRModel(**opts)  # type: ignore[arg-type]
-
-
-def _generator(seed: int | torch.Generator) -> torch.Generator:
-    if isinstance(seed, torch.Generator):
-        return seed
-    return torch.Generator().manual_seed(int(seed))
 
 
 def _per_trajectory(value: float | Sequence[float] | Tensor, batch_size: int, name: str) -> Tensor:
@@ -299,7 +286,7 @@ def simulate_p002(
             ``step_scale_std``, ``step_noise_std``, ``initial_position_std`` (m),
             ``initial_heading_std`` (rad).
     """
-    gen = _generator(seed)
+    gen = generator(seed)
     track = p002_track()
     lo, hi = step_length_range
     steps = num_steps if num_steps is not None else round(track.length / (0.5 * (lo + hi)))
@@ -343,7 +330,7 @@ def simulate_p002_random(
     ``U(40, 100)`` deg/h, cold start ``U(3, 8)`` s, ``P`` drawn from ``blockage_probs`` and,
     with probability ``interference_prob``, a 40 m compass-interference stretch.  ``sensor``
     overrides as in :func:`simulate_p002`."""
-    gen = _generator(seed)
+    gen = generator(seed)
     B, f64 = batch_size, {"dtype": torch.float64}
     u = lambda *shape: torch.rand(shape, generator=gen, **f64)  # noqa: E731
     probs = torch.as_tensor(list(blockage_probs), **f64)
@@ -370,43 +357,3 @@ def simulate_p002_random(
         interference=window,
         **_defaults(**sensor),  # type: ignore[arg-type]
     )
-
-
-def gps_only_positions(scenario: PDRScenario) -> Tensor:
-    """The "GPS only" row of p002: the last surviving fix held between fixes (the initial-belief
-    position before the first one).  Returns ``[B, T, 2]``."""
-    ok = scenario.mask[..., 0]
-    B, T = ok.shape
-    gps = torch.cat([scenario.initial_mean[:, None, :2], torch.nan_to_num(scenario.measurements[..., :2])], 1)
-    idx = torch.where(ok, torch.arange(1, T + 1).expand(B, T), torch.zeros(B, T, dtype=torch.long))
-    last = idx.cummax(1).values
-    return torch.gather(gps, 1, last[..., None].expand(B, T, 2))
-
-
-def pdr_only_positions(scenario: PDRScenario, *, compass_gain: float = 0.05) -> tuple[Tensor, Tensor]:
-    """The "PDR only" row of p002: dead reckoning from the initial-belief position and heading with
-    the accelerometer step lengths and a closed-loop heading (gyro increments corrected towards
-    the compass with gain ``compass_gain`` per step).
-
-    Returns positions ``[B, T, 2]`` and headings ``[B, T]``.
-    """
-    dtheta = scenario.controls["dtheta"][..., 0]
-    steps = scenario.controls["step_length"][..., 0]
-    compass = scenario.measurements[..., 2]
-    pos = scenario.initial_mean[:, :2]
-    psi = scenario.initial_mean[:, 3]
-    positions, headings = [], []
-    for k in range(dtheta.shape[1]):
-        pos = pos + steps[:, k, None] * torch.stack([torch.sin(psi), torch.cos(psi)], -1)
-        psi = psi + dtheta[:, k]
-        psi = psi + compass_gain * wrap_angle(compass[:, k] - psi)
-        positions.append(pos)
-        headings.append(psi)
-    return torch.stack(positions, 1), torch.stack(headings, 1)
-
-
-def position_rmse(estimate: Tensor, truth: Tensor) -> Tensor:
-    """Per-run horizontal position RMSE ``sqrt(mean_t |p_hat - p|^2)`` ``[B]`` from
-    ``estimate [B, T, >=2]`` and ``truth [B, T, >=2]`` (first two components E, N)."""
-    d = estimate[..., :2] - truth[..., :2]
-    return torch.sqrt((d * d).sum(-1).mean(-1))

@@ -6,14 +6,14 @@ How the truth is produced (nothing is sampled from the filter's error model):
    ``psi`` (clockwise from north), flight-path angle ``gamma`` on a fine grid (``imu_rate`` Hz).
    Every manoeuvre uses a ``sin^2`` shape, so accelerations and rates are continuous.  Attitude:
    pitch = ``gamma``, coordinated-turn roll ``atan(V psi' / g)``; body axes right-forward-up.
-2. One strapdown mechanisation step (ENU, :func:`_mechanise`) is applied to the truth: the true
+2. One strapdown mechanisation step (ENU, :mod:`~difffilter.papers.p003.flight`) is applied to the truth: the true
    positions are integrated with it, and the true IMU increments (``dtheta``, ``dv`` in body axes)
    are obtained by *inverting* it, so error-free sensors reproduce the truth to rounding.
 3. The INS runs the same mechanisation from perturbed initial conditions with corrupted increments:
    gyro constant drift + first-order Markov drift + white noise, accelerometer Markov bias + white
    noise (p003's values).  The 20-state error truth is INS minus truth (phi-angle from the attitude
    matrices), sampled at 1 Hz, and the clock follows its own two-state model.
-4. Satellites: :class:`~difffilter.sim.geometry.CircularOrbitConstellation` (24 satellites, 6 planes),
+4. Satellites: :class:`~difffilter.geometry.CircularOrbitConstellation` (24 satellites, 6 planes),
    the ``K`` with the highest minimum elevation over the flight; slots below 5 deg are masked.
    Measurements ``drho = |p_INS - s| - (|p_true - s| + dt_u + v)`` and
    ``drhodot = e_I.(v_INS - s') - (e_G.(v_true - s') + dt_ru + v')``.
@@ -29,7 +29,7 @@ position, velocity and attitude errors are subtracted from the INS solution (the
 are not fed back).  The INS errors then stay at the GNSS level instead of drifting freely (the
 0.1 deg initial tilt alone drives a Schuler oscillation of ~10 km), so the linear error model stays
 valid.  Controls get ``"feedback" [B, T, 20]``: the correction applied at the previous epoch, which
-:class:`~difffilter.models.sins.SinsErrorDynamics` subtracts (``x_k = Phi (x_{k-1} - c_{k-1})``), so
+:class:`~difffilter.models.navigation.sins.SinsErrorDynamics` subtracts (``x_k = Phi (x_{k-1} - c_{k-1})``), so
 any filter under test sees the same corrected INS and knows the corrections.  ``truth``, the
 measurements and the INS controls at epoch ``k`` are *before* that epoch's correction.
 """
@@ -43,72 +43,31 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from . import geometry as geo
-from .p001_static import as_generator
-
-__all__ = [
-    "P003_CONFIG",
-    "PAPER_PHASES",
-    "P003Scenario",
-    "flight_profile",
-    "make_p003_model",
-    "manoeuvre_flags",
-    "reference_imm",
-    "simulate_p003",
-]
-
-#: (start s, end s, kind, magnitude): accelerate -> delta-V (m/s), climb/descend -> peak flight-path
-#: angle (deg), turn -> heading change (deg, left negative).  Times from the paper; magnitudes chosen.
-PAPER_PHASES: tuple[tuple[float, float, str, float], ...] = (
-    (0, 10, "static", 0.0),
-    (10, 20, "accelerate", 60.0),
-    (20, 60, "level", 0.0),
-    (60, 90, "climb", 10.0),
-    (90, 150, "level", 0.0),
-    (150, 160, "accelerate", 40.0),
-    (160, 500, "level", 0.0),
-    (500, 520, "turn", -60.0),
-    (520, 1000, "level", 0.0),
-    (1000, 1020, "turn", 60.0),
-    (1020, 1200, "level", 0.0),
-    (1200, 1220, "climb", 10.0),
-    (1220, 1500, "level", 0.0),
-    (1500, 1515, "climb", -10.0),
-    (1515, 1800, "level", 0.0),
+from ... import geometry as geo
+from ..._util import generator
+from .flight import (
+    P003_CONFIG,
+    PAPER_PHASES,
+    attitude_matrix,
+    clock_discrete,
+    flight_profile,
+    frame_terms,
+    gnss_differences,
+    manoeuvre_flags,
+    position_step,
+    random_phases,
+    rotation_exp,
+    rotation_log,
 )
+from .model import reference_imm
 
-P003_CONFIG: dict[str, float] = {
-    "lat_deg": 32.0209,  # [fix] the paper swaps E/N
-    "lon_deg": 118.7667,
-    "height": 0.0,
-    "heading_deg": 135.0,
-    "duration": 1800.0,
-    "gyro_constant_dph": 0.1,  # deg/h, 1-sigma per axis
-    "gyro_markov_dph": 0.1,
-    "gyro_markov_time": 3600.0,
-    "gyro_white_dph": 0.01,  # std of 1 Hz samples
-    "accel_bias_mg": 0.1,  # first-order Markov, 1-sigma
-    "accel_markov_time": 3600.0,
-    "accel_white_mg": 0.1,
-    "init_attitude_deg": 0.1,
-    "init_position": 30.0,  # m per axis
-    "init_velocity": 0.5,  # m/s per axis
-    "clock_bias": 100.0,  # m, "clock-equivalent pseudorange error"
-    "clock_drift": 1.0,  # m/s (not in the paper)
-    "clock_time": 3600.0,
-    "clock_bias_psd": 0.01,  # m^2/s (TCXO, see models.sins.sins_noise_psd)
-    "clock_drift_psd": 0.04,  # m^2/s^3
-    "sigma_range": 3.0,  # m (not in the paper)
-    "sigma_rate": 0.05,  # m/s
-    "elevation_mask_deg": 5.0,
-}
-
+__all__ = ["P003Scenario", "simulate_p003"]
 
 @dataclass
 class P003Scenario:
     """Simulated flights (batch-first, 1 Hz, ``T = duration`` steps at ``t_k = k`` s).
 
-    ``truth [B, T, 20]`` error state (``models.sins`` layout), ``measurements [B, T, 2K]``
+    ``truth [B, T, 20]`` error state (``models.navigation.sins`` layout), ``measurements [B, T, 2K]``
     (``[drho, drhodot]``), ``mask [B, T, 2K]``, ``controls`` (``llh, vel, f_n, C_bn, dt, sat_pos,
     sat_vel``), ``manoeuvre [B, T]`` (step ``k`` inside a manoeuvre phase), ``initial_mean [B, 20]``
     (zeros), ``initial_cov [20, 20]``, ``initial_truth [B, 20]`` (the error at ``t = 0``),
@@ -129,178 +88,6 @@ class P003Scenario:
     dt: float
     phases: list[list[tuple[float, float, str, float]]]
     config: dict[str, float] = field(default_factory=dict)
-
-
-# --- numpy strapdown helpers (float64; arrays [..., 3] / [..., 3, 3]) ------------------------------
-_E2, _A, _W = geo.WGS84_E2, geo.WGS84_A, geo.EARTH_RATE
-
-
-def _rot(v: np.ndarray) -> np.ndarray:
-    """Rodrigues ``exp([v x]) = cos(t) I + sin(t)/t [v x] + (1 - cos t)/t^2 v v^T`` for ``v [..., 3]``."""
-    th = np.sqrt((v * v).sum(-1))
-    small = th < 1e-4
-    ts = np.where(small, 1.0, th)
-    a = np.where(small, 1.0 - th**2 / 6.0, np.sin(ts) / ts)
-    b = np.where(small, 0.5 - th**2 / 24.0, (1.0 - np.cos(ts)) / ts**2)
-    r = b[..., None, None] * v[..., :, None] * v[..., None, :]
-    c = np.cos(th)
-    av = a[..., None] * v
-    x, y, z = av[..., 0], av[..., 1], av[..., 2]
-    r[..., 0, 0] += c
-    r[..., 1, 1] += c
-    r[..., 2, 2] += c
-    r[..., 0, 1] -= z
-    r[..., 0, 2] += y
-    r[..., 1, 0] += z
-    r[..., 1, 2] -= x
-    r[..., 2, 0] -= y
-    r[..., 2, 1] += x
-    return r
-
-
-def _log(r: np.ndarray) -> np.ndarray:
-    """Rotation vector of ``r`` (angles well below pi)."""
-    c = np.clip((np.trace(r, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)
-    th = np.arccos(c)
-    vee = 0.5 * np.stack([r[..., 2, 1] - r[..., 1, 2], r[..., 0, 2] - r[..., 2, 0], r[..., 1, 0] - r[..., 0, 1]], -1)
-    s = np.sin(th)
-    f = np.where(th < 1e-6, 1.0 + th**2 / 6.0, th / np.where(th < 1e-6, 1.0, s))
-    return vee * f[..., None]
-
-
-def _frame(llh: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """``w_in = w_ie + w_en`` (ENU), ``g^n - (2 w_ie + w_en) x v`` and the radii ``R_M + h``,
-    ``R_N + h``: everything one mechanisation step needs at ``(llh, v)``."""
-    lat, h = llh[..., 0], llh[..., 2]
-    sl, cl = np.sin(lat), np.cos(lat)
-    q = 1.0 - _E2 * sl * sl
-    rn0 = _A / np.sqrt(q)
-    rm, rn = rn0 * (1.0 - _E2) / q + h, rn0 + h
-    ve, vn, vu = v[..., 0], v[..., 1], v[..., 2]
-    wx, wy, wz = -vn / rm, _W * cl + ve / rn, _W * sl + ve * sl / (cl * rn)
-    ax, ay, az = wx, wy + _W * cl, wz + _W * sl  # 2 w_ie + w_en
-    s2 = sl * sl
-    g = 9.7803267714 * (1.0 + 5.27094e-3 * s2 + 2.32718e-5 * s2 * s2) - 3.086e-6 * h
-    acc = np.stack([-(ay * vu - az * vn), -(az * ve - ax * vu), -(ax * vn - ay * ve) - g], -1)
-    return np.stack([wx, wy, wz], -1), acc, rm, rn
-
-
-def _position_step(llh: np.ndarray, v0: np.ndarray, v1: np.ndarray, dt: float, rm: np.ndarray, rn: np.ndarray) -> np.ndarray:
-    vm = 0.5 * (v0 + v1)
-    return llh + np.stack([vm[..., 1] / rm, vm[..., 0] / (rn * np.cos(llh[..., 0])), vm[..., 2]], -1) * dt
-
-
-def _attitude(psi: np.ndarray, pitch: np.ndarray, roll: np.ndarray) -> np.ndarray:
-    """Body (right, forward, up) to ENU: ``R_z(-psi) R_x(pitch) R_y(roll)``."""
-    cz, sz, cx, sx, cy, sy = np.cos(-psi), np.sin(-psi), np.cos(pitch), np.sin(pitch), np.cos(roll), np.sin(roll)
-    o, z = np.ones_like(psi), np.zeros_like(psi)
-    rz = np.stack([np.stack([cz, -sz, z], -1), np.stack([sz, cz, z], -1), np.stack([z, z, o], -1)], -2)
-    rx = np.stack([np.stack([o, z, z], -1), np.stack([z, cx, -sx], -1), np.stack([z, sx, cx], -1)], -2)
-    ry = np.stack([np.stack([cy, z, sy], -1), np.stack([z, o, z], -1), np.stack([-sy, z, cy], -1)], -2)
-    return rz @ rx @ ry
-
-
-# --- flight profile -----------------------------------------------------------------------------
-def _random_phases(rng: np.random.Generator, duration: float) -> list[tuple[float, float, str, float]]:
-    phases: list[tuple[float, float, str, float]] = [(0.0, 10.0, "static", 0.0)]
-    speed, t = 0.0, 10.0
-    first = True
-    while t < duration:
-        if first:
-            d, kind, mag = float(rng.uniform(10, 20)), "accelerate", float(rng.uniform(50, 90))
-            first = False
-        else:
-            d = float(rng.uniform(20, 200))
-            phases.append((t, min(t + d, duration), "level", 0.0))
-            t += d
-            if t >= duration:
-                break
-            kind = str(rng.choice(["accelerate", "climb", "turn"]))
-            d = float(rng.uniform(10, 30))
-            if kind == "accelerate":
-                mag = float(rng.uniform(-40, 40))
-                mag = float(np.clip(speed + mag, 40.0, 200.0) - speed)
-            elif kind == "climb":
-                mag = float(rng.choice([-1, 1]) * rng.uniform(4, 12))
-            else:
-                mag = float(rng.choice([-1, 1]) * rng.uniform(30, 120))
-        phases.append((t, min(t + d, duration), kind, mag))
-        speed += mag if kind == "accelerate" else 0.0
-        t += d
-    return phases
-
-
-def flight_profile(phases: list[tuple[float, float, str, float]], t: np.ndarray, psi0: float) -> dict[str, np.ndarray]:
-    """Truth kinematics on the time grid ``t [N]`` (s) for a phase list like :data:`PAPER_PHASES`:
-    ``speed`` (m/s), ``psi`` heading (rad, clockwise from north, starting at ``psi0``), ``psid``
-    its rate and ``gamma`` flight-path angle (rad).  Each manoeuvre has a ``sin^2`` profile."""
-    speed, psi, psid, gamma = np.zeros_like(t), np.full_like(t, psi0), np.zeros_like(t), np.zeros_like(t)
-    for t0, t1, kind, mag in phases:
-        d = t1 - t0
-        tau = np.clip((t - t0) / d, 0.0, 1.0)
-        inside = (t > t0) & (t < t1)
-        ramp = tau - np.sin(2 * np.pi * tau) / (2 * np.pi)  # integral of 2 sin^2(pi tau)
-        bump = np.where(inside, np.sin(np.pi * tau) ** 2, 0.0)
-        if kind == "accelerate":
-            speed += mag * ramp
-        elif kind == "turn":
-            psi += math.radians(mag) * ramp
-            psid += math.radians(mag) / d * 2.0 * bump
-        elif kind == "climb":
-            gamma += math.radians(mag) * bump
-    return {"speed": speed, "psi": psi, "psid": psid, "gamma": gamma}
-
-
-def manoeuvre_flags(phases: list[tuple[float, float, str, float]], t: np.ndarray) -> np.ndarray:
-    """True where ``t`` lies strictly inside a phase other than ``static``/``level``."""
-    out = np.zeros(t.shape, dtype=bool)
-    for t0, t1, kind, _ in phases:
-        if kind not in ("static", "level"):
-            out |= (t > t0) & (t < t1)
-    return out
-
-
-def _clock_discrete(dt: float, tau: float, qb: float, qd: float) -> tuple[np.ndarray, np.ndarray]:
-    """Exact (Van Loan) discretisation of ``b' = d + w_b``, ``d' = -d/tau + w_d``."""
-    f = torch.tensor([[0.0, 1.0], [0.0, -1.0 / tau]], dtype=torch.float64)
-    q = torch.diag(torch.tensor([qb, qd], dtype=torch.float64))
-    m = torch.zeros(4, 4, dtype=torch.float64)
-    m[:2, :2], m[:2, 2:], m[2:, 2:] = -f, q, f.T
-    e = torch.linalg.matrix_exp(m * dt)
-    phi = e[2:, 2:].T
-    return phi.numpy(), (phi @ e[:2, 2:]).numpy()
-
-
-def _gnss_differences(
-    ins_llh: Tensor, ins_vel: Tensor, t_llh: Tensor, t_vel: Tensor, sp: Tensor, sv: Tensor, clock: Tensor
-) -> tuple[Tensor, Tensor]:
-    """Noise-free ``drho, drhodot [..., K]`` for INS/true ``llh, vel [..., 3]``, satellites
-    ``sp, sv [..., K, 3]`` and clock ``[..., 2]`` (see the module docstring)."""
-    p_ins, p_true = geo.geodetic_to_ecef(ins_llh), geo.geodetic_to_ecef(t_llh)
-    ci = geo.enu_rotation(ins_llh[..., 0], ins_llh[..., 1])
-    ct = geo.enu_rotation(t_llh[..., 0], t_llh[..., 1])
-    vi_e = (ins_vel[..., None, :] @ ci)[..., 0, :]
-    vt_e = (t_vel[..., None, :] @ ct)[..., 0, :]
-    a, b = p_ins[..., None, :] - sp, p_true[..., None, :] - sp
-    na, nb = a.norm(dim=-1), b.norm(dim=-1)
-    drho = na - nb - clock[..., 0, None]
-    rate = (a * (vi_e[..., None, :] - sv)).sum(-1) / na - (b * (vt_e[..., None, :] - sv)).sum(-1) / nb - clock[..., 1, None]
-    return drho, rate
-
-
-def reference_imm(config: dict[str, float] | None = None, num_satellites: int = 8) -> torch.nn.Module:
-    """The simulator's closed-loop navigation filter (``feedback="imm"``): p003's hand-tuned IMM of
-    two simplified UKFs in metre units, float64 - low mode at the sensor specification, high mode
-    PSD x 1e4 and R x 100 (p003's sigma ratios), ``Pi = diag(0.95)``, initial (0.9, 0.1)."""
-    from ..filters import SimplifiedUKF
-    from ..mixers import IMM
-
-    modes = [
-        SimplifiedUKF(make_p003_model(num_satellites=num_satellites, q_scale=qs, r_scale=rs, position_in_metres=True, config=config))
-        for qs, rs in ((1.0, 1.0), (1.0e4, 100.0))
-    ]
-    pi = torch.tensor([[0.95, 0.05], [0.05, 0.95]], dtype=torch.float64)
-    return IMM(modes, transition=pi, initial_probs=torch.tensor([0.9, 0.1], dtype=torch.float64)).double()
 
 
 def _feed_back(
@@ -326,7 +113,7 @@ def _feed_back(
     (which subtracts the previous correction ``fb[:, k - 1]`` itself), record its position/velocity/
     attitude estimate as ``fb[:, k]`` (metres) and return the corrected INS state and the belief."""
     llh_t, vel_t = torch.from_numpy(ins_llh), torch.from_numpy(ins_v)
-    drho, rate = _gnss_differences(llh_t, vel_t, t_llh, t_vel, sp[:, k], sv[:, k], clock[:, k])
+    drho, rate = gnss_differences(llh_t, vel_t, t_llh, t_vel, sp[:, k], sv[:, k], clock[:, k])
     z = torch.cat([drho - range_noise[:, k - 1], rate - rate_noise[:, k - 1]], -1)
     z_out[:, k - 1] = z
     bsz = ins_llh.shape[0]
@@ -339,9 +126,9 @@ def _feed_back(
         belief, _, _ = ref.step(belief, z, vis2[:, k - 1], u)
     c = belief["mean"].numpy()
     fb[:, k, :9] = c[:, :9]
-    _, _, rm, rn = _frame(ins_llh, ins_v)
+    _, _, rm, rn = frame_terms(ins_llh, ins_v)
     dllh = np.stack([c[:, 0] / rm, c[:, 1] / (rn * np.cos(ins_llh[:, 0])), c[:, 2]], -1)
-    return ins_llh - dllh, ins_v - c[:, 3:6], _rot(c[:, 6:9]) @ ins_c, belief
+    return ins_llh - dllh, ins_v - c[:, 3:6], rotation_exp(c[:, 6:9]) @ ins_c, belief
 
 
 def simulate_p003(
@@ -373,13 +160,13 @@ def simulate_p003(
         sensor_errors / initial_errors / measurement_noise: switch off for tests (with both error
             switches off the INS equals the truth to rounding); ``imu_noise=False`` keeps the
             biases but drops the white noises and Markov driving noises (deterministic errors).
-        position_in_metres: express truth and covariances in the ``models.sins`` metre layout.
+        position_in_metres: express truth and covariances in the ``models.navigation.sins`` metre layout.
         feedback: ``"none"`` (open-loop INS, free-inertial drift) or ``"imm"`` (closed loop, see
             the module docstring; adds ``controls["feedback"]``).
     """
     if feedback not in ("none", "imm"):
         raise ValueError(f"feedback must be 'none' or 'imm', got {feedback!r}")
-    gen = as_generator(seed)
+    gen = generator(seed)
     cfg = {**P003_CONFIG, **(config or {})}
     dur = float(duration if duration is not None else cfg["duration"])
     steps, n_in = int(round(dur)), int(round(dur)) * imu_rate
@@ -397,7 +184,7 @@ def simulate_p003(
         psi0 = np.full(bsz, math.radians(cfg["heading_deg"]))
         earth_angle, orbit_phase = np.zeros(bsz), np.zeros(bsz)
     elif profile == "random":
-        phases = [_random_phases(rng, dur) for _ in range(bsz)]
+        phases = [random_phases(rng, dur) for _ in range(bsz)]
         lat0, lon0 = np.radians(rng.uniform(-60, 60, bsz)), np.radians(rng.uniform(-180, 180, bsz))
         psi0, earth_angle, orbit_phase = rng.uniform(0, 2 * np.pi, (3, bsz))
     else:
@@ -406,16 +193,16 @@ def simulate_p003(
     speed, psi, psid, gamma = (np.stack([p[k] for p in prof]) for k in ("speed", "psi", "psid", "gamma"))
     vel = speed[..., None] * np.stack([np.cos(gamma) * np.sin(psi), np.cos(gamma) * np.cos(psi), np.sin(gamma)], -1)
     roll = np.arctan(speed * psid / 9.80665)
-    c_true = _attitude(psi, gamma, roll)  # [B, N+1, 3, 3]
+    c_true = attitude_matrix(psi, gamma, roll)  # [B, N+1, 3, 3]
     llh = np.zeros((bsz, n_in + 1, 3))
     llh[:, 0] = np.stack([lat0, lon0, np.full(bsz, cfg["height"])], -1)
     for i in range(n_in):
-        _, _, rm_i, rn_i = _frame(llh[:, i], vel[:, i])
-        llh[:, i + 1] = _position_step(llh[:, i], vel[:, i], vel[:, i + 1], dti, rm_i, rn_i)
+        _, _, rm_i, rn_i = frame_terms(llh[:, i], vel[:, i])
+        llh[:, i + 1] = position_step(llh[:, i], vel[:, i], vel[:, i + 1], dti, rm_i, rn_i)
     # true IMU increments: the mechanisation step inverted
-    w_in, acc, _, _ = _frame(llh[:, :-1], vel[:, :-1])
+    w_in, acc, _, _ = frame_terms(llh[:, :-1], vel[:, :-1])
     c0t = np.swapaxes(c_true[:, :-1], -1, -2)
-    dtheta = _log(c0t @ _rot(w_in * dti) @ c_true[:, 1:])
+    dtheta = rotation_log(c0t @ rotation_exp(w_in * dti) @ c_true[:, 1:])
     dvel = (c0t @ (vel[:, 1:] - vel[:, :-1] - acc * dti)[..., None])[..., 0]
     # sensor errors
     dph, mg = math.radians(1.0) / 3600.0, 9.80665e-3
@@ -437,12 +224,12 @@ def simulate_p003(
     d_neu = randn(bsz, 3) * cfg["init_position"] * ie
     d_v = randn(bsz, 3) * cfg["init_velocity"] * ie
     phi0 = randn(bsz, 3) * math.radians(cfg["init_attitude_deg"]) * ie
-    _, _, rm0, rn0 = _frame(llh[:, 0], vel[:, 0])
+    _, _, rm0, rn0 = frame_terms(llh[:, 0], vel[:, 0])
     ins_llh = llh[:, 0] + np.stack([d_neu[:, 0] / rm0, d_neu[:, 1] / (rn0 * np.cos(llh[:, 0, 0])), d_neu[:, 2]], -1)
-    ins_v, ins_c = vel[:, 0] + d_v, _rot(-phi0) @ c_true[:, 0]
+    ins_v, ins_c = vel[:, 0] + d_v, rotation_exp(-phi0) @ c_true[:, 0]
     # clock, satellites and measurement noise (drawn in this order, before the INS loop: the
     # closed loop needs each epoch's measurement inside it)
-    phi_c, q_c = _clock_discrete(1.0, cfg["clock_time"], cfg["clock_bias_psd"], cfg["clock_drift_psd"])
+    phi_c, q_c = clock_discrete(1.0, cfg["clock_time"], cfg["clock_bias_psd"], cfg["clock_drift_psd"])
     lq, cn = np.linalg.cholesky(q_c), randn(bsz, steps, 2)
     clk = np.zeros((bsz, steps + 1, 2))
     clk[:, 0] = randn(bsz, 2) * np.array([cfg["clock_bias"], cfg["clock_drift"]])
@@ -486,13 +273,13 @@ def simulate_p003(
     rec["llh"][:, 0], rec["vel"][:, 0], rec["eps_r"][:, 0], rec["nabla"][:, 0], rec_c[:, 0] = ins_llh, ins_v, eps_r, nabla, ins_c
     f_acc = np.zeros((bsz, 3))
     for i in range(n_in):
-        w_in, acc, rm_i, rn_i = _frame(ins_llh, ins_v)
+        w_in, acc, rm_i, rn_i = frame_terms(ins_llh, ins_v)
         dvb = dvel[:, i] + nabla * dti + acc_w[:, i]
         dvn = (ins_c @ dvb[..., None])[..., 0]
         f_acc += dvn
         v_new = ins_v + dvn + acc * dti
-        ins_c = _rot(-w_in * dti) @ ins_c @ _rot(dtheta[:, i] + (eps_b + eps_r) * dti + gyro_w[:, i])
-        ins_llh = _position_step(ins_llh, ins_v, v_new, dti, rm_i, rn_i)
+        ins_c = rotation_exp(-w_in * dti) @ ins_c @ rotation_exp(dtheta[:, i] + (eps_b + eps_r) * dti + gyro_w[:, i])
+        ins_llh = position_step(ins_llh, ins_v, v_new, dti, rm_i, rn_i)
         ins_v = v_new
         eps_r = ag * eps_r + sg * drive[:, i, :3]
         nabla = aa * nabla + sa * drive[:, i, 3:]
@@ -508,19 +295,19 @@ def simulate_p003(
     # --- error truth at the 1 Hz epochs ------------------------------------------------------------
     err = np.zeros((bsz, steps + 1, 20))
     err[..., 0:3], err[..., 3:6] = rec["llh"] - t_llh, rec["vel"] - t_vel
-    err[..., 6:9] = -_log(rec_c @ np.swapaxes(t_c, -1, -2))
+    err[..., 6:9] = -rotation_log(rec_c @ np.swapaxes(t_c, -1, -2))
     err[..., 9:12], err[..., 12:15], err[..., 15:18] = eps_b[:, None], rec["eps_r"], rec["nabla"]
     err[..., 18:20] = clk
     # --- measurements -------------------------------------------------------------------------
     if closed:
         z = z_closed
     else:
-        drho, rate = _gnss_differences(
+        drho, rate = gnss_differences(
             torch.from_numpy(rec["llh"]), torch.from_numpy(rec["vel"]), torch.from_numpy(t_llh), torch.from_numpy(t_vel), sp, sv, clock
         )
         z = torch.cat([drho[:, 1:] - range_noise, rate[:, 1:] - rate_noise], -1)
     # --- units and initial belief -------------------------------------------------------------
-    _, _, rm, rn = _frame(rec["llh"], rec["vel"])
+    _, _, rm, rn = frame_terms(rec["llh"], rec["vel"])
     scale = np.stack([rm, rn * np.cos(rec["llh"][..., 0]), np.ones_like(rm)], -1)
     if position_in_metres:
         err[..., 0:3] *= scale
@@ -568,43 +355,3 @@ def simulate_p003(
         phases=phases,
         config={**cfg, "imu_rate": float(imu_rate), "num_satellites": float(k_sat)},
     )
-
-
-def make_p003_model(
-    *,
-    num_satellites: int = 8,
-    q_scale: float = 1.0,
-    r_scale: float = 1.0,
-    linearized: bool = False,
-    position_in_metres: bool = False,
-    discretization: str = "expm",
-    Q_structure: str = "scalar",
-    R_structure: str = "scalar",
-    config: dict[str, float] | None = None,
-    dtype: torch.dtype = torch.float64,
-) -> torch.nn.Module:
-    """The 20-state error model with the simulator's noise levels times ``q_scale`` (on the PSD,
-    i.e. ``sigma_Q^2``) and ``r_scale`` (on ``R``).  p003's modes: low = ``(1, 1)``, high =
-    ``(100**2, 10**2)`` (``sigma_Q(high) = 100 sigma_Q(low)``, ``sigma_R(high) = 10 sigma_R(low)``)."""
-    from ..models.base import StateSpaceModel
-    from ..models.sins import DEG_PER_HOUR, MILLI_G, SinsErrorDynamics, SinsPseudorangeMeasurement, sins_noise_psd
-
-    cfg = {**P003_CONFIG, **(config or {})}
-    psd = sins_noise_psd(
-        gyro_white=cfg["gyro_white_dph"] * DEG_PER_HOUR, gyro_markov=cfg["gyro_markov_dph"] * DEG_PER_HOUR,
-        gyro_markov_time=cfg["gyro_markov_time"], accel_white=cfg["accel_white_mg"] * MILLI_G,
-        accel_markov=cfg["accel_bias_mg"] * MILLI_G, accel_markov_time=cfg["accel_markov_time"],
-        clock_bias_psd=cfg["clock_bias_psd"], clock_drift_psd=cfg["clock_drift_psd"],
-        position_in_metres=position_in_metres, dtype=dtype,
-    )  # fmt: skip
-    dyn = SinsErrorDynamics(
-        Q=torch.diag(psd) * q_scale, Q_structure=Q_structure, gyro_markov_time=cfg["gyro_markov_time"],
-        accel_markov_time=cfg["accel_markov_time"], clock_time=cfg["clock_time"], discretization=discretization,
-        position_in_metres=position_in_metres, dtype=dtype,
-    )  # fmt: skip
-    var = [cfg["sigma_range"] ** 2 * r_scale] * num_satellites + [cfg["sigma_rate"] ** 2 * r_scale] * num_satellites
-    meas = SinsPseudorangeMeasurement(
-        num_satellites=num_satellites, linearized=linearized, R=torch.diag(torch.tensor(var, dtype=dtype)),
-        R_structure=R_structure, position_in_metres=position_in_metres, dtype=dtype,
-    )  # fmt: skip
-    return StateSpaceModel(dyn, meas)

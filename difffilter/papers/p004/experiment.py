@@ -1,7 +1,7 @@
 """Glue between the p004 GNSS/IMU simulator, the EKF/UKF blend and the learning stack
 (``experiment=p004_blend``).
 
-* :func:`p004_simulator` wraps :func:`~difffilter.sim.p004_vehicle.simulate_p004` into
+* :func:`p004_simulator` wraps :func:`~difffilter.papers.p004.simulator.simulate_p004` into
   :class:`P004Trajectories`, which carries the initial belief the data module expects and the
   simulator's true noise levels as ``true_params`` (the oracle's values).  The truth is the
   scripted drive integrated on a fine grid, the filter integrates the same IMU readings, so the
@@ -17,9 +17,8 @@
 * :func:`blend_filter` builds the :class:`~difffilter.mixers.blend.Blend` of an EKF and a UKF
   that share *one* model (two Hydra nodes interpolating ``${model}`` would build two models with
   separately learned copies of ``Q`` and ``R``).
-* :class:`ImuSwitchingStatistics` is the ``statistics`` callable of
-  :class:`~difffilter.mixers.blend.Blend`: p004's ``(gamma, mu)`` (eqs. (1), (2)) from the
-  step's IMU controls.
+* p004's switching statistics (the ``statistics`` of the gate and the switch) are in
+  :mod:`difffilter.papers.p004.switching`.
 """
 
 from __future__ import annotations
@@ -30,19 +29,18 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import torch
-from torch import Tensor
 
-from ..filters.ekf import EKF
-from ..filters.sigma_points import SigmaPoints
-from ..filters.ukf import UKF
-from ..mixers.blend import Blend, Statistics, switching_statistics
-from ..models.base import Controls, StateSpaceModel
-from ..models.gnss_imu import GNSS_IMU_PAPER, GRAVITY, GnssImuModel
-from ..sim.p004_vehicle import GnssImuScenario, simulate_p004
-from ..sim.sampling import as_dtype
-from .data import SimulatedTrajectories
+from ..._util import as_dtype, generator
+from ...filters.ekf import EKF
+from ...filters.sigma_points import SigmaPoints
+from ...filters.ukf import UKF
+from ...learn.data import SimulatedTrajectories
+from ...mixers.blend import Blend, Statistics
+from ...models.base import StateSpaceModel
+from ...models.navigation.gnss_imu import GnssImuModel
+from .simulator import GnssImuScenario, simulate_p004
 
-__all__ = ["ImuSwitchingStatistics", "P004Trajectories", "blend_filter", "p004_simulator"]
+__all__ = ["P004Trajectories", "blend_filter", "p004_simulator"]
 
 
 @dataclass
@@ -106,7 +104,7 @@ def p004_simulator(
         **options: further :func:`simulate_p004` arguments (``velocity``, noise levels...).
     """
     dt = as_dtype(dtype)
-    gen = seed if isinstance(seed, torch.Generator) else torch.Generator().manual_seed(int(seed))
+    gen = generator(seed)
     data = simulate_p004(
         batch_size=batch_size,
         seed=gen,
@@ -144,49 +142,6 @@ def p004_simulator(
         scenario=data,
         true_params=_true_params(data),
     )
-
-
-class ImuSwitchingStatistics:
-    """p004's switching statistics from the step's IMU controls, for :class:`Blend`.
-
-    ``gamma = max(sigma_accel, sigma_gyro) / max(sigma_gnss, sigma_imu)`` (eq. (1), constant
-    here: the configured noise levels) and ``mu = sqrt(|f|^2 / 9.8^2 + |omega|^2 / pi^2)``
-    (eq. (2)) with ``f`` the accelerometer reading without gravity and ``omega`` the gyro
-    reading.  Readings of 3-axis IMUs include gravity on the up axis; it is removed.
-
-    Args:
-        sigma_accel, sigma_gyro, sigma_gnss: noise levels in eq. (1) (defaults: p004's).
-        sigma_imu: IMU observation noise in eq. (1) (default: ``sigma_accel``).
-    """
-
-    def __init__(
-        self,
-        *,
-        sigma_accel: float = GNSS_IMU_PAPER["sigma_accel"],
-        sigma_gyro: float = GNSS_IMU_PAPER["sigma_gyro"],
-        sigma_gnss: float = GNSS_IMU_PAPER["sigma_gnss"],
-        sigma_imu: float | None = None,
-    ) -> None:
-        self.sigma_accel, self.sigma_gyro, self.sigma_gnss = float(sigma_accel), float(sigma_gyro), float(sigma_gnss)
-        self.sigma_imu = float(sigma_accel if sigma_imu is None else sigma_imu)
-
-    def __call__(self, u: Controls) -> tuple[Tensor, Tensor]:
-        if not isinstance(u, dict) or "accel" not in u or "gyro" not in u:
-            raise ValueError('ImuSwitchingStatistics needs controls {"accel": [B, k], "gyro": [B, k]}')
-        accel, gyro = u["accel"], u["gyro"]
-        if accel.shape[-1] == 3:
-            accel = torch.cat([accel[..., :2], accel[..., 2:] - GRAVITY], -1)
-        return switching_statistics(
-            torch.linalg.vector_norm(accel, dim=-1),
-            torch.linalg.vector_norm(gyro, dim=-1),
-            sigma_accel=self.sigma_accel,
-            sigma_gyro=self.sigma_gyro,
-            sigma_gnss=self.sigma_gnss,
-            sigma_imu=self.sigma_imu,
-        )
-
-    def __repr__(self) -> str:
-        return f"ImuSwitchingStatistics(sigma_accel={self.sigma_accel}, sigma_gyro={self.sigma_gyro}, sigma_gnss={self.sigma_gnss})"
 
 
 def blend_filter(

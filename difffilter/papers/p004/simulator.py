@@ -28,7 +28,7 @@ variant scales each turn rate by ``U(0.7, 1.3)`` (loops flip direction with prob
 weave amplitude by ``U(0.5, 1.5)`` and the fixed speed knots by ``U(0.8, 1.2)``, then solves the
 same system (redrawing when ``v_E`` or ``v_S`` falls outside [3, 25] m/s).
 
-Sensors (module :mod:`difffilter.models.gnss_imu` for the frames and the IMU convention): the
+Sensors (module :mod:`difffilter.models.navigation.gnss_imu` for the frames and the IMU convention): the
 IMU delivers interval means ``accel = C_bn(t_{k-1}) (Delta v / T - g_n) + b_a + N(0, sigma_accel^2)``
 and ``gyro = Delta theta / T + b_g + N(0, sigma_gyro^2)`` with per-trajectory constant biases
 ``b_a ~ N(0, (0.05 mg)^2)``, ``b_g ~ N(0, (0.1 deg/h)^2)`` per axis; GNSS gives position
@@ -48,8 +48,11 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
-from ..models.gnss_imu import GNSS_IMU_PAPER, GRAVITY, GnssImuModel, p004_switching_statistics, wrap_angle
-from .p000_gpsdr import _cumtrapz, _generator, _moving_average
+from ..._util import generator
+from ...models.base import wrap_angle
+from ...models.navigation.gnss_imu import GNSS_IMU_PAPER, GRAVITY, GnssImuModel
+from ...sim.signals import cumtrapz, moving_average
+from .switching import imu_switching_statistics
 
 __all__ = ["GnssImuScenario", "P004_SPEED_KNOTS", "P004_TURNS", "simulate_p004"]
 
@@ -146,7 +149,7 @@ class GnssImuScenario:
         """p004's ``(gamma, mu)`` per step from the IMU readings (gravity removed), ``[]``/``[B, T]``."""
         p = self.params
         accel = self.controls["accel"]
-        return p004_switching_statistics(
+        return imu_switching_statistics(
             accel,
             self.controls["gyro"],
             p["sigma_accel"],
@@ -235,15 +238,15 @@ def simulate_p004(
         batch_size: number of trajectories ``B``.
         seed: integer seed or ``torch.Generator``.
         randomize: random variant of the script (per trajectory) instead of the fixed one.
-        planar: planar state layout / IMU (see :class:`~difffilter.models.gnss_imu.PlanarGnssImuDynamics`).
+        planar: planar state layout / IMU (see :class:`~difffilter.models.navigation.gnss_imu.PlanarGnssImuDynamics`).
         velocity, heading: add GNSS velocity / dual-antenna heading observations.
         gnss_outages: ``(start, end)`` windows in seconds without GNSS.
         substeps: fine integration steps per sample.
         dtype: dtype of the returned tensors (the simulation runs in float64).
-        **settings: overrides of :data:`~difffilter.models.gnss_imu.GNSS_IMU_PAPER`.
+        **settings: overrides of :data:`~difffilter.models.navigation.gnss_imu.GNSS_IMU_PAPER`.
     """
     p = {**GNSS_IMU_PAPER, **settings}
-    gen = _generator(seed)
+    gen = generator(seed)
     f64, b, dt = torch.float64, batch_size, float(p["dt"])
     steps = int(round(P004_SPEED_KNOTS[-1][0] / dt))
     h = dt / substeps
@@ -251,15 +254,15 @@ def simulate_p004(
     # the grid extends a window beyond both ends so the centred smoothing is exact there
     t = h * torch.arange(-w_speed, steps * substeps + 1 + w_speed, dtype=f64)
     crop = slice(w_speed, w_speed + steps * substeps + 1)
-    hats = _moving_average(_hat_functions(t, [k for k, _ in P004_SPEED_KNOTS]), w_speed)[:, crop]
+    hats = moving_average(_hat_functions(t, [k for k, _ in P004_SPEED_KNOTS]), w_speed)[:, crop]
     speeds, heads = [], []
     for _ in range(b):
         turns, knots = P004_TURNS, P004_SPEED_KNOTS
         for _attempt in range(50):
             if randomize:
                 turns, knots = _random_script(gen)  # type: ignore[assignment]
-            rate = _moving_average(_turn_rates(t, turns), w_turn)[crop]
-            head = _cumtrapz(rate, h, torch.zeros((), dtype=f64))
+            rate = moving_average(_turn_rates(t, turns), w_turn)[crop]
+            head = cumtrapz(rate, h, torch.zeros((), dtype=f64))
             speed, free = _solve_speeds(hats, head, knots, h)
             if not randomize or bool(((free >= 3.0) & (free <= 25.0)).all()):
                 break
@@ -267,7 +270,7 @@ def simulate_p004(
         heads.append(head)
     speed, head = torch.stack(speeds), torch.stack(heads)  # [B, N]
     vel = speed[..., None] * torch.stack([torch.sin(head), torch.cos(head)], -1)  # [B, N, 2]
-    pos = torch.stack([_cumtrapz(vel[..., i], h, torch.zeros(b, dtype=f64)) for i in range(2)], -1)
+    pos = torch.stack([cumtrapz(vel[..., i], h, torch.zeros(b, dtype=f64)) for i in range(2)], -1)
     idx = torch.arange(0, steps * substeps + 1, substeps)
     pos, vel, psi = pos[:, idx], vel[:, idx], head[:, idx]  # [B, T + 1, ...]
 

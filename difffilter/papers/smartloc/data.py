@@ -10,14 +10,13 @@ the environment variable ``DIFFFILTER_SMARTLOC``); see the README there for the 
 1,372 epochs with a fixed number of satellite slots ``K`` (17 = most satellites in one epoch, or one
 slot per satellite with ``slots="satellite"``, which coloured-noise models need) and a mask.
 Positions are ENU around the first reference point.  :meth:`SmartLocData.batch` and
-:meth:`SmartLocData.windows` give filter-ready tensors; :func:`single_epoch_wls` is the classic
-snapshot baseline and :func:`make_smartloc_model` the odometry + pseudorange model of the README's
-tightly coupled EKF (with :func:`smartloc_initial_belief`).
+:meth:`SmartLocData.windows` give filter-ready tensors.  The snapshot baseline is in
+:mod:`difffilter.papers.smartloc.wls`, the odometry + pseudorange model of the README's tightly
+coupled EKF in :mod:`difffilter.papers.smartloc.model`.
 """
 
 from __future__ import annotations
 
-import functools
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,18 +25,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from . import geometry as geo
+from ... import geometry as geo
 
-__all__ = [
-    "SmartLocBatch",
-    "SmartLocData",
-    "WlsSolution",
-    "default_smartloc_path",
-    "load_smartloc",
-    "make_smartloc_model",
-    "single_epoch_wls",
-    "smartloc_initial_belief",
-]
+__all__ = ["SmartLocBatch", "SmartLocData", "default_smartloc_path", "load_smartloc"]
 
 _INPUT = "Berlin_Potsdamer_Platz_Input.txt"
 _TRUTH = "Berlin_Potsdamer_Platz_GT.txt"
@@ -48,7 +38,7 @@ def default_smartloc_path() -> Path:
     env = os.environ.get("DIFFFILTER_SMARTLOC")
     if env:
         return Path(env)
-    return Path(__file__).resolve().parents[3] / "shared" / "data" / "real" / "smartloc_berlin_potsdamer"
+    return Path(__file__).resolve().parents[4] / "shared" / "data" / "real" / "smartloc_berlin_potsdamer"
 
 
 @dataclass
@@ -263,196 +253,3 @@ def load_smartloc(path: str | Path | None = None, *, slots: str = "epoch") -> Sm
         origin_llh=llh0,
         rotation=rot,
     )
-
-
-@dataclass
-class WlsSolution:
-    """Single-epoch fixes: ``enu [T, 3]``, ``clock [T]``, ``isb [T]`` (m), post-fit ``residuals
-    [T, K]`` (m), the satellites ``used [T, K]`` and whether each epoch was solvable ``valid [T]``."""
-
-    enu: Tensor
-    clock: Tensor
-    isb: Tensor
-    residuals: Tensor
-    used: Tensor
-    valid: Tensor
-
-
-def _snapshot_measurement(num_slots: int, origin: Tensor, sagnac: bool) -> torch.nn.Module:
-    from ..models.pseudorange import GnssStateLayout, PseudorangeMeasurement  # lazy: models may import sim
-
-    layout = GnssStateLayout(state_dim=5, velocity=None, clock_bias=3, clock_drift=None, isb=4)
-    return PseudorangeMeasurement(num_satellites=num_slots, layout=layout, sagnac=sagnac, frame_origin=origin, frame="enu", reduced=True)
-
-
-def single_epoch_wls(
-    data: SmartLocData,
-    *,
-    elevation_mask_deg: float = 15.0,
-    robust: str | None = "huber",
-    threshold: float = 1.5,
-    iterations: int = 15,
-    isb_prior_sigma: float = 100.0,
-    sagnac: bool = True,
-) -> WlsSolution:
-    """Snapshot weighted least squares per epoch (Gauss-Newton, float64) for ``[E, N, U, b, beta]``.
-
-    Model: Sagnac-corrected pseudoranges, GLONASS inter-system bias ``beta`` (weak zero-mean prior
-    ``isb_prior_sigma`` so GPS-only epochs stay solvable), weights ``1/pr_var``.  ``robust``:
-    ``"huber"`` (iteratively reweighted, ``w = min(1, c/|r_n|)``) or ``"cauchy"``
-    (``w = 1/(1 + (r_n/c)^2)``) on residuals normalised by ``sigma_j`` and the epoch's MAD scale,
-    with ``c = threshold``; ``None`` for plain WLS.  ``sagnac=False`` drops the Earth-rotation term
-    (for comparison: the README's mean east error grows from 10.8 m to 32 m).
-    """
-    h = _snapshot_measurement(data.num_slots, data.origin_ecef, sagnac)
-    z = data.reduced_pseudorange()
-    used = data.mask & (data.elevation >= elevation_mask_deg)
-    u = {"sat_pos": data.sat_enu, "glonass": data.glonass.to(torch.float64)}
-    x = z.new_zeros(data.num_epochs, 5)
-    base_w = torch.where(used, 1.0 / data.pr_var, 0.0)
-    w = base_w
-    prior = torch.zeros(5, 5, dtype=z.dtype)
-    prior[4, 4] = 1.0 / isb_prior_sigma**2
-    for it in range(iterations):
-        r = torch.where(used, z - h(x, u), 0.0)
-        if robust is not None and it >= 3:
-            rn = r * torch.sqrt(base_w)
-            absn = torch.where(used, rn.abs(), torch.nan)
-            scale = (1.4826 * torch.nanmedian(absn, dim=1).values).clamp_min(1.0)
-            rs = rn.abs() / scale[:, None]
-            if robust == "huber":
-                rw = torch.where(rs > threshold, threshold / rs.clamp_min(1e-12), 1.0)
-            elif robust == "cauchy":
-                rw = 1.0 / (1.0 + (rs / threshold) ** 2)
-            else:
-                raise ValueError(f"robust must be 'huber', 'cauchy' or None, got {robust!r}")
-            w = base_w * rw
-        jac = h.jacobian(x, u)
-        normal = jac.mT @ (w[..., None] * jac) + prior
-        rhs = jac.mT @ (w * r)[..., None] - (prior @ x[..., None])
-        x = x + torch.linalg.solve(normal, rhs)[..., 0]
-    r = torch.where(used, z - h(x, u), 0.0)
-    valid = used.sum(1) >= 5
-    nan = torch.full_like(x, torch.nan)
-    x = torch.where(valid[:, None], x, nan)
-    return WlsSolution(enu=x[:, :3], clock=x[:, 3], isb=x[:, 4], residuals=r, used=used, valid=valid)
-
-
-_NO_SOFT_CONSTANT_GATE = "gate_gradient=False detaches the hard gate's rejected ranges; it cannot be combined with gate_softness > 0"
-
-
-def make_smartloc_model(
-    data: SmartLocData,
-    *,
-    dtype: torch.dtype = torch.float64,
-    noise_from_data: bool = True,
-    robust: str | None = "reject",
-    gate: float = 2.5,
-    gate_floor: float = 8.0,
-    gate_gradient: bool = True,
-    gate_softness: float | None = None,
-    **dynamics_kwargs: float,
-) -> torch.nn.Module:
-    """Odometry + pseudorange model of the README's tightly coupled filter.
-
-    State ``[E, N, U, yaw, b, d, beta]``: :class:`~difffilter.models.pseudorange.OdometryClockDynamics`
-    driven by ``speed``/``yaw_rate`` and :class:`~difffilter.models.pseudorange.PseudorangeMeasurement`
-    in the ENU frame of ``data`` with the Sagnac term, reduced pseudoranges (float32-safe) and
-    ``R = noise_scale * diag(pr_var)``.  ``robust`` is the outlier gate (see
-    ``PseudorangeMeasurement.robust_inflation``): the urban-canyon multipath/NLOS errors make an
-    ungated filter about three times worse (README).  ``dynamics_kwargs`` go to
-    ``OdometryClockDynamics``; the default ``vertical_psd`` is 0.01 m^2/s (a car's height changes
-    slowly; a free height drifts with the multipath and drags the horizontal solution along).
-
-    ``gate_gradient=False`` (``robust="reject"`` only) detaches the variance of a rejected range
-    (``1e6 R_jj``): the estimates are the same, but a rejected range's innovation-likelihood term
-    ``log(1e6 R_jj) / 2`` becomes a constant, so it no longer pulls ``R`` (``noise_scale``)
-    down during maximum-likelihood learning (with gradients, every rejected range adds
-    ``1 / (2 noise_scale)`` to the gradient towards a smaller scale, unopposed by a residual).
-
-    ``gate_softness`` (``robust="reject"``; ``None`` or ``0``: the hard gate, the default) makes
-    the gate smooth, ``R_jj x 1e6 ** sigmoid((n_j - gate) / gate_softness)`` with ``n_j`` the
-    normalised prior residual, and registers the temperature as the learnable-by-name parameter
-    ``gate_softness`` (see ``PseudorangeMeasurement.set_gate_softness``).
-    """
-    if not isinstance(gate_gradient, bool):
-        raise TypeError(f"gate_gradient must be a bool, got {type(gate_gradient).__name__}")
-    if not gate_gradient and robust != "reject":
-        raise ValueError(f"gate_gradient=False needs robust='reject', got robust={robust!r}")
-    if not gate_gradient and gate_softness:
-        raise ValueError(_NO_SOFT_CONSTANT_GATE)
-    dynamics_kwargs = {"vertical_psd": 1e-2, **dynamics_kwargs}
-    from ..models.base import StateSpaceModel
-    from ..models.pseudorange import GnssStateLayout, OdometryClockDynamics, PseudorangeMeasurement
-
-    dyn = OdometryClockDynamics(dtype=dtype, **dynamics_kwargs)
-    cls = PseudorangeMeasurement if gate_gradient else _constant_gate_measurement_class()
-    meas = cls(
-        num_satellites=data.num_slots,
-        layout=GnssStateLayout.odometry(isb=True),
-        sagnac=True,
-        frame_origin=data.origin_ecef,
-        frame="enu",
-        reduced=True,
-        noise_from_data=noise_from_data,
-        robust=robust,
-        gate=gate,
-        gate_floor=gate_floor,
-        gate_softness=gate_softness,
-        dtype=dtype,
-    )
-    return StateSpaceModel(dyn, meas)
-
-
-@functools.lru_cache(maxsize=1)
-def _constant_gate_measurement_class() -> type:
-    """:class:`~difffilter.models.pseudorange.PseudorangeMeasurement` whose rejected ranges have
-    a parameter-free (detached) inflated variance (see ``make_smartloc_model(gate_gradient=False)``)."""
-    from ..models.pseudorange import PseudorangeMeasurement
-
-    class ConstantGatePseudorange(PseudorangeMeasurement):
-        def set_gate_softness(self, value: float | None) -> None:
-            if value:
-                raise ValueError(_NO_SOFT_CONSTANT_GATE)
-            super().set_gate_softness(value)
-
-        def robust_inflation(self, x: Tensor, u: object, r: Tensor) -> Tensor:
-            out = super().robust_inflation(x, u, r)
-            eye = torch.eye(out.shape[-1], dtype=torch.bool, device=out.device)
-            rejected = (torch.diagonal(out, dim1=-2, dim2=-1) > torch.diagonal(r, dim1=-2, dim2=-1))[..., None] & eye
-            return torch.where(rejected, out.detach(), out)
-
-    return ConstantGatePseudorange
-
-
-def smartloc_initial_belief(
-    data: SmartLocData,
-    start: Tensor,
-    *,
-    wls: WlsSolution | None = None,
-    height_sigma: float = 2.0,
-    dtype: torch.dtype = torch.float64,
-) -> tuple[Tensor, Tensor]:
-    """Initial beliefs ``[B, 7]``, ``[B, 7, 7]`` for windows starting at epochs ``start [B]``.
-
-    E, N, clock bias and ISB from the robust snapshot fix at the epoch before the window (std
-    30 m, 30 m, 10 m), clock drift from the snapshot clocks over the next 5 s (std 2 m/s).  From
-    the reference track, as a map and a known start would give them: yaw (std 10 deg; the
-    README's dead reckoning was started the same way) and height U (std ``height_sigma``): the
-    snapshot heights at the start are ~90 m off in this canyon.
-    """
-    sol = wls if wls is not None else single_epoch_wls(data)
-    idx = (start - 1).clamp_min(0)
-    means = []
-    for i in idx.tolist():
-        j = i
-        while not bool(sol.valid[j]):
-            j += 1
-        k = min(j + 25, data.num_epochs - 1)
-        drift = (sol.clock[k] - sol.clock[j]) / (data.times[k] - data.times[j])
-        d = data.truth_enu[min(i + 5, data.num_epochs - 1)] - data.truth_enu[i]
-        yaw = torch.atan2(d[1], d[0])
-        means.append(torch.stack([sol.enu[j, 0], sol.enu[j, 1], data.truth_enu[i, 2], yaw, sol.clock[j], drift, sol.isb[j]]))
-    sd = torch.tensor([30.0, 30.0, height_sigma, np.radians(10.0), 30.0, 2.0, 10.0], dtype=torch.float64)
-    mean = torch.stack(means).to(dtype)
-    return mean, torch.diag(sd * sd).to(dtype).expand(mean.shape[0], 7, 7).clone()

@@ -1,6 +1,6 @@
 """Synthetic pseudoranges on the smartLoc drive's geometry (training data for ``smartloc_sim``).
 
-The real drive (:mod:`difffilter.sim.smartloc`) is one trajectory, so learning on it means
+The real drive (:mod:`difffilter.papers.smartloc.data`) is one trajectory, so learning on it means
 learning on windows of one 165 s stretch.  This module makes as many *semi-synthetic* drives as
 wanted from a segment of it: the geometry is real (reference track, satellite positions and
 visibility, the receiver's reported variances, the car's odometry with its real errors), while
@@ -23,7 +23,7 @@ the receiver clock and the pseudorange errors are drawn from an explicit error m
 :func:`calibrate_error_model` estimates the model's numbers from a segment of the real drive
 with the reference track (moment estimates; see its docstring), so a simulator calibrated on the
 training part of the drive uses nothing from the held-out part.  The measurement function is the
-filter's own (:func:`~difffilter.sim.smartloc.make_smartloc_model`: Sagnac term, reduced
+filter's own (:func:`~difffilter.papers.smartloc.model.make_smartloc_model`: Sagnac term, reduced
 pseudoranges), so the synthetic ranges differ from the real ones only by their errors and clock.
 """
 
@@ -36,7 +36,8 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
-from .smartloc import SmartLocBatch, SmartLocData, make_smartloc_model
+from .data import SmartLocBatch, SmartLocData
+from .model import make_smartloc_model
 
 __all__ = ["PseudorangeErrorModel", "calibrate_error_model", "simulate_smartloc_drives", "synthetic_drive"]
 

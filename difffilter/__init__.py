@@ -1,6 +1,7 @@
 """difffilter: batched, differentiable Kalman-family filters in PyTorch."""
 
 from . import linalg, mixers, params
+from ._util import as_dtype
 from .filters import EKF, RCUKF, UKF, ColoredNoiseUKF, Filter, GaussianFilter, KalmanFilter, RecursiveFilter, SimplifiedUKF, SquareRootUKF
 from .mixers import IMM, Blend
 from .models import FunctionalModel, LinearModel, StateSpaceModel
@@ -21,6 +22,7 @@ __all__ = [
     "SimplifiedUKF",
     "SquareRootUKF",
     "StateSpaceModel",
+    "as_dtype",
     "linalg",
     "mixers",
     "params",

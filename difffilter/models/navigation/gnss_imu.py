@@ -30,8 +30,12 @@ from torch import Tensor
 from ...linalg import block_diag
 from ...params import Positive, register_constrained, register_covariance
 from ..base import Controls, DynamicsModel, MeasurementModel, StateSpaceModel, wrap_angle
+from ..layout import StateLayout, describe
+from .quaternion import quaternion_multiply, quaternion_to_rotation, rotation_quaternion
 
 __all__ = [
+    "PLANAR_LAYOUT",
+    "SPATIAL_LAYOUT",
     "GNSS_IMU_PAPER",
     "GRAVITY",
     "GnssImuDynamics",
@@ -72,39 +76,18 @@ GNSS_IMU_PAPER: dict[str, float] = {
 }
 
 
-def quaternion_multiply(p: Tensor, q: Tensor) -> Tensor:
-    """Hamilton product ``p * q`` of ``[..., 4]`` quaternions ``[w, x, y, z]``."""
-    pw, px, py, pz = p.unbind(-1)
-    qw, qx, qy, qz = q.unbind(-1)
-    return torch.stack(
-        [
-            pw * qw - px * qx - py * qy - pz * qz,
-            pw * qx + px * qw + py * qz - pz * qy,
-            pw * qy - px * qz + py * qw + pz * qx,
-            pw * qz + px * qy - py * qx + pz * qw,
-        ],
-        -1,
-    )
-
-
-def quaternion_to_rotation(q: Tensor) -> Tensor:
-    """Rotation matrix ``[..., 3, 3]`` (body -> navigation) of unit quaternions ``[..., 4]``."""
-    w, x, y, z = q.unbind(-1)
-    rows = [
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ]
-    return torch.stack([torch.stack(r, -1) for r in rows], -2)
-
-
-def _rotation_quaternion(theta: Tensor) -> Tensor:
-    """Quaternion of the rotation vector ``theta [..., 3]``, smooth at 0."""
-    sq = (theta * theta).sum(-1, keepdim=True)
-    # sqrt(sq + tiny) keeps the gradient finite at theta = 0; sin(n/2)/n = sinc(n / 2 pi) / 2.
-    n = torch.sqrt(sq + 1e-30)
-    return torch.cat([torch.cos(n / 2), 0.5 * torch.sinc(n / (2 * math.pi)) * theta], -1)
-
+#: Planar state ``[p_e, p_n, v_e, v_n, psi, b_f, b_l, b_g]`` and the 16-state ``[p, v, q, b_a, b_g]``.
+PLANAR_LAYOUT = StateLayout(
+    names=("p_e", "p_n", "v_e", "v_n", "psi", "b_f", "b_l", "b_g"),
+    units=("m", "m", "m/s", "m/s", "rad", "m/s^2", "m/s^2", "rad/s"),
+    position=(0, 1),
+    angles=(4,),
+)
+SPATIAL_LAYOUT = StateLayout(
+    names=("p_e", "p_n", "p_u", "v_e", "v_n", "v_u", "q_w", "q_x", "q_y", "q_z", "b_ax", "b_ay", "b_az", "b_gx", "b_gy", "b_gz"),
+    units=("m",) * 3 + ("m/s",) * 3 + ("1",) * 4 + ("m/s^2",) * 3 + ("rad/s",) * 3,
+    position=(0, 1, 2),
+)
 
 def _step_dt(u: Controls, default: Tensor) -> Tensor:
     if isinstance(u, dict) and "dt" in u:
@@ -184,7 +167,7 @@ class GnssImuDynamics(_ImuNoise):
         a = (quaternion_to_rotation(q) @ (accel - ba)[..., None])[..., 0]
         a = a + torch.tensor([0.0, 0.0, -GRAVITY], dtype=x.dtype, device=x.device)
         v_new = v + a * dt
-        q_new = quaternion_multiply(q, _rotation_quaternion((gyro - bg) * dt))
+        q_new = quaternion_multiply(q, rotation_quaternion((gyro - bg) * dt))
         q_new = q_new / torch.linalg.vector_norm(q_new, dim=-1, keepdim=True)
         p_new = p + 0.5 * (v + v_new) * dt
         shape = torch.broadcast_shapes(p_new.shape, q_new.shape[:-1] + (3,))
@@ -376,3 +359,13 @@ class GnssImuModel(StateSpaceModel):
             dtype=dtype,
         )
         super().__init__(cls(dt=dt, dtype=dtype, **noise), measurement)
+        p = GNSS_IMU_PAPER
+        if planar:
+            layout, mean0 = PLANAR_LAYOUT, [0.0, 0.0, 0.0, 10.0, 0.0, 0.0, 0.0, 0.0]
+            std = [p["sigma_gnss"]] * 2 + [0.1] * 2 + [p["sigma_heading"]] + [p["sigma_accel_bias"]] * 2 + [p["sigma_gyro_bias"]]
+        else:
+            layout, mean0 = SPATIAL_LAYOUT, [0.0] * 4 + [10.0, 0.0, 1.0] + [0.0] * 9
+            std = [p["sigma_gnss"]] * 3 + [0.1] * 3 + [p["sigma_heading"] / 2] * 4
+            std += [p["sigma_accel_bias"]] * 3 + [p["sigma_gyro_bias"]] * 3
+        # the default belief: the start of p004's drive (north at 10 m/s) with the simulator's spreads
+        describe(self, layout=layout, learn=["sigma_accel", "sigma_gyro", "R"], initial_mean=mean0, initial_var=[s * s for s in std])

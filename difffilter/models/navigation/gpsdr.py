@@ -17,9 +17,11 @@ from torch import Tensor
 from ...linalg import block_diag
 from ...params import Interval, Positive, register_constrained, register_covariance
 from ..base import Controls, DynamicsModel, MeasurementModel, StateSpaceModel
+from ..layout import StateLayout, describe
 from ..motion import ConstantAcceleration, CurrentStatistical, Singer, _Kinematic
 
 __all__ = [
+    "GPSDR_LAYOUT",
     "GPSDR_PAPER",
     "GpsDrDynamics",
     "GpsDrMeasurement",
@@ -42,6 +44,14 @@ GPSDR_PAPER: dict[str, float] = {
     "a_max": 3.0,
 }
 
+
+#: State of the p000 GPS/DR models: east/north position, velocity, acceleration, gyro drift
+#: ``eps`` and odometer scale ``psi``.
+GPSDR_LAYOUT = StateLayout(
+    names=("s_e", "v_e", "a_e", "s_n", "v_n", "a_n", "eps", "psi"),
+    units=("m", "m/s", "m/s^2", "m", "m/s", "m/s^2", "rad/s", "1"),
+    position=(0, 3),
+)
 
 class GpsDrDynamics(DynamicsModel):
     """p000 dynamics: a two-axis manoeuvre model for ``[s_e, v_e, a_e, s_n, v_n, a_n]`` plus the
@@ -247,6 +257,14 @@ class GpsDrModel(StateSpaceModel):
             dtype=dtype,
         )
         super().__init__(dynamics, measurement)
+        mean0, cov0 = gpsdr_paper_initial_belief()
+        describe(
+            self,
+            layout=GPSDR_LAYOUT,
+            learn=[*kin.parametrizations.keys(), "R"],  # type: ignore[union-attr]
+            initial_mean=mean0.tolist(),
+            initial_var=torch.diagonal(cov0).tolist(),
+        )
 
     @classmethod
     def paper(cls, *, motion: str = "paper", g: float = 1.0, dtype: torch.dtype | None = None, **overrides: float) -> GpsDrModel:

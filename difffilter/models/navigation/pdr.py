@@ -19,8 +19,10 @@ from torch import Tensor
 
 from ...params import check_covariance, register_covariance
 from ..base import Controls, DynamicsModel, MeasurementModel, StateSpaceModel, wrap_angle
+from ..layout import StateLayout, describe
 
 __all__ = [
+    "PDR_LAYOUT",
     "PDRMeasurement",
     "PDRModel",
     "PDRStepDynamics",
@@ -30,6 +32,9 @@ __all__ = [
     "wrap_measurement",
 ]
 
+
+#: State of p002's PDR model: east/north position, step length and azimuth (clockwise from north).
+PDR_LAYOUT = StateLayout(names=("E", "N", "L", "theta"), units=("m", "m", "m", "rad"), position=(0, 1), angles=(3,))
 
 def wrap_measurement(z: Tensor, z_pred: Tensor, angular_components: tuple[int, ...] = (2,)) -> Tensor:
     """``z`` with each angular component moved by a multiple of ``2 pi`` to lie within ``pi`` of
@@ -182,6 +187,8 @@ class PDRModel(StateSpaceModel):
             PDRStepDynamics(Q=Q, Q_structure=Q_structure, dtype=dtype),
             PDRMeasurement(R=R, R_structure=R_structure, dtype=dtype),
         )
+        var0 = [1.0, 1.0, 0.01, math.radians(10.0) ** 2]  # the simulator's initial position and heading spreads
+        describe(self, layout=PDR_LAYOUT, learn=["Q", "R"], initial_mean=[0.0, 0.0, 0.7, 0.0], initial_var=var0)
 
     @property
     def angular_components(self) -> tuple[int, ...]:

@@ -30,10 +30,11 @@ from torch import Tensor
 from ... import geometry as geo
 from ..._util import generator
 from ...models.base import StateSpaceModel
+from ...models.layout import StateLayout, describe
 from ...models.navigation.clock import ConstantVelocityClock
 from ...models.navigation.pseudorange import GnssStateLayout, PseudorangeMeasurement
 
-__all__ = ["P001_CONFIG", "P001Scenario", "make_p001_model", "simulate_p001"]
+__all__ = ["P001_CONFIG", "P001_LAYOUT", "P001Geometry", "P001Scenario", "make_p001_model", "simulate_p001"]
 
 P001_CONFIG: dict[str, float | tuple[float, ...]] = {
     "lat_deg": 30.5283,  # a known point (chosen; the paper's location was lost)
@@ -59,6 +60,13 @@ P001_CONFIG: dict[str, float | tuple[float, ...]] = {
     "filter_accel_psd": 1e-4,  # m^2/s^3, "small Q for a static receiver"
 }
 
+
+#: State of the p001 receiver model: ECEF offsets from the known point, velocity, clock bias and drift.
+P001_LAYOUT = StateLayout(
+    names=("x", "y", "z", "vx", "vy", "vz", "clock_bias", "clock_drift"),
+    units=("m", "m", "m", "m/s", "m/s", "m/s", "m", "m/s"),
+    position=(0, 1, 2),
+)
 
 @dataclass
 class P001Scenario:
@@ -227,4 +235,24 @@ def make_p001_model(
         R_structure=R_structure,
         dtype=dtype,
     )
-    return StateSpaceModel(dyn, meas)
+    cfg_var = [cfg["p0_position_var"]] * 3 + [cfg["p0_velocity_var"]] * 3 + [cfg["p0_clock_var"], cfg["p0_drift_var"]]
+    return describe(
+        StateSpaceModel(dyn, meas),
+        layout=P001_LAYOUT,
+        learn=["accel_psd", "clock_bias_psd", "clock_drift_psd", "R"],
+        initial_mean=[0.0] * 6 + [float(cfg["clock_bias"]), 0.0],  # type: ignore[arg-type]
+        initial_var=cfg_var,  # type: ignore[arg-type]
+        controls=P001Geometry(num_satellites=num_satellites),
+    )  # type: ignore[return-value]
+
+
+class P001Geometry:
+    """In-family inputs of the p001 model: ``(batch_size, num_steps, generator, dtype) ->
+    {"sat_pos", "dt"}`` of random static receivers (:func:`simulate_p001` with ``randomize``)."""
+
+    def __init__(self, *, num_satellites: int) -> None:
+        self.num_satellites = int(num_satellites)
+
+    def __call__(self, batch_size: int, num_steps: int, gen: torch.Generator, dtype: torch.dtype) -> dict[str, Tensor]:
+        sc = simulate_p001(batch_size, gen, dtype, randomize=True, num_satellites=self.num_satellites, num_epochs=num_steps)
+        return sc.controls

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 
@@ -10,8 +11,9 @@ import torch
 
 from ..._util import as_dtype
 from ...models.navigation.pdr import PDRModel
+from .simulator import simulate_p002_random
 
-__all__ = ["pdr_model"]
+__all__ = ["P002Steps", "pdr_model"]
 
 
 def pdr_model(
@@ -36,4 +38,14 @@ def pdr_model(
     if q.shape != (4,) or r.shape != (3,):
         raise ValueError(f"Q_std needs 4 and R_std 3 entries, got {tuple(q.shape)}, {tuple(r.shape)}")
     q[3], r[2] = math.radians(float(q[3])), math.radians(float(r[2]))
-    return PDRModel(Q=torch.diag(q * q), R=torch.diag(r * r), Q_structure=Q_structure, R_structure=R_structure, dtype=dt)
+    model = PDRModel(Q=torch.diag(q * q), R=torch.diag(r * r), Q_structure=Q_structure, R_structure=R_structure, dtype=dt)
+    model.defaults = dataclasses.replace(model.defaults, controls=P002Steps())
+    return model
+
+
+class P002Steps:
+    """In-family inputs of the PDR model: ``(batch_size, num_steps, generator, dtype) ->
+    {"dtheta", "dt", "step_length"}`` of randomised p002 walks (:func:`simulate_p002_random`)."""
+
+    def __call__(self, batch_size: int, num_steps: int, gen: torch.Generator, dtype: torch.dtype) -> dict[str, torch.Tensor]:
+        return simulate_p002_random(batch_size, seed=gen, dtype=dtype, num_steps=num_steps).controls

@@ -19,6 +19,7 @@ wrapper and the empirical transition matrix (the mode-switch report is in
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -41,6 +42,7 @@ from .model import make_p003_model
 from .simulator import P003Scenario, simulate_p003
 
 __all__ = [
+    "P003Flights",
     "empirical_transition",
     "group_scale_q",
     "model_options",
@@ -84,7 +86,25 @@ def p003_mode_model(
         else:
             model.dynamics.Q = torch.tensor(float(q_scale), dtype=dt)
         model.measurement.R = torch.tensor(float(r_scale), dtype=dt)
+    flights = P003Flights(num_satellites=int(num_satellites), position_in_metres=position_in_metres)
+    model.defaults = dataclasses.replace(model.defaults, controls=flights)
     return model
+
+
+class P003Flights:
+    """In-family inputs of the SINS model: ``(batch_size, num_steps, generator, dtype) ->`` the
+    INS and satellite controls of random open-loop flights of ``num_steps`` seconds
+    (:func:`simulate_p003` with ``profile="random"``)."""
+
+    def __init__(self, *, num_satellites: int, position_in_metres: bool) -> None:
+        self.num_satellites, self.position_in_metres = int(num_satellites), bool(position_in_metres)
+
+    def __call__(self, batch_size: int, num_steps: int, gen: torch.Generator, dtype: torch.dtype) -> dict[str, torch.Tensor]:
+        sc = simulate_p003(
+            batch_size, gen, dtype, profile="random", duration=float(num_steps), num_satellites=self.num_satellites,
+            position_in_metres=self.position_in_metres,
+        )  # fmt: skip
+        return sc.controls
 
 
 def group_scale_q(imm: Filter, q_groups: str | None) -> Filter:

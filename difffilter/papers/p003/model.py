@@ -4,16 +4,35 @@
 
 from __future__ import annotations
 
+import math
+
 import torch
 
+from ... import geometry as geo
 from ...filters import SimplifiedUKF
 from ...mixers import IMM
 from ...models.base import StateSpaceModel
+from ...models.layout import StateLayout, describe
 from ...models.navigation.sins import DEG_PER_HOUR, MILLI_G, SinsErrorDynamics, sins_noise_psd
 from ...models.navigation.sins_measurement import SinsPseudorangeMeasurement
 from .flight import P003_CONFIG
 
-__all__ = ["make_p003_model", "reference_imm"]
+__all__ = ["SINS_LAYOUT", "make_p003_model", "reference_imm", "sins_layout"]
+
+_ERRORS = ("dv_E", "dv_N", "dv_U", "phi_E", "phi_N", "phi_U", "eps_bx", "eps_by", "eps_bz")
+_ERRORS += ("eps_rx", "eps_ry", "eps_rz", "nabla_x", "nabla_y", "nabla_z", "dt_u", "dt_ru")
+_UNITS = ("m/s",) * 3 + ("rad",) * 3 + ("rad/s",) * 6 + ("m/s^2",) * 3 + ("m", "m/s")
+
+
+def sins_layout(position_in_metres: bool = True) -> StateLayout:
+    """The 20-state error layout of :mod:`difffilter.models.navigation.sins` (position errors in
+    north/east/up metres, or latitude/longitude radians and height)."""
+    head = (("dN", "dE", "dh"), ("m", "m", "m")) if position_in_metres else (("dL", "dlambda", "dh"), ("rad", "rad", "m"))
+    return StateLayout(names=head[0] + _ERRORS, units=head[1] + _UNITS, position=(0, 1, 2))
+
+
+#: :func:`sins_layout` in metres (the experiments' choice).
+SINS_LAYOUT = sins_layout(True)
 
 
 def reference_imm(config: dict[str, float] | None = None, num_satellites: int = 8) -> torch.nn.Module:
@@ -62,4 +81,12 @@ def make_p003_model(
         num_satellites=num_satellites, linearized=linearized, R=torch.diag(torch.tensor(var, dtype=dtype)),
         R_structure=R_structure, position_in_metres=position_in_metres, dtype=dtype,
     )  # fmt: skip
-    return StateSpaceModel(dyn, meas)
+    # default belief: zero error with the simulator's initial spreads (its `sd0`)
+    rm, rn = geo.radii_of_curvature(torch.tensor(math.radians(cfg["lat_deg"]), dtype=torch.float64))
+    d = cfg["init_position"]
+    pos = [d] * 3 if position_in_metres else [d / float(rm), d / (float(rn) * math.cos(math.radians(cfg["lat_deg"]))), d]
+    sd = pos + [cfg["init_velocity"]] * 3 + [math.radians(cfg["init_attitude_deg"])] * 3 + [cfg["gyro_constant_dph"] * DEG_PER_HOUR] * 6
+    sd += [cfg["accel_bias_mg"] * MILLI_G] * 3 + [cfg["clock_bias"], cfg["clock_drift"]]
+    model = StateSpaceModel(dyn, meas)
+    var = [s * s for s in sd]
+    return describe(model, layout=sins_layout(position_in_metres), learn=["Q", "R"], initial_mean=[0.0] * 20, initial_var=var)

@@ -3,7 +3,7 @@ simulator, the switching statistics, the experiment set-up (``experiment=p004_bl
 paired comparison.  The GNSS/IMU model is :class:`difffilter.models.GnssImuModel`, the blend
 :class:`difffilter.mixers.Blend`."""
 
-from .experiment import P004Trajectories, blend_filter, p004_simulator
+from .experiment import P004Imu, P004Trajectories, blend_filter, gnss_imu_model, p004_simulator
 from .paired import paired_report, per_run_errors
 from .simulator import P004_SPEED_KNOTS, P004_TURNS, GnssImuScenario, simulate_p004
 from .switching import ImuSwitchingStatistics, imu_switching_statistics, switching_statistics
@@ -13,8 +13,10 @@ __all__ = [
     "P004_TURNS",
     "GnssImuScenario",
     "ImuSwitchingStatistics",
+    "P004Imu",
     "P004Trajectories",
     "blend_filter",
+    "gnss_imu_model",
     "imu_switching_statistics",
     "p004_simulator",
     "paired_report",

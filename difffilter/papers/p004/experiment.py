@@ -23,6 +23,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -40,7 +41,7 @@ from ...models.base import StateSpaceModel
 from ...models.navigation.gnss_imu import GnssImuModel
 from .simulator import GnssImuScenario, simulate_p004
 
-__all__ = ["P004Trajectories", "blend_filter", "p004_simulator"]
+__all__ = ["P004Imu", "P004Trajectories", "blend_filter", "gnss_imu_model", "p004_simulator"]
 
 
 @dataclass
@@ -170,3 +171,26 @@ def blend_filter(
         temperature=temps,  # type: ignore[arg-type]
         spread=spread,
     )
+
+
+class P004Imu:
+    """In-family inputs of the GNSS/IMU model: ``(batch_size, num_steps, generator, dtype) ->
+    {"accel", "gyro"}``, the IMU readings of randomised p004 drives (:func:`simulate_p004`,
+    at most 400 steps of 1 s)."""
+
+    def __init__(self, *, planar: bool) -> None:
+        self.planar = bool(planar)
+
+    def __call__(self, batch_size: int, num_steps: int, gen: torch.Generator, dtype: torch.dtype) -> dict[str, torch.Tensor]:
+        data = simulate_p004(batch_size=batch_size, seed=gen, randomize=True, planar=self.planar, dtype=dtype)
+        if num_steps > data.measurements.shape[1]:
+            raise ValueError(f"num_steps must be at most {data.measurements.shape[1]} (p004's drive), got {num_steps}")
+        return {k: v[:, :num_steps] for k, v in data.controls.items()}
+
+
+def gnss_imu_model(**options: Any) -> GnssImuModel:
+    """:class:`~difffilter.models.GnssImuModel` (``options`` as its keywords) whose defaults draw
+    in-family IMU readings from p004's randomised drives (:class:`P004Imu`), for configs."""
+    model = GnssImuModel(**options)
+    model.defaults = dataclasses.replace(model.defaults, controls=P004Imu(planar=bool(options.get("planar", False))))
+    return model

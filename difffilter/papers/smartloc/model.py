@@ -11,12 +11,24 @@ import torch
 from torch import Tensor
 
 from ...models.base import StateSpaceModel
+from ...models.layout import StateLayout, describe
 from ...models.navigation.clock import OdometryClockDynamics
 from ...models.navigation.pseudorange import GnssStateLayout, PseudorangeMeasurement
 from .data import SmartLocData
 from .wls import WlsSolution, single_epoch_wls
 
-__all__ = ["make_smartloc_model", "smartloc_initial_belief"]
+__all__ = ["SMARTLOC_LAYOUT", "DriveWindows", "make_smartloc_model", "smartloc_initial_belief"]
+
+#: State of the odometry + pseudorange model: ENU position (origin: the first reference point),
+#: yaw (from east, counter-clockwise), clock bias and drift, GLONASS inter-system bias.
+SMARTLOC_LAYOUT = StateLayout(
+    names=("E", "N", "U", "yaw", "clock_bias", "clock_drift", "isb"),
+    units=("m", "m", "m", "rad", "m", "m/s", "m"),
+    position=(0, 1, 2),
+    angles=(3,),
+)
+_LEARN = ("noise_scale", "speed_sigma", "yaw_rate_sigma", "horizontal_psd", "vertical_psd", "yaw_psd")
+_LEARN += ("clock_bias_psd", "clock_drift_psd", "isb_psd")
 
 _NO_SOFT_CONSTANT_GATE = "gate_gradient=False detaches the hard gate's rejected ranges; it cannot be combined with gate_softness > 0"
 
@@ -79,7 +91,32 @@ def make_smartloc_model(
         gate_softness=gate_softness,
         dtype=dtype,
     )
-    return StateSpaceModel(dyn, meas)
+    sd = [30.0, 30.0, 2.0, float(np.radians(10.0)), 30.0, 2.0, 10.0]  # smartloc_initial_belief's spreads
+    return describe(
+        StateSpaceModel(dyn, meas),
+        layout=SMARTLOC_LAYOUT,
+        learn=[n for n in _LEARN if n != "noise_scale" or noise_from_data],
+        initial_mean=[0.0] * 7,
+        initial_var=[s * s for s in sd],
+        controls=DriveWindows(data),
+    )  # type: ignore[return-value]
+
+
+class DriveWindows:
+    """In-family inputs of the smartLoc model: ``(batch_size, num_steps, generator, dtype) ->`` the
+    real drive's controls (satellite positions, receiver variances, odometry) over windows of
+    ``num_steps`` epochs starting at random epochs."""
+
+    def __init__(self, data: SmartLocData, *, elevation_mask_deg: float = 15.0) -> None:
+        self.data, self.elevation_mask_deg = data, float(elevation_mask_deg)
+
+    def __call__(self, batch_size: int, num_steps: int, gen: torch.Generator, dtype: torch.dtype) -> dict[str, Tensor]:
+        total = self.data.num_epochs
+        if not 1 <= num_steps <= total:
+            raise ValueError(f"num_steps must lie in [1, {total}] (the drive's epochs), got {num_steps}")
+        full = self.data.batch(dtype, elevation_mask_deg=self.elevation_mask_deg)
+        starts = torch.randint(0, total - num_steps + 1, (batch_size,), generator=gen).tolist()
+        return {k: torch.cat([v[:, s : s + num_steps] for s in starts], 0) for k, v in full.controls.items()}
 
 
 @functools.lru_cache(maxsize=1)

@@ -176,6 +176,4 @@ def tracking_model(
     if learn is None:
         own = list(dynamics.parametrizations.keys()) if parametrize.is_parametrized(dynamics) else []  # type: ignore[union-attr]
         learn = own + (["R"] if R_structure != "fixed" else [])
-    return describe(
-        model, layout=layout, learn=learn, initial_mean=initial_mean, initial_var=initial_var, reference=reference, name=name
-    )  # type: ignore[return-value]
+    return describe(model, layout=layout, learn=learn, initial_mean=initial_mean, initial_var=initial_var, reference=reference, name=name)  # type: ignore[return-value]

@@ -59,5 +59,3 @@ def ct_model(
         R_structure="diagonal",
     )
     return describe(model, layout=CT_LAYOUT, learn=["Q", "R"], initial_mean=initial_mean, initial_var=initial_var, name="ct")
-
-

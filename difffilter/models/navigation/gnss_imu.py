@@ -89,6 +89,7 @@ SPATIAL_LAYOUT = StateLayout(
     position=(0, 1, 2),
 )
 
+
 def _step_dt(u: Controls, default: Tensor) -> Tensor:
     if isinstance(u, dict) and "dt" in u:
         return u["dt"][..., 0]

@@ -53,6 +53,7 @@ GPSDR_LAYOUT = StateLayout(
     position=(0, 3),
 )
 
+
 class GpsDrDynamics(DynamicsModel):
     """p000 dynamics: a two-axis manoeuvre model for ``[s_e, v_e, a_e, s_n, v_n, a_n]`` plus the
     sensor-error states.

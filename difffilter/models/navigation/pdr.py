@@ -36,6 +36,7 @@ __all__ = [
 #: State of p002's PDR model: east/north position, step length and azimuth (clockwise from north).
 PDR_LAYOUT = StateLayout(names=("E", "N", "L", "theta"), units=("m", "m", "m", "rad"), position=(0, 1), angles=(3,))
 
+
 def wrap_measurement(z: Tensor, z_pred: Tensor, angular_components: tuple[int, ...] = (2,)) -> Tensor:
     """``z`` with each angular component moved by a multiple of ``2 pi`` to lie within ``pi`` of
     ``z_pred``: ``z_i <- z_pred_i + wrap(z_i - z_pred_i)``, so ``z - z_pred`` is the wrapped

@@ -63,9 +63,6 @@ def p000_simulator(
     scenario: str = "random",
     initial_std: Sequence[float] | None = None,
     gps_outages: Sequence[Sequence[float]] = (),
-    initial_mean: Any = None,
-    initial_cov: Any = None,
-    true_params: Any = None,
     **options: Any,
 ) -> P000Trajectories:
     """Simulate p000 drives for learning.
@@ -78,9 +75,6 @@ def p000_simulator(
         scenario: ``"straight"``, ``"scripted"`` or ``"random"``.
         initial_std: ``[8]`` standard deviations of ``P(0|0)`` (default p000's ``I_8``).
         gps_outages: ``(start, end)`` windows in seconds without GPS.
-        initial_mean, initial_cov, true_params: keys of the generic in-family scenario schema
-            (an experiment overlay may merge them into any scenario); ignored, since a p000
-            drive has its own initial belief and no true filter parameters.
         **options: further :func:`simulate_p000` arguments (``g``, ``sigma_gps``, ...).
     """
     dt = as_dtype(dtype)

@@ -80,9 +80,6 @@ def p001_simulator(
     num_satellites: int = 7,
     config: Mapping[str, Any] | None = None,
     static_accel_psd: float = 1e-10,
-    true_params: Any = None,
-    initial_mean: Any = None,
-    initial_cov: Any = None,
 ) -> P001Trajectories:
     """Simulate p001 static receivers for learning.
 
@@ -96,8 +93,6 @@ def p001_simulator(
         num_satellites: ``K`` with ``randomize`` (the fixed geometry has 7).
         config: overrides of :data:`~difffilter.papers.p001.simulator.P001_CONFIG` (``psi``, ``eta_sigma``...).
         static_accel_psd: the oracle's acceleration PSD (module doc).
-        true_params, initial_mean, initial_cov: ignored (the in-family scenario's keys, which
-            the default experiment writes into whichever scenario is chosen).
     """
     dt = as_dtype(dtype)
     sc = simulate_p001(

@@ -68,6 +68,7 @@ P001_LAYOUT = StateLayout(
     position=(0, 1, 2),
 )
 
+
 @dataclass
 class P001Scenario:
     """Simulated static epochs (batch-first).

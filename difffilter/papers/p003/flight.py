@@ -77,7 +77,6 @@ P003_CONFIG: dict[str, float] = {
 }
 
 
-
 def rotation_exp(v: np.ndarray) -> np.ndarray:
     """Rodrigues ``exp([v x]) = cos(t) I + sin(t)/t [v x] + (1 - cos t)/t^2 v v^T`` for ``v [..., 3]``."""
     th = np.sqrt((v * v).sum(-1))

@@ -63,6 +63,7 @@ from .model import reference_imm
 
 __all__ = ["P003Scenario", "simulate_p003"]
 
+
 @dataclass
 class P003Scenario:
     """Simulated flights (batch-first, 1 Hz, ``T = duration`` steps at ``t_k = k`` s).

@@ -146,9 +146,6 @@ def smartloc_simulator(
     elevation_mask_deg: float = 15.0,
     slots: str = "satellite",
     path: str | None = None,
-    true_params: Any = None,
-    initial_mean: Any = None,
-    initial_cov: Any = None,
 ) -> SmartLocTrajectories:
     """Windows of the real drive for the split whose seed is ``seed``.
 
@@ -165,8 +162,6 @@ def smartloc_simulator(
         slots: ``"satellite"`` (one slot per satellite: what coloured-noise models need) or
             ``"epoch"``.
         path: data folder (default: the loader's).
-        true_params, initial_mean, initial_cov: ignored (the in-family scenario's keys, which
-            the default experiment writes into whichever scenario is chosen).
     """
     split = _split_of(seed, split_seeds)
     if split is None:
@@ -219,9 +214,6 @@ def smartloc_synthetic_simulator(
     elevation_mask_deg: float = 15.0,
     slots: str = "satellite",
     path: str | None = None,
-    true_params: Any = None,
-    initial_mean: Any = None,
-    initial_cov: Any = None,
 ) -> SmartLocTrajectories:
     """Synthetic drives for the splits in ``synthetic``, the real drive for the others.
 

@@ -123,6 +123,7 @@ class DriveWindows:
 def _constant_gate_measurement_class() -> type:
     """:class:`~difffilter.models.navigation.pseudorange.PseudorangeMeasurement` whose rejected ranges have
     a parameter-free (detached) inflated variance (see ``make_smartloc_model(gate_gradient=False)``)."""
+
     class ConstantGatePseudorange(PseudorangeMeasurement):
         def set_gate_softness(self, value: float | None) -> None:
             if value:

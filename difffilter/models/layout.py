@@ -37,7 +37,7 @@ def _indices(name: str, values: Sequence[int], dim: int) -> tuple[int, ...]:
     return out
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class StateLayout:
     """Names and units of the ``n`` state components and which are positions / angles.
 
@@ -89,7 +89,7 @@ class StateLayout:
         return cls(names=tuple(names), units=tuple(units), position=tuple(range(0, axes * order, order)))
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class ModelDefaults:
     """What a model brings to an experiment that leaves it open (module docstring).
 

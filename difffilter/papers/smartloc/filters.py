@@ -30,7 +30,7 @@ class Shared(nn.Module):
     (a constraint for ``register_constrained``; ``right_inverse`` takes the scalar or ``size``
     equal values and inverts ``inner`` on it)."""
 
-    def __init__(self, inner: nn.Module, size: int) -> None:
+    def __init__(self, *, inner: nn.Module, size: int) -> None:
         super().__init__()
         self.inner, self.size = inner, int(size)
 
@@ -56,7 +56,7 @@ class SharedPsiColoredUKF(ColoredNoiseUKF):
     def __init__(self, model: StateSpaceModel, *, psi: float = 0.0, sigma_points: SigmaPoints | None = None) -> None:
         super().__init__(model, psi=psi, sigma_points=sigma_points)
         current = self.psi.detach()
-        register_constrained(self, "psi", current[0].clone(), Shared(Bounded(-1.0, 1.0), current.shape[0]))
+        register_constrained(self, "psi", current[0].clone(), Shared(inner=Bounded(-1.0, 1.0), size=current.shape[0]))
 
 
 class _Epochs:

@@ -98,7 +98,7 @@ def make_smartloc_model(
         learn=[n for n in _LEARN if n != "noise_scale" or noise_from_data],
         initial_mean=[0.0] * 7,
         initial_var=[s * s for s in sd],
-        controls=DriveWindows(data),
+        controls=DriveWindows(data=data),
     )  # type: ignore[return-value]
 
 
@@ -107,7 +107,7 @@ class DriveWindows:
     real drive's controls (satellite positions, receiver variances, odometry) over windows of
     ``num_steps`` epochs starting at random epochs."""
 
-    def __init__(self, data: SmartLocData, *, elevation_mask_deg: float = 15.0) -> None:
+    def __init__(self, *, data: SmartLocData, elevation_mask_deg: float = 15.0) -> None:
         self.data, self.elevation_mask_deg = data, float(elevation_mask_deg)
 
     def __call__(self, batch_size: int, num_steps: int, gen: torch.Generator, dtype: torch.dtype) -> dict[str, Tensor]:

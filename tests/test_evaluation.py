@@ -21,10 +21,10 @@ from difffilter.learn.evaluation import evaluate_runs, read_per_run, write_per_r
 from difffilter.learn.experiment import evaluate_filter, format_results
 from difffilter.learn.intervals import block_bootstrap_difference, gap_closed
 from difffilter.learn.replicates import perturb_initial_values, replicate_seed
-from difffilter.learn.selection import select_parameters
 from difffilter.mixers import IMM
 from difffilter.models import LinearModel
 from difffilter.params import Interval, ScaledMatrix, register_constrained
+from difffilter.selection import select_parameters
 from difffilter.sim.sampling import sample_trajectories
 from tests.test_configs import CONF
 

@@ -23,11 +23,11 @@ import torch
 
 from difffilter.filters import EKF, UKF
 from difffilter.filters.sigma_points import MerweScaled
-from difffilter.learn.support_p004 import p004_simulator
 from difffilter.mixers import Blend
 from difffilter.models import LinearModel
 from difffilter.models.base import DynamicsModel, StateSpaceModel
-from difffilter.models.gnss_imu import GnssImuModel, PlanarGnssImuDynamics
+from difffilter.models.navigation.gnss_imu import GnssImuModel, PlanarGnssImuDynamics
+from difffilter.papers.p004 import p004_simulator
 
 f64 = torch.float64
 STEPS, RUNS = 80, 4

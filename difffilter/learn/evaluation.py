@@ -38,7 +38,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from ..filters.base import FilterResult, GaussianFilter
+from ..filters.protocol import Filter, FilterResult
 from .consistency import Consistency, block_truth_indices, consistency, nees_by_block, nis_per_step, run_average
 from .metrics import component_error, finalize_metrics, metric_sums, nees, nll_per_step
 from .stability import bounded_jitter
@@ -126,7 +126,7 @@ def per_run_metrics(
 
 @torch.no_grad()
 def evaluate_runs(
-    filt: GaussianFilter,
+    filt: Filter,
     data: Any,
     *,
     initial_mean: Tensor | None = None,

@@ -28,7 +28,7 @@ from torch import Tensor, nn
 from torch.nn.utils import parametrize
 
 from ..params import Bounded, Interval, RowStochastic
-from .selection import assign_parameters, parameter_owners
+from ..selection import assign_parameters, parameter_owners
 
 __all__ = ["SEED_STRIDE", "perturb_initial_values", "replicate_seed"]
 

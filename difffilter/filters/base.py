@@ -26,17 +26,20 @@ import torch
 from torch import Tensor, nn
 from torch.nn.utils import parametrize
 
-from ..linalg import joseph_update, safe_cholesky, symmetrize
+from ..linalg import joseph_update, psd_sqrt, safe_cholesky, symmetrize
 from ..models.base import Controls, StateSpaceModel
+from .diffuse import DIFFUSE_COV, DIFFUSE_SCALE, diffuse_update, drop_resolved, measurement_sensitivity, split_prior, total_cov
 
 __all__ = [
     "Belief",
     "FilterResult",
     "GaussianFilter",
     "StepInfo",
+    "diffuse_gaussian_update",
     "gaussian_update",
     "mask_measurement_system",
     "slice_controls",
+    "square_root_deviations",
     "detach_belief",
 ]
 
@@ -47,13 +50,16 @@ _LOG_2PI = math.log(2.0 * math.pi)
 @dataclass
 class StepInfo:
     """Per-step update statistics ``[B]``: log-likelihood ``log N(e; 0, S)`` of the observed
-    components, normalised innovation squared ``e^T S^{-1} e`` and number of observed components."""
+    components, normalised innovation squared ``e^T S^{-1} e`` and number of observed components.
+    ``untrusted [B]`` (bool, optional) marks updates whose rounding error cannot be vouched for
+    (see :func:`gaussian_update`)."""
 
     log_likelihood: Tensor
     nis: Tensor
     num_observed: Tensor
     innovation: Tensor | None = None
     innovation_cov: Tensor | None = None
+    untrusted: Tensor | None = None
 
 
 @dataclass
@@ -68,7 +74,11 @@ class FilterResult:
             freedom (observed measurement components).
         final_belief: the full belief after the last step, to continue filtering (TBPTT).
         extras: filter-specific per-step outputs (IMM: ``mode_probs [B, T, M]``...), also
-            reachable as attributes (``result.mode_probs``).
+            reachable as attributes (``result.mode_probs``).  Every filter of this package
+            adds ``untrusted [B, T]`` (bool): steps whose update could not be vouched for to
+            ``1e-2`` relative (a repaired innovation covariance, a variance reduction beyond
+            what the update's form resolves in this dtype, a non-finite or negative posterior
+            variance).
     """
 
     mean: Tensor
@@ -130,6 +140,16 @@ def mask_measurement_system(
     return innovation, cov, deviations * mo[..., None, :], mo.sum(-1)
 
 
+def _trust_limits(dtype: torch.dtype) -> tuple[float, float, float]:
+    """``(switch, standard, joseph)``: the posterior/prior variance ratio below which the
+    ``P - K S K^T`` form switches to a Joseph-type form (``64 sqrt(eps)``: measured errors of
+    that form reach ``~20 eps / ratio``, so it keeps about half of the digits), and the ratios
+    below which each form's relative rounding error (``eps / ratio``, resp. ``eps^2 / ratio``)
+    exceeds ``1e-2``."""
+    eps = torch.finfo(dtype).eps
+    return 64.0 * eps**0.5, eps / 1e-2, eps * eps / 1e-2
+
+
 def gaussian_update(
     mean: Tensor,
     cov: Tensor,
@@ -139,6 +159,8 @@ def gaussian_update(
     mask: Tensor | None,
     *,
     joseph: tuple[Tensor, Tensor] | None = None,
+    joseph_fallback: tuple[Tensor, Tensor] | None = None,
+    sigma_fallback: tuple[Tensor, Tensor, Tensor, Tensor | None] | None = None,
 ) -> tuple[Tensor, Tensor, StepInfo]:
     """Linear-Gaussian measurement update shared by every Kalman-family filter.
 
@@ -150,32 +172,129 @@ def gaussian_update(
         mask: ``[B, m]`` bool, True = observed (``None``: all observed).
         joseph: ``(H [B, m, n], R [B, m, m])`` to use the Joseph form (KF/EKF) instead of
             ``P - K S K^T``.
+        joseph_fallback: ``(H, R)`` for the Joseph form on the batch elements where
+            ``P - K S K^T`` cancels (below).
+        sigma_fallback: ``(dx [B, S, n], dz [B, S, m], wc [S], R [B, m, m] or None)``, the
+            sigma-point deviations of an unscented update, for its Joseph form on those
+            elements: ``sum_i wc_i (dx_i - K dz_i)(dx_i - K dz_i)^T + K R K^T`` (``R`` None when
+            the points already carry the measurement noise).
 
     Returns the posterior mean and covariance and the :class:`StepInfo`.  The gain is never
     formed through an inverse: with ``S = L L^T``, ``W = L^{-1} P_xz^T`` gives
     ``K e = W^T L^{-1} e`` and ``K S K^T = W^T W``.
+
+    ``P - K S K^T`` subtracts two numbers of the prior's size, so a variance that one update
+    reduces by a factor ``rho`` keeps about ``eps / rho`` relative accuracy; the Joseph forms
+    subtract only inside ``I - K H`` and keep about ``eps^2 / rho``.  Where a posterior variance
+    falls below ``64 sqrt(eps)`` times its prior (``9.5e-7`` in float64, ``2.2e-2`` in float32)
+    and a fallback is given, those batch elements are recomputed in the fallback's Joseph form;
+    ``StepInfo.untrusted`` marks elements whose form still cannot resolve the reduction to
+    ``1e-2``, whose ``S`` needed jitter, or whose posterior variances are negative or not finite.
     """
     innovation, innovation_cov, cross_cov, num_obs = mask_measurement_system(innovation, innovation_cov, cross_cov, mask)
-    chol = safe_cholesky(innovation_cov).factor
+    chol, jitter = safe_cholesky(innovation_cov)
     rhs = torch.cat([cross_cov.mT, innovation[..., None]], -1)  # [B, m, n+1]
     sol = torch.linalg.solve_triangular(chol, rhs, upper=False)
     w, v = sol[..., :-1], sol[..., -1]  # W [B, m, n], v = L^{-1} e [B, m]
     new_mean = mean + (w.mT @ v[..., None])[..., 0]
+    switch, std_limit, joseph_limit = _trust_limits(mean.dtype)
+    prior_var = torch.diagonal(cov, dim1=-2, dim2=-1)
     if joseph is None:
         new_cov = symmetrize(cov - w.mT @ w)
+        limit: Tensor | float = std_limit
+        if joseph_fallback is not None or sigma_fallback is not None:
+            lossy = ~(torch.diagonal(new_cov, dim1=-2, dim2=-1) >= switch * prior_var).all(-1)
+            if bool(lossy.any()):
+                gain = torch.linalg.solve_triangular(chol.mT, w, upper=True).mT  # K = W^T L^{-1}
+                if joseph_fallback is not None:
+                    stable = joseph_update(cov, gain, *_masked_system(*joseph_fallback, mask))
+                else:
+                    stable = _sigma_joseph(gain, *sigma_fallback, mask)  # type: ignore[misc]
+                new_cov = torch.where(lossy[..., None, None], stable, new_cov)
+                limit = torch.where(lossy, joseph_limit, std_limit)[..., None]
     else:
-        h, r = joseph
         gain = torch.linalg.solve_triangular(chol.mT, w, upper=True).mT  # K = W^T L^{-1}
-        if mask is not None:
-            mo = mask.to(h.dtype)
-            h = h * mo[..., :, None]
-            r = r * (mo[..., :, None] * mo[..., None, :])
-        new_cov = joseph_update(cov, gain, h, r)
+        new_cov = joseph_update(cov, gain, *_masked_system(*joseph, mask))
+        limit = joseph_limit
+    post_var = torch.diagonal(new_cov, dim1=-2, dim2=-1)
+    untrusted = ~(post_var >= limit * prior_var).all(-1) | (jitter != 0)
     maha = (v * v).sum(-1)
     logdet = 2.0 * torch.log(torch.diagonal(chol, dim1=-2, dim2=-1)).sum(-1)
     loglik = -0.5 * (maha + logdet + num_obs * _LOG_2PI)
-    info = StepInfo(loglik, maha, num_obs, innovation, innovation_cov)
+    info = StepInfo(loglik, maha, num_obs, innovation, innovation_cov, untrusted)
     return new_mean, new_cov, info
+
+
+def diffuse_gaussian_update(
+    belief: Belief,
+    innovation: Tensor,
+    deviations: tuple[Tensor, Tensor, Tensor, Tensor | None],
+    mask: Tensor | None,
+    *,
+    obs_matrix: Tensor | None = None,
+    diffuse_cross: Tensor | None = None,
+    diffuse_innovation: Tensor | None = None,
+) -> tuple[Belief, StepInfo]:
+    """:func:`gaussian_update` for a belief with a diffuse part (``"diffuse_cov"``).
+
+    ``deviations`` ``(dx [B, S, n], dz [B, S, m], wc [S], R or None)`` describe the finite part's
+    joint moments (:func:`~difffilter.filters.diffuse.diffuse_update`); the diffuse part enters
+    through the measurement Jacobian ``obs_matrix`` ``H [B, m, n]`` (or ``[m, n]``), or directly
+    through ``P_inf H^T`` and ``H P_inf H^T`` (``diffuse_cross``, ``diffuse_innovation``) when
+    the measurement is not a function of the current state alone.  Returns the belief entries
+    ``mean``, ``cov`` (finite part), ``diffuse_cov``, ``diffuse_scale`` and the step's
+    :class:`StepInfo`; ``untrusted`` marks a finite part whose reduction exceeds what the
+    Joseph form resolves (as in :func:`gaussian_update`) or non-finite results.
+    """
+    mean, p_inf, scale = belief["mean"], belief[DIFFUSE_COV], belief[DIFFUSE_SCALE]
+    if diffuse_cross is None or diffuse_innovation is None:
+        if obs_matrix is None:
+            raise ValueError("diffuse_gaussian_update needs obs_matrix or (diffuse_cross, diffuse_innovation)")
+        h = obs_matrix.expand(*mean.shape[:-1], *obs_matrix.shape[-2:])
+        diffuse_cross = p_inf @ h.mT
+        diffuse_innovation = symmetrize(h @ diffuse_cross)
+    new_mean, p_fin, new_inf, loglik, nis, num_obs = diffuse_update(
+        mean, p_inf, scale, innovation, deviations, diffuse_cross, diffuse_innovation, mask
+    )
+    limit = _trust_limits(mean.dtype)[2]
+    var = torch.diagonal(p_fin, dim1=-2, dim2=-1)
+    untrusted = ~torch.isfinite(loglik) | ~(var >= limit * torch.diagonal(belief["cov"], dim1=-2, dim2=-1)).all(-1)
+    post = {"mean": new_mean, "cov": p_fin, DIFFUSE_COV: new_inf, DIFFUSE_SCALE: scale}
+    return post, StepInfo(loglik, nis, num_obs, innovation, None, untrusted)
+
+
+def square_root_deviations(cov: Tensor, obs_matrix: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """``(dx [B, n, n], dz [B, n, m], wc [n])``: the columns of a square root of ``cov`` and their
+    images under ``obs_matrix`` with unit weights, the deviations form of ``(P, P H^T, H P H^T)``
+    that :func:`diffuse_gaussian_update` takes from filters without sigma points."""
+    dx = psd_sqrt(cov).factor.mT
+    return dx, dx @ obs_matrix.mT, torch.ones(cov.shape[-1], dtype=cov.dtype, device=cov.device)
+
+
+def _masked_noise(r: Tensor, mask: Tensor | None) -> Tensor:
+    """``R`` with the rows and columns of unobserved components zeroed."""
+    if mask is None:
+        return r
+    mo = mask.to(r.dtype)
+    return r * (mo[..., :, None] * mo[..., None, :])
+
+
+def _masked_system(h: Tensor, r: Tensor, mask: Tensor | None) -> tuple[Tensor, Tensor]:
+    """``H`` and ``R`` with the rows (and columns) of unobserved components zeroed."""
+    if mask is None:
+        return h, r
+    return h * mask.to(h.dtype)[..., :, None], _masked_noise(r, mask)
+
+
+def _sigma_joseph(gain: Tensor, dx: Tensor, dz: Tensor, wc: Tensor, r: Tensor | None, mask: Tensor | None) -> Tensor:
+    """Joseph form of an unscented update from its sigma-point deviations (``gaussian_update``)."""
+    if mask is not None:
+        dz = dz * mask.to(dz.dtype)[..., None, :]
+    dev = dx - dz @ gain.mT
+    out = (dev * wc[:, None]).mT @ dev
+    if r is not None:
+        out = out + gain @ _masked_noise(r, mask) @ gain.mT
+    return symmetrize(out)
 
 
 class GaussianFilter(nn.Module):
@@ -187,6 +306,10 @@ class GaussianFilter(nn.Module):
 
     #: Belief entries that :meth:`step` / ``forward`` record per step besides mean/cov.
     record_keys: tuple[str, ...] = ()
+    #: Split an initial covariance that is dangerously wide against the measurement noise into
+    #: an exact diffuse part (:mod:`difffilter.filters.diffuse`); set False on an instance to
+    #: run every step in plain covariance form.
+    diffuse_prior: bool = True
 
     def __init__(self, model: StateSpaceModel) -> None:
         super().__init__()
@@ -221,6 +344,36 @@ class GaussianFilter(nn.Module):
     def finalize_belief(self, belief: Belief) -> Belief:
         """Hook after each update (e.g. to drop predict-only entries)."""
         return belief
+
+    # -- diffuse priors -----------------------------------------------------------------------
+    def sensitivity(self, mean: Tensor, u: Controls) -> Tensor:
+        """Rows ``g [B, k, n]`` that tell which prior directions the measurements resolve, and
+        how sharply (:func:`~difffilter.filters.diffuse.measurement_sensitivity`)."""
+        return measurement_sensitivity(self.model, mean, u)
+
+    def attach_diffuse(self, belief: Belief, diffuse_cov: Tensor, scale: Tensor) -> Belief:
+        """Add a diffuse part ``scale * diffuse_cov`` to a belief built by :meth:`init_belief`."""
+        return {**belief, DIFFUSE_COV: diffuse_cov, DIFFUSE_SCALE: scale}
+
+    def start_belief(self, mean: Tensor, cov: Tensor, u: Controls = None) -> Belief:
+        """The belief before the first step: :meth:`init_belief`, with the dangerously wide
+        directions of ``cov`` moved to an exact diffuse part when :attr:`diffuse_prior` is set.
+
+        ``u`` are the first step's inputs, with which the model is evaluated at ``mean``; a
+        model that cannot be evaluated without them keeps ``cov`` whole when ``u`` is None.
+        """
+        if self.diffuse_prior:
+            try:
+                rows = self.sensitivity(mean, u)
+            except (KeyError, TypeError):
+                if u is not None:
+                    raise
+                rows = None
+            split = None if rows is None else split_prior(cov, rows)
+            if split is not None:
+                p_fin, p_inf, kappa = split
+                return self.attach_diffuse(self.init_belief(mean, p_fin), p_inf, kappa)
+        return self.init_belief(mean, cov)
 
     # -- validation -------------------------------------------------------------------------
     def _param_dtype(self) -> torch.dtype | None:
@@ -343,14 +496,18 @@ class GaussianFilter(nn.Module):
         with parametrize.cached():
             prior = self.predict(belief, controls)
             post, info = self.update(prior, z[:, 0], None if mk is None else mk[:, 0], controls)
-            return self.finalize_belief(post), prior, info
+            return drop_resolved(self.finalize_belief(post)), prior, info
 
-    def initial_belief(self, initial_mean: Tensor, initial_cov: Tensor, batch_size: int | None = None) -> Belief:
-        """Validated starting belief for :meth:`step` (broadcast to ``batch_size``)."""
+    def initial_belief(
+        self, initial_mean: Tensor, initial_cov: Tensor, batch_size: int | None = None, *, controls: Controls = None
+    ) -> Belief:
+        """Validated starting belief for :meth:`step` (broadcast to ``batch_size``); ``controls``
+        (``[B, ...]``, the first step's inputs) for the diffuse-prior check of a model that needs
+        them (:meth:`start_belief`)."""
         bsz = batch_size if batch_size is not None else (initial_mean.shape[0] if initial_mean.ndim == 2 else 1)
         mean = self._check_mean(initial_mean, bsz, self.state_dim, initial_mean.dtype)
         cov = self._check_cov(initial_cov, bsz, self.state_dim, initial_cov.dtype)
-        return self.init_belief(mean, cov)
+        return self.start_belief(mean, cov, controls)
 
     def forward(
         self,
@@ -375,28 +532,31 @@ class GaussianFilter(nn.Module):
                 window in truncated back-propagation); replaces ``initial_mean``/``initial_cov``.
         """
         z, mask3, mean0, cov0 = self.check_inputs(measurements, initial_mean, initial_cov, mask, controls)
-        if belief is None:
-            if mean0 is None or cov0 is None:
-                raise ValueError("initial_mean and initial_cov are required unless belief= is given")
-            belief = self.init_belief(mean0, cov0)
+        if belief is None and (mean0 is None or cov0 is None):
+            raise ValueError("initial_mean and initial_cov are required unless belief= is given")
         steps = z.shape[1]
         means, covs, pmeans, pcovs, lls, nis, nobs = [], [], [], [], [], [], []
         extras: dict[str, list[Tensor]] = {}
         with parametrize.cached():
+            if belief is None:
+                belief = self.start_belief(mean0, cov0, slice_controls(controls, 0))
             for t in range(steps):
                 u = slice_controls(controls, t)
                 prior = self.predict(belief, u)
                 post, info = self.update(prior, z[:, t], None if mask3 is None else mask3[:, t], u)
                 belief = self.finalize_belief(post)
                 means.append(belief["mean"])
-                covs.append(belief["cov"])
+                covs.append(total_cov(belief))
                 pmeans.append(prior["mean"])
-                pcovs.append(prior["cov"])
+                pcovs.append(total_cov(prior))
                 lls.append(info.log_likelihood)
                 nis.append(info.nis)
                 nobs.append(info.num_observed)
                 for k, v in self.record(belief).items():
                     extras.setdefault(k, []).append(v)
+                if info.untrusted is not None:
+                    extras.setdefault("untrusted", []).append(info.untrusted)
+                belief = drop_resolved(belief)
         stack: Any = lambda xs: torch.stack(xs, 1)  # noqa: E731
         return FilterResult(
             mean=stack(means),

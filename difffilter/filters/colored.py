@@ -5,10 +5,12 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ..linalg import safe_cholesky, symmetrize
+from ..linalg import psd_sqrt, symmetrize
 from ..models.base import Controls, StateSpaceModel
 from ..params import Bounded, register_constrained
-from .base import Belief, StepInfo, gaussian_update
+from .base import Belief, StepInfo, diffuse_gaussian_update, gaussian_update
+from .diffuse import DIFFUSE_COV, propagate_diffuse
+from .jacobians import measurement_matrix, transition_matrix
 from .sigma_points import SigmaPoints
 from .ukf import UKF, expand_controls, weighted_mean, weighted_moments
 
@@ -88,7 +90,13 @@ class ColoredNoiseUKF(UKF):
         xm, dev, pf = weighted_moments(prop, wm, wc)
         q, _ = self._noise_matrices(mean, u)
         cross = (dev * wc[:, None]).mT @ (chi - mean[..., None, :])
-        return {**belief, "mean": xm, "cov": symmetrize(pf + q), "cross_cov": cross, "prev_mean": mean, "prev_cov": cov}
+        out = {**belief, "mean": xm, "cov": symmetrize(pf + q), "cross_cov": cross, "prev_mean": mean, "prev_cov": cov}
+        if DIFFUSE_COV in belief:
+            jac = transition_matrix(self.model.dynamics, mean, u)
+            out["prev_diffuse_cov"] = belief[DIFFUSE_COV]
+            out["diffuse_cross"] = jac @ belief[DIFFUSE_COV]  # Cov_inf(x_{k+1}, x_k)
+            propagate_diffuse(belief, out, jac, self.model, u)
+        return out
 
     @staticmethod
     def _previous_controls(belief: Belief, u: Controls) -> Controls:
@@ -110,7 +118,7 @@ class ColoredNoiseUKF(UKF):
         """Points ``[B, 4n+1, 2n]`` of the joint ``[a; b]`` and their weights (see class doc)."""
         n = mean_a.shape[-1]
         joint = symmetrize(torch.cat([torch.cat([cov_a, cross], -1), torch.cat([cross.mT, cov_b], -1)], -2))
-        offsets = self.sigma_points.gamma(n) * safe_cholesky(joint).factor.mT
+        offsets = self.sigma_points.gamma(n) * psd_sqrt(joint).factor.mT
         centre = torch.cat([mean_a, mean_b], -1)[..., None, :]
         points = torch.cat([centre, centre + offsets, centre - offsets], -2)
         wm_n, wc_n = self._weights(n, mean_a)
@@ -138,13 +146,38 @@ class ColoredNoiseUKF(UKF):
         pp = self.psi[:, None] * self.psi[None, :]
         r_eff = r / (1.0 - undiff[..., :, None] * undiff[..., None, :] * pp)
         pzz = (dg * wc[:, None]).mT @ dg + r_eff
-        pxz = (wc[:, None] * (pts_a - mean[..., None, :])).mT @ dg
-        new_mean, new_cov, info = gaussian_update(mean, cov, innovation, pzz, pxz, mask)
-        drop = ("mean", "cov", "cross_cov", "prev_mean", "prev_cov", "prev_measurement", "prev_observed")
+        dx = pts_a - mean[..., None, :]
+        pxz = (wc[:, None] * dx).mT @ dg
+        r_full = r_eff.expand(*mean.shape[:-1], *r_eff.shape[-2:])
+        if DIFFUSE_COV in belief:
+            post, info = self._diffuse_update(belief, innovation, (dx, dg, wc, r_full), coef, mask, u)
+        else:
+            new_mean, new_cov, info = gaussian_update(mean, cov, innovation, pzz, pxz, mask, sigma_fallback=(dx, dg, wc, r_full))
+            post = {"mean": new_mean, "cov": new_cov}
+        drop = ("cross_cov", "prev_mean", "prev_cov", "prev_measurement", "prev_observed", "prev_diffuse_cov", "diffuse_cross")
         out = {k: v for k, v in belief.items() if k not in drop and not k.startswith(_PREV_U) and not k.startswith("sigma_")}
         observed = torch.ones_like(z, dtype=torch.bool) if mask is None else mask
         out.update(self._store_controls(u))
-        out.update(
-            {"mean": new_mean, "cov": new_cov, "prev_measurement": torch.where(observed, z, torch.zeros_like(z)), "prev_observed": observed}
-        )
+        out.update(post)
+        out.update({"prev_measurement": torch.where(observed, z, torch.zeros_like(z)), "prev_observed": observed})
         return out, info
+
+    def _diffuse_update(
+        self,
+        belief: Belief,
+        innovation: Tensor,
+        deviations: tuple[Tensor, Tensor, Tensor, Tensor | None],
+        coef: Tensor,
+        mask: Tensor | None,
+        u: Controls,
+    ) -> tuple[Belief, StepInfo]:
+        """Exact update of a two-part belief: the diffuse part of the differenced measurement
+        ``g = h(a) - coef h(b)`` through the Jacobians of ``h`` at ``x-`` and ``x_k``."""
+        hm = self.model.measurement
+        mean = belief["mean"]
+        h_a = measurement_matrix(hm, mean, u)
+        h_b = measurement_matrix(hm, belief["prev_mean"], self._previous_controls(belief, u)) * coef[..., :, None]
+        p_a, cross, p_b = belief[DIFFUSE_COV], belief["diffuse_cross"], belief["prev_diffuse_cov"]
+        m_inf = p_a @ h_a.mT - cross @ h_b.mT  # Cov_inf(a, g) [B, n, m]
+        f_inf = h_a @ m_inf - h_b @ (cross.mT @ h_a.mT - p_b @ h_b.mT)
+        return diffuse_gaussian_update(belief, innovation, deviations, mask, diffuse_cross=m_inf, diffuse_innovation=symmetrize(f_inf))

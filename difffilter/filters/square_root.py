@@ -5,9 +5,11 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ..linalg import chol_rank1_update, gaussian_log_density, safe_cholesky, tria
+from ..linalg import chol_rank1_update, gaussian_log_density, psd_sqrt, tria
 from ..models.base import Controls, StateSpaceModel
-from .base import Belief, StepInfo, mask_measurement_system
+from .base import Belief, StepInfo, diffuse_gaussian_update, mask_measurement_system
+from .diffuse import DIFFUSE_COV, propagate_diffuse
+from .jacobians import measurement_matrix
 from .sigma_points import SigmaPoints
 from .ukf import UKF, expand_controls, weighted_mean
 
@@ -35,7 +37,7 @@ class SquareRootUKF(UKF):
         super().__init__(model, sigma_points=sigma_points, redraw_after_predict=True, noise="additive")
 
     def init_belief(self, mean: Tensor, cov: Tensor) -> Belief:
-        return {"mean": mean, "cov": cov, "scale_tril": safe_cholesky(cov).factor}
+        return {"mean": mean, "cov": cov, "scale_tril": psd_sqrt(cov).factor}
 
     def _compound(self, dev: Tensor, wc: Tensor, extra: Tensor) -> Tensor:
         """Lower factor of ``sum_i wc_i dev_i dev_i^T + extra extra^T`` (``dev [B, S, d]``)."""
@@ -53,9 +55,11 @@ class SquareRootUKF(UKF):
         prop = self.model.dynamics(self.sigma_points.generate(mean, s), expand_controls(u))
         xm = weighted_mean(prop, wm)
         q = self.model.dynamics.process_noise(mean, u)
-        sq = safe_cholesky(q.expand(*mean.shape[:-1], n, n)).factor
+        sq = psd_sqrt(q.expand(*mean.shape[:-1], n, n)).factor
         s_new = self._compound(prop - xm[..., None, :], wc, sq)
-        return {**belief, "mean": xm, "cov": s_new @ s_new.mT, "scale_tril": s_new}
+        out = {**belief, "mean": xm, "cov": s_new @ s_new.mT, "scale_tril": s_new}
+        propagate_diffuse(belief, out, None, self.model, u)
+        return out
 
     def update(self, belief: Belief, z: Tensor, mask: Tensor | None, u: Controls) -> tuple[Belief, StepInfo]:
         mean, s = belief["mean"], belief["scale_tril"]
@@ -71,8 +75,12 @@ class SquareRootUKF(UKF):
         r = r.expand(*mean.shape[:-1], *r.shape[-2:])
         e = hm.residual(z, zhat)
         m = e.shape[-1]
+        if DIFFUSE_COV in belief:
+            post, info = diffuse_gaussian_update(belief, e, (dx, dz, wc, r), mask, obs_matrix=measurement_matrix(hm, mean, u))
+            rest = {k: v for k, v in belief.items() if k not in post and k != "scale_tril"}
+            return {**rest, **post, "scale_tril": psd_sqrt(post["cov"]).factor}, info
         e, r, dz, num_obs = mask_measurement_system(e, r, dz, mask)
-        sr = safe_cholesky(r).factor
+        sr = psd_sqrt(r).factor
         szz = self._compound(dz, wc, sr)
         pxz = (dx * wc[:, None]).mT @ dz
         tmp = torch.linalg.solve_triangular(szz, pxz.mT, upper=False)
@@ -83,6 +91,11 @@ class SquareRootUKF(UKF):
         loglik, maha = gaussian_log_density(e, szz)
         # Missing components contribute log N(0; 0, 1) each in the padded system: remove it.
         loglik = loglik + 0.5 * (m - num_obs) * torch.log(torch.tensor(2.0 * torch.pi, dtype=e.dtype))
-        info = StepInfo(loglik, maha, num_obs, e, szz @ szz.mT)
+        new_cov = s_new @ s_new.mT
+        # the re-triangularised Joseph factor keeps ~eps^2 / (variance reduction) relative accuracy
+        limit = torch.finfo(e.dtype).eps ** 2 / 1e-2
+        prior_var = (s * s).sum(-1)
+        untrusted = ~(torch.diagonal(new_cov, dim1=-2, dim2=-1) >= limit * prior_var).all(-1) | ~torch.isfinite(loglik)
+        info = StepInfo(loglik, maha, num_obs, e, szz @ szz.mT, untrusted)
         out = {k: v for k, v in belief.items() if k not in ("mean", "cov", "scale_tril")}
-        return {**out, "mean": new_mean, "cov": s_new @ s_new.mT, "scale_tril": s_new}, info
+        return {**out, "mean": new_mean, "cov": new_cov, "scale_tril": s_new}, info

@@ -5,21 +5,14 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ..linalg import block_diag, safe_cholesky, symmetrize
+from ..linalg import block_diag, psd_sqrt, symmetrize
 from ..models.base import Controls, DynamicsModel, StateSpaceModel
-from .base import Belief, GaussianFilter, StepInfo, gaussian_update
+from .base import Belief, GaussianFilter, StepInfo, diffuse_gaussian_update, gaussian_update
+from .diffuse import DIFFUSE_COV, propagate_diffuse
+from .jacobians import expand_controls, measurement_matrix
 from .sigma_points import MerweScaled, SigmaPoints
 
 __all__ = ["UKF", "SimplifiedUKF", "expand_controls", "weighted_mean", "weighted_moments"]
-
-
-def expand_controls(u: Controls, dim: int = 1) -> Controls:
-    """Insert a singleton sigma-point dimension so ``u [B, ...]`` broadcasts with ``x [B, S, n]``."""
-    if u is None:
-        return None
-    if isinstance(u, Tensor):
-        return u.unsqueeze(dim)
-    return {k: v.unsqueeze(dim) for k, v in u.items()}
 
 
 def weighted_mean(points: Tensor, wm: Tensor) -> Tensor:
@@ -85,7 +78,7 @@ class UKF(GaussianFilter):
         return self.sigma_points.weights(dim, like.dtype, like.device)
 
     def _points(self, mean: Tensor, cov: Tensor) -> Tensor:
-        return self.sigma_points.generate(mean, safe_cholesky(cov).factor)
+        return self.sigma_points.generate(mean, psd_sqrt(cov).factor)
 
     def _noise_matrices(self, mean: Tensor, u: Controls) -> tuple[Tensor, Tensor]:
         q = self.model.dynamics.process_noise(mean, u)
@@ -107,7 +100,7 @@ class UKF(GaussianFilter):
             xm, dev, pf = weighted_moments(prop, wm, wc)
             new_cov = symmetrize(pf + q)
             if not self.redraw_after_predict:
-                sq = safe_cholesky(q).factor.mT * self.sigma_points.gamma(n)  # rows = scaled columns
+                sq = psd_sqrt(q).factor.mT * self.sigma_points.gamma(n)  # rows = scaled columns
                 ext = torch.cat([prop, xm[..., None, :] + sq, xm[..., None, :] - sq], -2)
                 wq = torch.full((2 * n,), 0.5 / self.sigma_points.gamma(n) ** 2, dtype=wm.dtype, device=wm.device)
                 out["sigma_points"] = ext
@@ -129,6 +122,7 @@ class UKF(GaussianFilter):
                 out["sigma_noise"] = chi[..., 2 * n :]
                 out["sigma_wm"], out["sigma_wc"] = wm, wc
         out["mean"], out["cov"] = xm, new_cov
+        propagate_diffuse(belief, out, None, self.model, u)
         return out
 
     # -- update ------------------------------------------------------------------------------
@@ -160,10 +154,18 @@ class UKF(GaussianFilter):
         dz = hm.residual(zeta, zhat[..., None, :])
         dx = chi - mean[..., None, :]
         pzz = (dz * wc[:, None]).mT @ dz
-        if add_r:
-            pzz = pzz + hm.measurement_noise(mean, u)
+        r = hm.measurement_noise(mean, u) if add_r else None
+        if r is not None:
+            pzz = pzz + r
         pxz = (dx * wc[:, None]).mT @ dz
-        new_mean, new_cov, info = gaussian_update(mean, cov, hm.residual(z, zhat), pzz, pxz, mask)
+        e = hm.residual(z, zhat)
+        if r is not None:
+            r = r.expand(*mean.shape[:-1], *r.shape[-2:])
+        if DIFFUSE_COV in belief:
+            h = measurement_matrix(hm, mean, u)
+            post, info = diffuse_gaussian_update(belief, e, (dx, dz, wc, r), mask, obs_matrix=h)
+            return {**self._carry(belief), **post}, info
+        new_mean, new_cov, info = gaussian_update(mean, cov, e, pzz, pxz, mask, sigma_fallback=(dx, dz, wc, r))
         return {"mean": new_mean, "cov": new_cov, **self._carry(belief)}, info
 
     @staticmethod
@@ -201,4 +203,6 @@ class SimplifiedUKF(UKF):
             f = dyn.matrix(u)
             q = dyn.process_noise(mean, u)
             xm = dyn(mean, u)
-        return {**belief, "mean": xm, "cov": symmetrize(f @ cov @ f.mT + q)}
+        out = {**belief, "mean": xm, "cov": symmetrize(f @ cov @ f.mT + q)}
+        propagate_diffuse(belief, out, f, self.model, u)
+        return out

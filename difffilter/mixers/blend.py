@@ -9,6 +9,7 @@ import torch
 from torch import Tensor
 
 from ..filters.base import Belief, GaussianFilter, StepInfo
+from ..filters.diffuse import DIFFUSE_COV
 from ..filters.ekf import EKF
 from ..filters.ukf import UKF
 from ..linalg import symmetrize
@@ -181,6 +182,8 @@ class Blend(GaussianFilter):
             cov = cov + (d * (1.0 - d))[:, None, None] * dev[:, :, None] * dev[:, None, :]
         out = {k: v for k, v in pu.items() if not k.startswith("sigma_")}
         out.update(self.ukf.init_belief(mean, symmetrize(cov)))
+        if DIFFUSE_COV in pu:
+            out[DIFFUSE_COV] = symmetrize(d[:, None, None] * pe[DIFFUSE_COV] + (1.0 - d[:, None, None]) * pu[DIFFUSE_COV])
         out["blend_weight"] = d
         return out
 

@@ -216,8 +216,8 @@ class _Kinematic(DynamicsModel):
         super().__init__()
         if axes not in (1, 2, 3):
             raise ValueError(f"axes must be 1, 2 or 3, got {axes}")
-        if not dt > 0:
-            raise ValueError(f"dt must be positive, got {dt}")
+        if not (math.isfinite(dt) and dt > 0):
+            raise ValueError(f"dt must be finite and positive, got {dt}")
         self.axes = axes
         self.state_dim = axes * self.order
         self.register_buffer("dt", torch.tensor(float(dt), dtype=dtype or torch.get_default_dtype()))
@@ -228,7 +228,23 @@ class _Kinematic(DynamicsModel):
             t = t.expand(self.axes).clone()
         if t.shape != (self.axes,):
             raise ValueError(f"{name} must be a scalar or have shape [{self.axes}], got {tuple(t.shape)}")
+        if not bool(torch.isfinite(t).all()):
+            raise ValueError(f"{name} must be finite, got {t.tolist()}")
         return t
+
+    def validate_controls(self, controls: Controls) -> None:
+        """``controls["dt"]`` (when given) must be finite and positive in every batch element."""
+        if not isinstance(controls, dict) or "dt" not in controls:
+            return
+        dt = controls["dt"]
+        bad = ~(torch.isfinite(dt) & (dt > 0))
+        if bool(bad.any()):
+            b, t = (int(i) for i in bad.nonzero()[0][:2])
+            rows = sorted({int(i) for i in bad.nonzero()[:, 0]})[:10]
+            raise ValueError(
+                f"controls['dt'] must be finite and positive, got {float(dt[b, t].flatten()[0])} at [b, t] = [{b}, {t}] "
+                f"(batch elements {rows})"
+            )
 
     def step_dt(self, u: Controls) -> Tensor:
         """Sample interval: ``u["dt"][..., 0]`` when given, else the constructor's ``dt`` (0-d)."""

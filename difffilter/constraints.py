@@ -9,9 +9,9 @@ Contracts, for every raw entry in ``[-50, 50]`` in float32 and float64:
 
 * ``forward`` is finite with finite gradients and lies in the documented set: open intervals
   stay strictly inside their bounds (the value is clamped to the neighbouring representable
-  numbers), positive-definite matrices have a condition number below ``1 + 1 / (16 eps)`` (a
-  nugget ``16 eps tr(A)`` on the diagonal, :class:`PositiveDefinite`), so that their Cholesky
-  factorisation succeeds;
+  numbers), positive-definite matrices have a bounded condition number of their correlation
+  matrix (a relative nugget ``16 n eps`` on the diagonal, :class:`PositiveDefinite`), so that
+  their Cholesky factorisation succeeds;
 * ``right_inverse`` is the exact inverse on the constraint set (``set -> get`` round-trips to
   rounding), validates the value first (finite, shape, dtype, in the set) and raises
   ``ValueError``/``TypeError`` naming the parameter.
@@ -53,13 +53,15 @@ def softplus_inverse(y: Tensor) -> Tensor:
 _NUGGET = 16.0
 
 
-def pd_nugget(trace: Tensor) -> Tensor:
-    """Diagonal nugget ``s = 16 eps tr(A) + sqrt(tiny)`` that :class:`PositiveDefinite` adds to
-    ``A = L L^T``: the condition number is then below ``1 + 1 / (16 eps)`` (``3e14`` in float64,
-    ``5e5`` in float32), the value never underflows to a singular matrix, and an ordinary
-    ``n x n`` covariance moves by about ``16 n eps`` relative (rounding level in float64)."""
-    fi = torch.finfo(trace.dtype)
-    return (_NUGGET * fi.eps) * trace + fi.tiny**0.5
+def pd_nugget(n: int, dtype: torch.dtype) -> tuple[float, float]:
+    """``(delta, floor)`` of :class:`PositiveDefinite`: ``value = A + delta diag(A) + floor I`` with
+    ``delta = 16 n eps`` (the correlation matrix's smallest eigenvalue is then at least
+    ``delta / (1 + delta)``, its condition number at most ``n (1 + delta) / delta``, far inside
+    what Cholesky factorises: ``1.6e4`` in float32 and ``3e12`` in float64 for ``n = 4``,
+    whatever the units of the components) and ``floor = sqrt(tiny)`` against underflow.  An
+    ordinary covariance moves by ``delta`` relative: ``7e-14`` in float64 for ``n = 20``."""
+    fi = torch.finfo(dtype)
+    return _NUGGET * n * fi.eps, fi.tiny**0.5
 
 
 class Constraint(nn.Module):
@@ -192,15 +194,17 @@ class Interval(Constraint):
 
 
 class PositiveDefinite(Constraint):
-    """Symmetric positive-definite matrices ``[..., n, n]`` with a bounded condition number.
+    """Symmetric positive-definite matrices ``[..., n, n]`` whose Cholesky factorisation succeeds.
 
     ``raw`` is a square matrix whose strict lower triangle is the off-diagonal of a Cholesky
     factor ``L`` and whose diagonal ``d`` gives ``L``'s diagonal ``floor + softplus(d)`` (a
-    "log-Cholesky" variant that cannot overflow); ``value = L L^T + s I`` with the nugget
-    ``s = 16 eps tr(L L^T) + sqrt(tiny)`` (:func:`pd_nugget`), so that every raw value gives
-    a matrix whose Cholesky factorisation succeeds.  ``diagonal=True`` takes a raw vector
-    ``[..., n]`` and returns ``diag((floor + softplus(raw))**2) + s I``.  ``right_inverse``
-    subtracts the nugget exactly and refuses matrices whose condition number exceeds the bound.
+    "log-Cholesky" variant that cannot overflow); ``value = A + delta diag(A) + t I`` with
+    ``A = L L^T``, ``delta = 16 n eps`` and ``t = sqrt(tiny)`` (:func:`pd_nugget`): the
+    correlation matrix's condition number stays below ``n (1 + delta) / delta``, so every raw
+    value gives a matrix that factorises, in any units.  ``diagonal=True`` takes a raw vector
+    ``[..., n]`` and returns ``diag((floor + softplus(raw))**2 + t)`` (a diagonal factorises
+    whenever its entries are positive and normal).  ``right_inverse`` removes the nugget exactly
+    and refuses matrices outside this set.
     """
 
     def __init__(self, *, diagonal: bool = False, floor: float = 0.0) -> None:
@@ -211,51 +215,41 @@ class PositiveDefinite(Constraint):
         self.floor = float(floor)
 
     def forward(self, raw: Tensor) -> Tensor:
+        tiny = pd_nugget(1, raw.dtype)[1]
         if self.diagonal:
             d = self.floor + softplus(raw)
-            a = d * d
-            return torch.diag_embed(a + pd_nugget(a.sum(-1))[..., None])
+            return torch.diag_embed(d * d + tiny)
         d = self.floor + softplus(torch.diagonal(raw, dim1=-2, dim2=-1))
         chol = torch.tril(raw, -1) + torch.diag_embed(d)
         a = chol @ chol.mT
-        n = a.shape[-1]
-        s = pd_nugget(torch.diagonal(a, dim1=-2, dim2=-1).sum(-1))
-        return a + s[..., None, None] * torch.eye(n, dtype=a.dtype, device=a.device)
-
-    def _without_nugget(self, diag: Tensor) -> Tensor:
-        """The nugget ``s`` of a value with diagonal ``diag``: ``s = nugget(tr(V) - n s)``."""
-        n = diag.shape[-1]
-        fi = torch.finfo(diag.dtype)
-        c = _NUGGET * fi.eps
-        return (c * diag.sum(-1) + fi.tiny**0.5) / (1.0 + n * c)
+        delta = pd_nugget(a.shape[-1], a.dtype)[0]
+        return a + torch.diag_embed(delta * torch.diagonal(a, dim1=-2, dim2=-1) + tiny)
 
     def right_inverse(self, value: Tensor) -> Tensor:
         value = self.check(value)
         if value.ndim < 2 or value.shape[-1] != value.shape[-2]:
             raise ValueError(f"{self.name} must be a square matrix [..., n, n], got shape {list(value.shape)}")
+        n = value.shape[-1]
+        delta, tiny = pd_nugget(n, value.dtype)
         diag = torch.diagonal(value, dim1=-2, dim2=-1)
-        s = self._without_nugget(diag)
         if self.diagonal:
             off = value - torch.diag_embed(diag)
             if bool((off != 0).any()):
                 raise ValueError(f"{self.name} must be a diagonal matrix (its structure is diagonal)")
-            a = diag - s[..., None]
+            a = diag - tiny
             if not bool((a > self.floor**2).all()):
-                raise ValueError(
-                    f"{self.name} must have diagonal entries above {self.floor**2} plus its nugget (condition number below 1 + 1 / (16 eps)), "
-                    f"got {_show(diag)}"
-                )
+                raise ValueError(f"{self.name} must have diagonal entries above {max(self.floor**2, tiny):.3g}, got {_show(diag)}")
             return softplus_inverse(torch.sqrt(a) - self.floor)
-        sym = 0.5 * (value + value.mT)
         scale = value.abs().amax((-2, -1), keepdim=True).clamp_min(torch.finfo(value.dtype).tiny)
         if not bool(((value - value.mT).abs() <= 1e-6 * scale).all()):
             raise ValueError(f"{self.name} must be symmetric")
-        n = value.shape[-1]
-        chol, info = torch.linalg.cholesky_ex(sym - s[..., None, None] * torch.eye(n, dtype=value.dtype, device=value.device))
+        # V's off-diagonal entries are A's; its diagonal is (1 + delta) diag(A) + t
+        a = 0.5 * (value + value.mT) + torch.diag_embed((diag - tiny) / (1.0 + delta) - diag)
+        chol, info = torch.linalg.cholesky_ex(a)
         if bool((info != 0).any()) or not bool(torch.isfinite(chol).all()):
             raise ValueError(
-                f"{self.name} must be positive definite with a condition number below 1 + 1 / (16 eps); a semi-definite "
-                "covariance needs structure 'fixed' or 'factor'"
+                f"{self.name} must be positive definite with correlations away from +-1 by more than the nugget 16 n eps; "
+                "a semi-definite covariance needs structure 'fixed' or 'factor'"
             )
         d = torch.diagonal(chol, dim1=-2, dim2=-1)
         if not bool((d > self.floor).all()):

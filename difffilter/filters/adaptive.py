@@ -12,7 +12,7 @@ from .base import Belief, StepInfo
 from .diffuse import DIFFUSE_COV, DIFFUSE_SCALE
 from .jacobians import measurement_matrix
 from .sigma_points import SigmaPoints
-from .ukf import UKF, expand_controls, weighted_mean
+from .ukf import UKF, deviations, expand_controls, weighted_mean
 
 __all__ = ["RCUKF"]
 
@@ -121,10 +121,10 @@ class RCUKF(UKF):
         wm, wc = self._weights(n, mean)
         chi = self._points(mean, cov)
         zeta = hm(chi, expand_controls(u))
-        zhat = weighted_mean(zeta, wm)
+        zhat = weighted_mean(zeta, wm, hm)
         dz = hm.residual(zeta, zhat[..., None, :])
         spread_zz = (dz * wc[:, None]).mT @ dz
-        pxz = (wc[:, None] * (chi - mean[..., None, :])).mT @ dz
+        pxz = (wc[:, None] * deviations(chi, mean, self.model.dynamics)).mT @ dz
         r = hm.measurement_noise(mean, u)
         r = r.expand(*mean.shape[:-1], *r.shape[-2:])
         eps = hm.residual(z, zhat)

@@ -19,6 +19,7 @@ shares the same semantics:
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -39,8 +40,11 @@ __all__ = [
     "diffuse_gaussian_update",
     "gaussian_update",
     "mask_measurement_system",
+    "concat_results",
     "slice_controls",
+    "slice_steps",
     "square_root_deviations",
+    "through_diffuse_phase",
     "detach_belief",
 ]
 
@@ -162,6 +166,7 @@ def gaussian_update(
     joseph: tuple[Tensor, Tensor] | None = None,
     joseph_fallback: tuple[Tensor, Tensor] | None = None,
     sigma_fallback: tuple[Tensor, Tensor, Tensor, Tensor | None] | None = None,
+    add: Callable[[Tensor, Tensor], Tensor] | None = None,
 ) -> tuple[Tensor, Tensor, StepInfo]:
     """Linear-Gaussian measurement update shared by every Kalman-family filter.
 
@@ -179,6 +184,8 @@ def gaussian_update(
             sigma-point deviations of an unscented update, for its Joseph form on those
             elements: ``sum_i wc_i (dx_i - K dz_i)(dx_i - K dz_i)^T + K R K^T`` (``R`` None when
             the points already carry the measurement noise).
+        add: ``add(x, dx)``, the state addition (e.g. ``DynamicsModel.add`` wrapping angular
+            states) for the mean correction; None adds plainly.
 
     Returns the posterior mean and covariance and the :class:`StepInfo`.  The gain is never
     formed through an inverse: with ``S = L L^T``, ``W = L^{-1} P_xz^T`` gives
@@ -197,7 +204,8 @@ def gaussian_update(
     rhs = torch.cat([cross_cov.mT, innovation[..., None]], -1)  # [B, m, n+1]
     sol = torch.linalg.solve_triangular(chol, rhs, upper=False)
     w, v = sol[..., :-1], sol[..., -1]  # W [B, m, n], v = L^{-1} e [B, m]
-    new_mean = mean + (w.mT @ v[..., None])[..., 0]
+    correction = (w.mT @ v[..., None])[..., 0]
+    new_mean = mean + correction if add is None else add(mean, correction)
     switch, std_limit, joseph_limit = _trust_limits(mean.dtype)
     prior_var = torch.diagonal(cov, dim1=-2, dim2=-1)
     if joseph is None:
@@ -235,6 +243,7 @@ def diffuse_gaussian_update(
     obs_matrix: Tensor | None = None,
     diffuse_cross: Tensor | None = None,
     diffuse_innovation: Tensor | None = None,
+    add: Callable[[Tensor, Tensor], Tensor] | None = None,
 ) -> tuple[Belief, StepInfo]:
     """:func:`gaussian_update` for a belief with a diffuse part (``"diffuse_cov"``).
 
@@ -242,7 +251,8 @@ def diffuse_gaussian_update(
     joint moments (:func:`~difffilter.filters.diffuse.diffuse_update`); the diffuse part enters
     through the measurement Jacobian ``obs_matrix`` ``H [B, m, n]`` (or ``[m, n]``), or directly
     through ``P_inf H^T`` and ``H P_inf H^T`` (``diffuse_cross``, ``diffuse_innovation``) when
-    the measurement is not a function of the current state alone.  Returns the belief entries
+    the measurement is not a function of the current state alone; ``add`` as for
+    :func:`gaussian_update`.  Returns the belief entries
     ``mean``, ``cov`` (finite part), ``diffuse_cov``, ``diffuse_scale`` and the step's
     :class:`StepInfo`; ``untrusted`` marks a finite part whose reduction exceeds what the
     Joseph form resolves (as in :func:`gaussian_update`) or non-finite results.
@@ -257,6 +267,8 @@ def diffuse_gaussian_update(
     new_mean, p_fin, new_inf, loglik, nis, num_obs = diffuse_update(
         mean, p_inf, scale, innovation, deviations, diffuse_cross, diffuse_innovation, mask
     )
+    if add is not None:
+        new_mean = add(mean, new_mean - mean)
     limit = _trust_limits(mean.dtype)[2]
     var = torch.diagonal(p_fin, dim1=-2, dim2=-1)
     untrusted = ~torch.isfinite(loglik) | ~(var >= limit * torch.diagonal(belief["cov"], dim1=-2, dim2=-1)).all(-1)
@@ -296,6 +308,60 @@ def _sigma_joseph(gain: Tensor, dx: Tensor, dz: Tensor, wc: Tensor, r: Tensor | 
     if r is not None:
         out = out + gain @ _masked_noise(r, mask) @ gain.mT
     return symmetrize(out)
+
+
+def slice_steps(controls: Controls, start: int, stop: int) -> Controls:
+    """Steps ``start:stop`` of per-step inputs ``[B, T, ...]`` (tensor or dict of tensors)."""
+    if controls is None:
+        return None
+    if isinstance(controls, Tensor):
+        return controls[:, start:stop]
+    return {k: v[:, start:stop] for k, v in controls.items()}
+
+
+def concat_results(parts: list[FilterResult]) -> FilterResult:
+    """One :class:`FilterResult` from consecutive runs (along time); an extra missing from a
+    part is filled with zeros of its shape."""
+    if len(parts) == 1:
+        return parts[0]
+    cat = lambda name: torch.cat([getattr(r, name) for r in parts], 1)  # noqa: E731
+    keys = dict.fromkeys(k for r in parts for k in r.extras)
+    extras = {}
+    for k in keys:
+        like = next(r.extras[k] for r in parts if k in r.extras)
+        extras[k] = torch.cat(
+            [r.extras[k] if k in r.extras else like.new_zeros(like.shape[0], r.mean.shape[1], *like.shape[2:]) for r in parts], 1
+        )
+    fields = ("mean", "cov", "prior_mean", "prior_cov", "log_likelihood", "nis", "num_observed")
+    return FilterResult(**{f: cat(f) for f in fields}, final_belief=parts[-1].final_belief, extras=extras)
+
+
+def through_diffuse_phase(
+    filt: GaussianFilter,
+    rest: Callable[..., FilterResult],
+    measurements: Tensor,
+    mask: Tensor | None,
+    controls: Controls,
+    belief: Belief,
+) -> FilterResult:
+    """Run ``filt`` step by step while ``belief`` has a diffuse part, then ``rest(measurements,
+    mask=..., controls=..., belief=...)`` (e.g. a compiled twin of ``filt``) on the remaining
+    steps; the results concatenated.  For engines that run the ordinary recursion only."""
+    parts = []
+    steps = measurements.shape[1]
+    t = 0
+    while t < steps and DIFFUSE_COV in belief:
+        part = filt(
+            measurements[:, t : t + 1], mask=None if mask is None else mask[:, t : t + 1], controls=slice_steps(controls, t, t + 1), belief=belief
+        )
+        parts.append(part)
+        belief = part.final_belief
+        t += 1
+    if t < steps:
+        parts.append(
+            rest(measurements[:, t:], mask=None if mask is None else mask[:, t:], controls=slice_steps(controls, t, steps), belief=belief)
+        )
+    return concat_results(parts)
 
 
 class GaussianFilter(nn.Module):

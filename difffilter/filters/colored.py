@@ -12,7 +12,7 @@ from .base import Belief, StepInfo, diffuse_gaussian_update, gaussian_update
 from .diffuse import DIFFUSE_COV, propagate_diffuse
 from .jacobians import measurement_matrix, transition_matrix
 from .sigma_points import SigmaPoints
-from .ukf import UKF, expand_controls, weighted_mean, weighted_moments
+from .ukf import UKF, deviations, expand_controls, state_add, weighted_mean, weighted_moments
 
 __all__ = ["ColoredNoiseUKF"]
 
@@ -87,9 +87,10 @@ class ColoredNoiseUKF(UKF):
         wm, wc = self._weights(n, mean)
         chi = self._points(mean, cov)
         prop = self.model.dynamics(chi, expand_controls(u))
-        xm, dev, pf = weighted_moments(prop, wm, wc)
+        dyn = self.model.dynamics
+        xm, dev, pf = weighted_moments(prop, wm, wc, dyn)
         q, _ = self._noise_matrices(mean, u)
-        cross = (dev * wc[:, None]).mT @ (chi - mean[..., None, :])
+        cross = (dev * wc[:, None]).mT @ deviations(chi, mean, dyn)
         out = {**belief, "mean": xm, "cov": symmetrize(pf + q), "cross_cov": cross, "prev_mean": mean, "prev_cov": cov}
         if DIFFUSE_COV in belief:
             jac = transition_matrix(self.model.dynamics, mean, u)
@@ -136,7 +137,7 @@ class ColoredNoiseUKF(UKF):
         pts_a, pts_b = points[..., :n], points[..., n:]
         za = hm(pts_a, expand_controls(u))
         zb = hm(pts_b, expand_controls(self._previous_controls(belief, u)))
-        za_hat, zb_hat = weighted_mean(za, wm), weighted_mean(zb, wm)
+        za_hat, zb_hat = weighted_mean(za, wm, hm), weighted_mean(zb, wm, hm)
         diff = belief["prev_observed"].to(mean.dtype)
         coef = diff * self.psi  # [B, m], zero for undifferenced components
         dg = hm.residual(za, za_hat[..., None, :]) - coef[..., None, :] * hm.residual(zb, zb_hat[..., None, :])
@@ -146,13 +147,16 @@ class ColoredNoiseUKF(UKF):
         pp = self.psi[:, None] * self.psi[None, :]
         r_eff = r / (1.0 - undiff[..., :, None] * undiff[..., None, :] * pp)
         pzz = (dg * wc[:, None]).mT @ dg + r_eff
-        dx = pts_a - mean[..., None, :]
+        dyn = self.model.dynamics
+        dx = deviations(pts_a, mean, dyn)
         pxz = (wc[:, None] * dx).mT @ dg
         r_full = r_eff.expand(*mean.shape[:-1], *r_eff.shape[-2:])
         if DIFFUSE_COV in belief:
             post, info = self._diffuse_update(belief, innovation, (dx, dg, wc, r_full), coef, mask, u)
         else:
-            new_mean, new_cov, info = gaussian_update(mean, cov, innovation, pzz, pxz, mask, sigma_fallback=(dx, dg, wc, r_full))
+            new_mean, new_cov, info = gaussian_update(
+                mean, cov, innovation, pzz, pxz, mask, sigma_fallback=(dx, dg, wc, r_full), add=state_add(dyn)
+            )
             post = {"mean": new_mean, "cov": new_cov}
         drop = ("cross_cov", "prev_mean", "prev_cov", "prev_measurement", "prev_observed", "prev_diffuse_cov", "diffuse_cross")
         out = {k: v for k, v in belief.items() if k not in drop and not k.startswith(_PREV_U) and not k.startswith("sigma_")}
@@ -166,7 +170,7 @@ class ColoredNoiseUKF(UKF):
         self,
         belief: Belief,
         innovation: Tensor,
-        deviations: tuple[Tensor, Tensor, Tensor, Tensor | None],
+        devs: tuple[Tensor, Tensor, Tensor, Tensor | None],
         coef: Tensor,
         mask: Tensor | None,
         u: Controls,
@@ -180,4 +184,6 @@ class ColoredNoiseUKF(UKF):
         p_a, cross, p_b = belief[DIFFUSE_COV], belief["diffuse_cross"], belief["prev_diffuse_cov"]
         m_inf = p_a @ h_a.mT - cross @ h_b.mT  # Cov_inf(a, g) [B, n, m]
         f_inf = h_a @ m_inf - h_b @ (cross.mT @ h_a.mT - p_b @ h_b.mT)
-        return diffuse_gaussian_update(belief, innovation, deviations, mask, diffuse_cross=m_inf, diffuse_innovation=symmetrize(f_inf))
+        return diffuse_gaussian_update(
+            belief, innovation, devs, mask, diffuse_cross=m_inf, diffuse_innovation=symmetrize(f_inf), add=state_add(self.model.dynamics)
+        )

@@ -9,6 +9,7 @@ from ..models.base import Controls, StateSpaceModel
 from .base import Belief, GaussianFilter, StepInfo, diffuse_gaussian_update, gaussian_update, square_root_deviations
 from .diffuse import DIFFUSE_COV, propagate_diffuse
 from .jacobians import autodiff_jacobian
+from .ukf import state_add
 
 __all__ = ["EKF", "autodiff_jacobian"]
 
@@ -65,8 +66,11 @@ class EKF(GaussianFilter):
         e = self.model.measurement.residual(z, zhat)
         if DIFFUSE_COV in belief:
             h = h.expand(*mean.shape[:-1], *h.shape[-2:])
-            post, info = diffuse_gaussian_update(belief, e, (*square_root_deviations(cov, h), r), mask, obs_matrix=h)
+            add = state_add(self.model.dynamics)
+            post, info = diffuse_gaussian_update(belief, e, (*square_root_deviations(cov, h), r), mask, obs_matrix=h, add=add)
             return {**belief, **post}, info
         joseph = (h, r) if self.joseph else None
-        new_mean, new_cov, info = gaussian_update(mean, cov, e, s, pht, mask, joseph=joseph, joseph_fallback=None if self.joseph else (h, r))
+        new_mean, new_cov, info = gaussian_update(
+            mean, cov, e, s, pht, mask, joseph=joseph, joseph_fallback=None if self.joseph else (h, r), add=state_add(self.model.dynamics)
+        )
         return {**belief, "mean": new_mean, "cov": new_cov}, info

@@ -11,7 +11,7 @@ from .base import Belief, StepInfo, diffuse_gaussian_update, mask_measurement_sy
 from .diffuse import DIFFUSE_COV, propagate_diffuse
 from .jacobians import measurement_matrix
 from .sigma_points import SigmaPoints
-from .ukf import UKF, expand_controls, weighted_mean
+from .ukf import UKF, deviations, expand_controls, state_add, weighted_mean
 
 __all__ = ["SquareRootUKF"]
 
@@ -53,10 +53,11 @@ class SquareRootUKF(UKF):
         n = mean.shape[-1]
         wm, wc = self._weights(n, mean)
         prop = self.model.dynamics(self.sigma_points.generate(mean, s), expand_controls(u))
-        xm = weighted_mean(prop, wm)
-        q = self.model.dynamics.process_noise(mean, u)
+        dyn = self.model.dynamics
+        xm = weighted_mean(prop, wm, dyn)
+        q = dyn.process_noise(mean, u)
         sq = psd_sqrt(q.expand(*mean.shape[:-1], n, n)).factor
-        s_new = self._compound(prop - xm[..., None, :], wc, sq)
+        s_new = self._compound(deviations(prop, xm, dyn), wc, sq)
         out = {**belief, "mean": xm, "cov": s_new @ s_new.mT, "scale_tril": s_new}
         propagate_diffuse(belief, out, None, self.model, u)
         return out
@@ -68,15 +69,16 @@ class SquareRootUKF(UKF):
         hm = self.model.measurement
         chi = self.sigma_points.generate(mean, s)
         zeta = hm(chi, expand_controls(u))
-        zhat = weighted_mean(zeta, wm)
+        zhat = weighted_mean(zeta, wm, hm)
         dz = hm.residual(zeta, zhat[..., None, :])
-        dx = chi - mean[..., None, :]
+        add = state_add(self.model.dynamics)
+        dx = deviations(chi, mean, self.model.dynamics)
         r = hm.measurement_noise(mean, u)
         r = r.expand(*mean.shape[:-1], *r.shape[-2:])
         e = hm.residual(z, zhat)
         m = e.shape[-1]
         if DIFFUSE_COV in belief:
-            post, info = diffuse_gaussian_update(belief, e, (dx, dz, wc, r), mask, obs_matrix=measurement_matrix(hm, mean, u))
+            post, info = diffuse_gaussian_update(belief, e, (dx, dz, wc, r), mask, obs_matrix=measurement_matrix(hm, mean, u), add=add)
             rest = {k: v for k, v in belief.items() if k not in post and k != "scale_tril"}
             return {**rest, **post, "scale_tril": psd_sqrt(post["cov"]).factor}, info
         e, r, dz, num_obs = mask_measurement_system(e, r, dz, mask)
@@ -85,7 +87,8 @@ class SquareRootUKF(UKF):
         pxz = (dx * wc[:, None]).mT @ dz
         tmp = torch.linalg.solve_triangular(szz, pxz.mT, upper=False)
         gain = torch.linalg.solve_triangular(szz.mT, tmp, upper=True).mT  # [B, n, m]
-        new_mean = mean + (gain @ e[..., None])[..., 0]
+        correction = (gain @ e[..., None])[..., 0]
+        new_mean = mean + correction if add is None else add(mean, correction)
         joseph_dev = dx - dz @ gain.mT
         s_new = self._compound(joseph_dev, wc, gain @ sr)
         loglik, maha = gaussian_log_density(e, szz)

@@ -175,10 +175,14 @@ class Blend(GaussianFilter):
         pu = self.ukf.predict(belief, u)
         d = self.blend_weight(u, belief["mean"])
         xe, xu = pe["mean"], pu["mean"]
-        mean = d[:, None] * xe + (1.0 - d[:, None]) * xu
+        dyn = self.ukf.model.dynamics
+        if dyn.angular:  # blend angles along the short arc
+            mean = dyn.add(xu, d[:, None] * dyn.residual(xe, xu))
+        else:
+            mean = d[:, None] * xe + (1.0 - d[:, None]) * xu
         cov = d[:, None, None] * pe["cov"] + (1.0 - d[:, None, None]) * pu["cov"]
         if self.spread:
-            dev = xe - xu
+            dev = dyn.residual(xe, xu)
             cov = cov + (d * (1.0 - d))[:, None, None] * dev[:, :, None] * dev[:, None, :]
         out = {k: v for k, v in pu.items() if not k.startswith("sigma_")}
         out.update(self.ukf.init_belief(mean, symmetrize(cov)))

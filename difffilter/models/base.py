@@ -31,6 +31,7 @@ __all__ = [
     "MeasurementModel",
     "StateSpaceModel",
     "wrap_angle",
+    "wrap_components",
 ]
 
 Controls = Tensor | dict[str, Tensor] | None
@@ -42,6 +43,15 @@ def wrap_angle(angle: Tensor) -> Tensor:
     return angle - two_pi * torch.ceil((angle - math.pi) / two_pi)
 
 
+def wrap_components(x: Tensor, indices: tuple[int, ...]) -> Tensor:
+    """``x [..., d]`` with the components ``indices`` reduced to ``(-pi, pi]`` (out of place)."""
+    if not indices:
+        return x
+    sel = torch.zeros(x.shape[-1], dtype=torch.bool, device=x.device)
+    sel[list(indices)] = True
+    return torch.where(sel, wrap_angle(x), x)
+
+
 class DynamicsModel(nn.Module):
     """Transition ``f`` with process noise ``Q``.
 
@@ -49,9 +59,23 @@ class DynamicsModel(nn.Module):
     ``df/dx``, else filters use autodiff), :meth:`process_noise` (state-dependent Q) and
     :meth:`matrix` (return ``F`` when ``f(x) = F x + c(u)`` is linear, enabling the Kalman filter
     and the simplified UKF).  ``self.Q`` is the (constrained) process-noise covariance.
+
+    ``angular`` lists the state components that are angles (radians, ``2 pi``-periodic): the
+    filters then take differences with :meth:`residual` and add corrections with :meth:`add`,
+    both wrapped to ``(-pi, pi]``, and the unscented filters average them around a reference
+    point (a circular mean).
     """
 
     state_dim: int
+    angular: tuple[int, ...] = ()
+
+    def residual(self, x: Tensor, x_ref: Tensor) -> Tensor:
+        """State difference ``x - x_ref`` ``[..., n]``, angular components wrapped."""
+        return wrap_components(x - x_ref, self.angular)
+
+    def add(self, x: Tensor, dx: Tensor) -> Tensor:
+        """State ``x + dx`` ``[..., n]``, angular components wrapped."""
+        return wrap_components(x + dx, self.angular)
 
     def forward(self, x: Tensor, u: Controls = None) -> Tensor:  # pragma: no cover - abstract
         raise NotImplementedError
@@ -74,9 +98,16 @@ class DynamicsModel(nn.Module):
 
 
 class MeasurementModel(nn.Module):
-    """Measurement ``h`` with noise ``R``; the counterpart of :class:`DynamicsModel`."""
+    """Measurement ``h`` with noise ``R``; the counterpart of :class:`DynamicsModel`.
+
+    ``angular`` lists the measurement components that are angles (a bearing, a heading): the
+    default :meth:`residual` wraps them and the unscented filters compute their predicted
+    measurement as a circular mean (around a reference sigma point), so that points on both
+    sides of ``+-pi`` average to an angle near ``pi``, not near 0.
+    """
 
     measurement_dim: int
+    angular: tuple[int, ...] = ()
 
     def forward(self, x: Tensor, u: Controls = None) -> Tensor:  # pragma: no cover - abstract
         raise NotImplementedError
@@ -94,8 +125,9 @@ class MeasurementModel(nn.Module):
         return self.R
 
     def residual(self, z: Tensor, z_ref: Tensor) -> Tensor:
-        """Difference ``z - z_ref`` of measurements ``[..., m]``; override to wrap angles."""
-        return z - z_ref
+        """Difference ``z - z_ref`` of measurements ``[..., m]``, the :attr:`angular` components
+        wrapped to ``(-pi, pi]``."""
+        return wrap_components(z - z_ref, self.angular)
 
     def validate_controls(self, controls: Controls) -> None:
         """As :meth:`DynamicsModel.validate_controls`."""
@@ -193,6 +225,9 @@ class _FunctionalMeasurement(MeasurementModel):
 class FunctionalModel(StateSpaceModel):
     """A model from plain callables.
 
+    ``angular_states`` / ``angular_measurements`` declare angle components (see
+    :attr:`DynamicsModel.angular`, :attr:`MeasurementModel.angular`).
+
     Args:
         f: transition ``f(x [..., n]) -> [..., n]`` (or ``f(x, u)`` with ``controls=True``).
         h: measurement ``h(x [..., n]) -> [..., m]`` (or ``h(x, u)``).
@@ -204,6 +239,7 @@ class FunctionalModel(StateSpaceModel):
         Q_structure, R_structure: ``"full"``, ``"diagonal"``, ``"scalar"``, ``"factor"`` (a free
             factor of the value's rank: learnable semi-definite covariances) or ``"fixed"``
             (:func:`~difffilter.params.register_covariance`).
+        angular_states, angular_measurements: indices of angle components (radians).
     """
 
     def __init__(
@@ -218,6 +254,8 @@ class FunctionalModel(StateSpaceModel):
         controls: bool = False,
         Q_structure: str = "full",  # noqa: N803
         R_structure: str = "full",  # noqa: N803
+        angular_states: tuple[int, ...] = (),
+        angular_measurements: tuple[int, ...] = (),
     ) -> None:
         if isinstance(Q, Tensor) and isinstance(R, Tensor) and Q.dtype != R.dtype:
             raise TypeError(f"Q and R must have one dtype, got Q {Q.dtype} and R {R.dtype}")
@@ -225,6 +263,15 @@ class FunctionalModel(StateSpaceModel):
             _FunctionalDynamics(f, Q, f_jacobian, Q_structure, controls),
             _FunctionalMeasurement(h, R, h_jacobian, R_structure, controls),
         )
+        self.dynamics.angular = _indices("angular_states", angular_states, self.state_dim)
+        self.measurement.angular = _indices("angular_measurements", angular_measurements, self.measurement_dim)
+
+
+def _indices(name: str, indices: tuple[int, ...], dim: int) -> tuple[int, ...]:
+    out = tuple(int(i) for i in indices)
+    if len(set(out)) != len(out) or not all(0 <= i < dim for i in out):
+        raise ValueError(f"{name} must be distinct component indices in [0, {dim}), got {list(indices)}")
+    return out
 
 
 class _LinearDynamics(DynamicsModel):

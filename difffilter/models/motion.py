@@ -37,6 +37,7 @@ __all__ = [
     "axis_block_diag",
     "constant_acceleration_noise",
     "constant_acceleration_transition",
+    "constant_velocity_discrete_noise",
     "constant_velocity_noise",
     "current_statistical_variance",
     "singer_noise_from_variance",
@@ -176,6 +177,13 @@ def constant_velocity_noise(dt: Tensor) -> Tensor:
     return _matrix([[dt**3 / 3, dt**2 / 2], [dt**2 / 2, dt]])
 
 
+def constant_velocity_discrete_noise(dt: Tensor) -> Tensor:
+    """Piecewise-constant white acceleration per unit variance ``[..., 2, 2]``: ``g g^T`` with
+    ``g = [T^2/2, T]`` (filterpy's ``Q_discrete_white_noise``), a rank-one covariance."""
+    g = torch.stack([dt * dt / 2, dt], -1)
+    return g[..., :, None] * g[..., None, :]
+
+
 def constant_acceleration_noise(dt: Tensor) -> Tensor:
     """White-jerk covariance per unit spectral density ``[..., 3, 3]``: p000's ``Q_axis`` =
     ``[[T^5/20, T^4/8, T^3/6], [T^4/8, T^3/3, T^2/2], [T^3/6, T^2/2, T]]``."""
@@ -276,19 +284,28 @@ class ConstantVelocity(_Kinematic):
     """Constant velocity (white-noise acceleration) per axis, state ``[p, v]`` per axis.
 
     ``x_k = blockdiag([[1, T], [0, 1]]) x_{k-1} + w``,
-    ``Q = blockdiag(q_i [[T^3/3, T^2/2], [T^2/2, T]])``.
+    ``Q = blockdiag(q_i [[T^3/3, T^2/2], [T^2/2, T]])`` (continuous white acceleration), or with
+    ``noise="discrete"`` ``Q = blockdiag(q_i g g^T)``, ``g = [T^2/2, T]`` (an acceleration
+    constant over each interval, variance ``q_i``): a rank-deficient ``Q`` whose intensity is
+    learned while its structure stays exact.
 
     Args:
         axes: 1 to 3.
         dt: sample interval (s) unless ``u["dt"]`` is given.
-        q: acceleration spectral density per axis (m^2/s^3), scalar or ``[axes]``; learnable
-            (``Positive``).
+        q: acceleration spectral density per axis (m^2/s^3; ``noise="discrete"``: acceleration
+            variance, m^2/s^4), scalar or ``[axes]``; learnable (``Positive``).
+        noise: ``"continuous"`` or ``"discrete"``.
     """
 
     order = 2
 
-    def __init__(self, *, axes: int = 1, dt: float = 1.0, q: Tensor | float = 1.0, dtype: torch.dtype | None = None) -> None:
+    def __init__(
+        self, *, axes: int = 1, dt: float = 1.0, q: Tensor | float = 1.0, noise: str = "continuous", dtype: torch.dtype | None = None
+    ) -> None:
+        if noise not in ("continuous", "discrete"):
+            raise ValueError(f"noise must be 'continuous' or 'discrete', got {noise!r}")
         super().__init__(axes=axes, dt=dt, dtype=dtype)
+        self.noise = noise
         register_constrained(self, "q", self._per_axis(q, "q", dtype), Positive())
 
     def transition_blocks(self, u: Controls) -> Tensor:
@@ -299,7 +316,8 @@ class ConstantVelocity(_Kinematic):
 
     def process_noise(self, x: Tensor, u: Controls = None) -> Tensor:
         dt = self.step_dt(u)
-        return axis_block_diag(self.q[:, None, None] * constant_velocity_noise(dt)[..., None, :, :])
+        unit = constant_velocity_noise(dt) if self.noise == "continuous" else constant_velocity_discrete_noise(dt)
+        return axis_block_diag(self.q[:, None, None] * unit[..., None, :, :])
 
 
 class ConstantAcceleration(_Kinematic):

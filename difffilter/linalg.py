@@ -128,32 +128,34 @@ def safe_cholesky(a: Tensor, *, max_jitter: float | None = None) -> CholeskyResu
 
 def _semidefinite_factor(a: Tensor) -> tuple[Tensor, Tensor]:
     """Lower factor ``L`` with ``L L^T = a`` for symmetric positive *semi*-definite ``a``, and
-    per element the largest negative pivot relative to the largest diagonal entry (0 when
-    ``a`` is semi-definite to rounding).
+    per element the largest negative pivot relative to its row's diagonal entry (0 when ``a``
+    is semi-definite to rounding).
 
-    A Cholesky recursion whose pivots at or below ``n * eps * max(diag)`` count as zero: their
-    column is set to zero, which is the exact factor of a semi-definite matrix (its column
-    below a zero pivot is zero too) and never divides by zero.  Branch-free with ``where`` on
-    safe operands, so the gradient is finite (zero through the zero columns).
+    A Cholesky recursion whose pivots at or below ``n * eps`` times their own diagonal entry
+    ``a_jj`` count as zero (the row depends linearly on the previous ones up to rounding, in
+    any units: a variance of 1e-8 next to one of 1 is not a zero pivot): their column is set to
+    zero, which is the exact factor of a semi-definite matrix (its column below a zero pivot is
+    zero too) and never divides by zero.  Branch-free with ``where`` on safe operands, so the
+    gradient is finite (zero through the zero columns).
     """
     n = a.shape[-1]
     eps = torch.finfo(a.dtype).eps
     diag = torch.diagonal(a, dim1=-2, dim2=-1)
-    scale = diag.abs().amax(-1)
-    floor = (n * eps) * scale + torch.finfo(a.dtype).tiny
+    floor = (n * eps) * diag.abs() + torch.finfo(a.dtype).tiny
+    rows = torch.arange(n, device=a.device)
     cols: list[Tensor] = []
-    deficit = torch.zeros_like(scale)
+    deficit = torch.zeros_like(diag[..., 0])
     for j in range(n):
         col = a[..., :, j]
         for ck in cols:
             col = col - ck * ck[..., j : j + 1]
         pivot = col[..., j]
-        ok = pivot > floor
-        deficit = torch.maximum(deficit, (-pivot).clamp_min(0.0) / torch.where(scale > 0, scale, torch.ones_like(scale)))
+        ok = pivot > floor[..., j]
+        ref = diag[..., j].abs()
+        deficit = torch.maximum(deficit, (-pivot).clamp_min(0.0) / torch.where(ref > 0, ref, torch.ones_like(ref)))
         root = torch.sqrt(torch.where(ok, pivot, torch.ones_like(pivot)))
-        below = torch.arange(n, device=a.device) > j
-        new = torch.where(below, col / root[..., None], torch.zeros_like(col))
-        new = torch.where(torch.arange(n, device=a.device) == j, root[..., None], new)
+        new = torch.where(rows > j, col / root[..., None], torch.zeros_like(col))
+        new = torch.where(rows == j, root[..., None], new)
         cols.append(torch.where(ok[..., None], new, torch.zeros_like(new)))
     return torch.stack(cols, -1), deficit
 
@@ -166,7 +168,7 @@ def psd_sqrt(a: Tensor) -> CholeskyResult:
     The common case is one ``cholesky_ex`` (identical to :func:`safe_cholesky`).  Elements whose
     factorisation fails get the exact semi-definite factor (zero columns for zero pivots, no
     jitter, ``jitter`` entry 0) when they are semi-definite to rounding (no pivot below
-    ``-sqrt(eps)`` times the largest diagonal entry); genuinely indefinite or non-finite
+    ``-sqrt(eps)`` times its diagonal entry); genuinely indefinite or non-finite
     elements fall back to :func:`safe_cholesky`'s bounded jitter.
     """
     chol, info = torch.linalg.cholesky_ex(a)

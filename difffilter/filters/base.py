@@ -226,10 +226,11 @@ def gaussian_update(
         new_cov = joseph_update(cov, gain, *_masked_system(*joseph, mask))
         limit = joseph_limit
     post_var = torch.diagonal(new_cov, dim1=-2, dim2=-1)
-    untrusted = ~(post_var >= limit * prior_var).all(-1) | (jitter != 0)
     maha = (v * v).sum(-1)
     logdet = 2.0 * torch.log(torch.diagonal(chol, dim1=-2, dim2=-1)).sum(-1)
     loglik = -0.5 * (maha + logdet + num_obs * _LOG_2PI)
+    # a NaN compares False, so non-finite variances are flagged too
+    untrusted = ~(post_var >= limit * prior_var).all(-1) | (jitter != 0) | ~torch.isfinite(loglik) | ~torch.isfinite(new_mean).all(-1)
     info = StepInfo(loglik, maha, num_obs, innovation, innovation_cov, untrusted)
     return new_mean, new_cov, info
 

@@ -110,9 +110,7 @@ def heading_model(angular_state: bool = True, linear: bool = False) -> StateSpac
         out.dynamics.angular = (0,) if angular_state else ()
         out.measurement.angular = (0,)
         return out
-    return FunctionalModel(
-        f=lambda x: x, h=lambda x: x, Q=q, R=r, angular_states=(0,) if angular_state else (), angular_measurements=(0,)
-    )
+    return FunctionalModel(f=lambda x: x, h=lambda x: x, Q=q, R=r, angular_states=(0,) if angular_state else (), angular_measurements=(0,))
 
 
 def closed_form_heading() -> float:
@@ -132,14 +130,14 @@ def test_angular_state_near_pi_adds_and_averages_on_the_circle(name):
     assert -math.pi < post <= math.pi
     assert abs(post - closed_form_heading()) < 1e-6
     # the prior of a second step is the circular mean of points straddling the cut
-    two = build(hm)(
-        torch.tensor([[[-3.1], [3.12]]], dtype=F64), torch.tensor([3.1], dtype=F64), torch.tensor([[0.04]], dtype=F64)
-    )
+    two = build(hm)(torch.tensor([[[-3.1], [3.12]]], dtype=F64), torch.tensor([3.1], dtype=F64), torch.tensor([[0.04]], dtype=F64))
     assert abs(float(wrap_angle(two.prior_mean[0, 1, 0] - res.mean[0, 0, 0]))) < 1e-9
 
 
 def test_without_state_wrapping_the_mean_leaves_the_interval():
-    res = UKF(heading_model(angular_state=False))(torch.tensor([[[-3.1]]], dtype=F64), torch.tensor([3.1], dtype=F64), torch.tensor([[0.04]], dtype=F64))
+    res = UKF(heading_model(angular_state=False))(
+        torch.tensor([[[-3.1]]], dtype=F64), torch.tensor([3.1], dtype=F64), torch.tensor([[0.04]], dtype=F64)
+    )
     assert float(res.mean[0, 0, 0]) > math.pi  # correct only modulo 2 pi: the hook is what wraps it
 
 

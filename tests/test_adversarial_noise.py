@@ -135,7 +135,10 @@ def test_semi_definite_r_with_fixed_structure():
     z = make_data(1, 15, 2, seed=9)
     m0, p0 = torch.zeros(4, dtype=F64), torch.eye(4, dtype=F64)
     mu, _, ll = numpy_kalman(z[0].numpy(), m0.numpy(), p0.numpy(), **np_m)
-    for flt in (KalmanFilter(LinearModel(**m, Q_structure="fixed", R_structure="fixed")), UKF(LinearModel(**m, Q_structure="factor", R_structure="fixed"))):
+    for flt in (
+        KalmanFilter(LinearModel(**m, Q_structure="fixed", R_structure="fixed")),
+        UKF(LinearModel(**m, Q_structure="factor", R_structure="fixed")),
+    ):
         res = flt(z, m0, p0)
         np.testing.assert_allclose(res.mean[0].detach().numpy(), mu, atol=1e-8 * max(1.0, float(np.abs(mu).max())))
         np.testing.assert_allclose(res.log_likelihood[0].detach().numpy(), ll, atol=1e-7)

@@ -338,4 +338,3 @@ def relative_errors(
         "mean_abs": float(np.nanmax(np.where(np.isfinite(mean), np.abs(mean - ref_mean), np.inf))),
         "loglik_abs": float(np.nanmax(np.where(np.isfinite(loglik), np.abs(loglik - ref_loglik), np.inf))),
     }
-

@@ -147,7 +147,9 @@ def drop_resolved(belief: dict[str, Tensor]) -> dict[str, Tensor]:
     return {k: v for k, v in belief.items() if k not in keys}
 
 
-def propagate_diffuse(belief: dict[str, Tensor], prior: dict[str, Tensor], jacobian: Tensor | None, model: StateSpaceModel, u: Controls) -> None:
+def propagate_diffuse(
+    belief: dict[str, Tensor], prior: dict[str, Tensor], jacobian: Tensor | None, model: StateSpaceModel, u: Controls
+) -> None:
     """Set ``prior["diffuse_cov"] = J P_inf J^T`` (``J`` the given transition Jacobian at the
     posterior mean, or the model's) when ``belief`` has a diffuse part; in place."""
     if DIFFUSE_COV not in belief:

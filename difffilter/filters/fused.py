@@ -256,9 +256,10 @@ class FusedFilter(nn.Module):
             raise ValueError(f"FusedFilter supports UKF(noise='additive') only, got noise={filt.noise!r}")
         # reliability: the fused step has no circular means or state addition (angular models run the reference filter)
         if filt.model.dynamics.angular or (kind != "ekf" and filt.model.measurement.angular):
+            states, meas = list(filt.model.dynamics.angular), list(filt.model.measurement.angular)
             raise TypeError(
                 "FusedFilter does not compute wrap-aware unscented means: the model declares angular components "
-                f"(states {list(filt.model.dynamics.angular)}, measurements {list(filt.model.measurement.angular)}); run the filter directly"
+                f"(states {states}, measurements {meas}); run the filter directly"
             )
         self.kind = kind
         self.filter = filt

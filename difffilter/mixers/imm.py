@@ -262,7 +262,9 @@ class IMM(GaussianFilter):
         if diffuse:
             mode_diffuse = torch.stack(diffuse, -3)
             out["mode_diffuse_covs"] = mode_diffuse
-            out[DIFFUSE_COV] = symmetrize((weights[..., None, :] @ mode_diffuse.flatten(-2))[..., 0, :].unflatten(-1, mode_diffuse.shape[-2:]))
+            out[DIFFUSE_COV] = symmetrize(
+                (weights[..., None, :] @ mode_diffuse.flatten(-2))[..., 0, :].unflatten(-1, mode_diffuse.shape[-2:])
+            )
             out[DIFFUSE_SCALE] = modes[0][DIFFUSE_SCALE]
         return out
 

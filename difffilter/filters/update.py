@@ -1,0 +1,228 @@
+"""The shared Gaussian measurement update of every Kalman-family filter.
+
+:func:`gaussian_update` (covariance form, with the Joseph forms where they are needed) and
+:func:`diffuse_gaussian_update` (the exact update of a belief with a diffuse part, see
+:mod:`difffilter.filters.diffuse`), and the exact removal of unobserved components
+(:func:`mask_measurement_system`).  Re-exported by :mod:`difffilter.filters.base`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from ..linalg import joseph_update, psd_sqrt, safe_cholesky, symmetrize
+from .diffuse import DIFFUSE_COV, DIFFUSE_SCALE, diffuse_update
+
+__all__ = ["StepInfo", "diffuse_gaussian_update", "gaussian_update", "mask_measurement_system", "square_root_deviations"]
+
+Belief = dict[str, Tensor]
+_LOG_2PI = math.log(2.0 * math.pi)
+
+
+@dataclass
+class StepInfo:
+    """Per-step update statistics ``[B]``: log-likelihood ``log N(e; 0, S)`` of the observed
+    components, normalised innovation squared ``e^T S^{-1} e`` and number of observed components.
+    ``untrusted [B]`` (bool, optional) marks updates whose rounding error cannot be vouched for
+    (see :func:`gaussian_update`)."""
+
+    log_likelihood: Tensor
+    nis: Tensor
+    num_observed: Tensor
+    innovation: Tensor | None = None
+    innovation_cov: Tensor | None = None
+    untrusted: Tensor | None = None
+
+
+def mask_measurement_system(
+    innovation: Tensor, cov: Tensor, deviations: Tensor, mask: Tensor | None
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Remove unobserved measurement components exactly from an update.
+
+    ``innovation [B, m]``, ``cov [B, m, m]`` (innovation or noise covariance), ``deviations
+    [..., m]`` (anything indexed by measurement component last: ``P_xz``, sigma-point
+    deviations); ``mask [B, m]`` True = observed.  Missing components get a zero innovation
+    (``where``, so NaN never propagates), zero deviations, zero covariance rows/columns and a unit
+    diagonal: the padded system's update equals the update on the observed subset, and each
+    missing component adds exactly ``log N(0; 0, 1)`` to the log-density.  Returns the masked
+    ``(innovation, cov, deviations, num_observed [B])``.
+    """
+    m = innovation.shape[-1]
+    if mask is None:
+        num_obs = torch.full(innovation.shape[:-1], float(m), dtype=innovation.dtype, device=innovation.device)
+        return innovation, cov, deviations, num_obs
+    mo = mask.to(innovation.dtype)
+    innovation = torch.where(mask, innovation, torch.zeros_like(innovation))
+    cov = cov * (mo[..., :, None] * mo[..., None, :]) + torch.diag_embed(1.0 - mo)
+    return innovation, cov, deviations * mo[..., None, :], mo.sum(-1)
+
+
+def _trust_limits(dtype: torch.dtype) -> tuple[float, float, float]:
+    """``(switch, standard, joseph)``: the posterior/prior variance ratio below which the
+    ``P - K S K^T`` form switches to a Joseph-type form (``64 sqrt(eps)``: measured errors of
+    that form reach ``~20 eps / ratio``, so it keeps about half of the digits), and the ratios
+    below which each form's relative rounding error (``eps / ratio``, resp. ``eps^2 / ratio``)
+    exceeds ``1e-2``."""
+    eps = torch.finfo(dtype).eps
+    return 64.0 * eps**0.5, eps / 1e-2, eps * eps / 1e-2
+
+
+def gaussian_update(
+    mean: Tensor,
+    cov: Tensor,
+    innovation: Tensor,
+    innovation_cov: Tensor,
+    cross_cov: Tensor,
+    mask: Tensor | None,
+    *,
+    joseph: tuple[Tensor, Tensor] | None = None,
+    joseph_fallback: tuple[Tensor, Tensor] | None = None,
+    sigma_fallback: tuple[Tensor, Tensor, Tensor, Tensor | None] | None = None,
+    add: Callable[[Tensor, Tensor], Tensor] | None = None,
+) -> tuple[Tensor, Tensor, StepInfo]:
+    """Linear-Gaussian measurement update shared by every Kalman-family filter.
+
+    Args:
+        mean, cov: prior ``[B, n]``, ``[B, n, n]``.
+        innovation: ``e = z - z_hat`` ``[B, m]``.
+        innovation_cov: ``S [B, m, m]`` (measurement noise included).
+        cross_cov: ``P_xz [B, n, m]``.
+        mask: ``[B, m]`` bool, True = observed (``None``: all observed).
+        joseph: ``(H [B, m, n], R [B, m, m])`` to use the Joseph form (KF/EKF) instead of
+            ``P - K S K^T``.
+        joseph_fallback: ``(H, R)`` for the Joseph form on the batch elements where
+            ``P - K S K^T`` cancels (below).
+        sigma_fallback: ``(dx [B, S, n], dz [B, S, m], wc [S], R [B, m, m] or None)``, the
+            sigma-point deviations of an unscented update, for its Joseph form on those
+            elements: ``sum_i wc_i (dx_i - K dz_i)(dx_i - K dz_i)^T + K R K^T`` (``R`` None when
+            the points already carry the measurement noise).
+        add: ``add(x, dx)``, the state addition (e.g. ``DynamicsModel.add`` wrapping angular
+            states) for the mean correction; None adds plainly.
+
+    Returns the posterior mean and covariance and the :class:`StepInfo`.  The gain is never
+    formed through an inverse: with ``S = L L^T``, ``W = L^{-1} P_xz^T`` gives
+    ``K e = W^T L^{-1} e`` and ``K S K^T = W^T W``.
+
+    ``P - K S K^T`` subtracts two numbers of the prior's size, so a variance that one update
+    reduces by a factor ``rho`` keeps about ``eps / rho`` relative accuracy; the Joseph forms
+    subtract only inside ``I - K H`` and keep about ``eps^2 / rho``.  Where a posterior variance
+    falls below ``64 sqrt(eps)`` times its prior (``9.5e-7`` in float64, ``2.2e-2`` in float32)
+    and a fallback is given, those batch elements are recomputed in the fallback's Joseph form;
+    ``StepInfo.untrusted`` marks elements whose form still cannot resolve the reduction to
+    ``1e-2``, whose ``S`` needed jitter, or whose posterior variances are negative or not finite.
+    """
+    innovation, innovation_cov, cross_cov, num_obs = mask_measurement_system(innovation, innovation_cov, cross_cov, mask)
+    chol, jitter = safe_cholesky(innovation_cov)
+    rhs = torch.cat([cross_cov.mT, innovation[..., None]], -1)  # [B, m, n+1]
+    sol = torch.linalg.solve_triangular(chol, rhs, upper=False)
+    w, v = sol[..., :-1], sol[..., -1]  # W [B, m, n], v = L^{-1} e [B, m]
+    correction = (w.mT @ v[..., None])[..., 0]
+    new_mean = mean + correction if add is None else add(mean, correction)
+    switch, std_limit, joseph_limit = _trust_limits(mean.dtype)
+    prior_var = torch.diagonal(cov, dim1=-2, dim2=-1)
+    if joseph is None:
+        new_cov = symmetrize(cov - w.mT @ w)
+        limit: Tensor | float = std_limit
+        if joseph_fallback is not None or sigma_fallback is not None:
+            lossy = ~(torch.diagonal(new_cov, dim1=-2, dim2=-1) >= switch * prior_var).all(-1)
+            if bool(lossy.any()):
+                gain = torch.linalg.solve_triangular(chol.mT, w, upper=True).mT  # K = W^T L^{-1}
+                if joseph_fallback is not None:
+                    stable = joseph_update(cov, gain, *_masked_system(*joseph_fallback, mask))
+                else:
+                    stable = _sigma_joseph(gain, *sigma_fallback, mask)  # type: ignore[misc]
+                new_cov = torch.where(lossy[..., None, None], stable, new_cov)
+                limit = torch.where(lossy, joseph_limit, std_limit)[..., None]
+    else:
+        gain = torch.linalg.solve_triangular(chol.mT, w, upper=True).mT  # K = W^T L^{-1}
+        new_cov = joseph_update(cov, gain, *_masked_system(*joseph, mask))
+        limit = joseph_limit
+    post_var = torch.diagonal(new_cov, dim1=-2, dim2=-1)
+    maha = (v * v).sum(-1)
+    logdet = 2.0 * torch.log(torch.diagonal(chol, dim1=-2, dim2=-1)).sum(-1)
+    loglik = -0.5 * (maha + logdet + num_obs * _LOG_2PI)
+    # a NaN compares False, so non-finite variances are flagged too
+    untrusted = ~(post_var >= limit * prior_var).all(-1) | (jitter != 0) | ~torch.isfinite(loglik) | ~torch.isfinite(new_mean).all(-1)
+    info = StepInfo(loglik, maha, num_obs, innovation, innovation_cov, untrusted)
+    return new_mean, new_cov, info
+
+
+def diffuse_gaussian_update(
+    belief: Belief,
+    innovation: Tensor,
+    deviations: tuple[Tensor, Tensor, Tensor, Tensor | None],
+    mask: Tensor | None,
+    *,
+    obs_matrix: Tensor | None = None,
+    diffuse_cross: Tensor | None = None,
+    diffuse_innovation: Tensor | None = None,
+    add: Callable[[Tensor, Tensor], Tensor] | None = None,
+) -> tuple[Belief, StepInfo]:
+    """:func:`gaussian_update` for a belief with a diffuse part (``"diffuse_cov"``).
+
+    ``deviations`` ``(dx [B, S, n], dz [B, S, m], wc [S], R or None)`` describe the finite part's
+    joint moments (:func:`~difffilter.filters.diffuse.diffuse_update`); the diffuse part enters
+    through the measurement Jacobian ``obs_matrix`` ``H [B, m, n]`` (or ``[m, n]``), or directly
+    through ``P_inf H^T`` and ``H P_inf H^T`` (``diffuse_cross``, ``diffuse_innovation``) when
+    the measurement is not a function of the current state alone; ``add`` as for
+    :func:`gaussian_update`.  Returns the belief entries
+    ``mean``, ``cov`` (finite part), ``diffuse_cov``, ``diffuse_scale`` and the step's
+    :class:`StepInfo`; ``untrusted`` marks a finite part whose reduction exceeds what the
+    Joseph form resolves (as in :func:`gaussian_update`) or non-finite results.
+    """
+    mean, p_inf, scale = belief["mean"], belief[DIFFUSE_COV], belief[DIFFUSE_SCALE]
+    if diffuse_cross is None or diffuse_innovation is None:
+        if obs_matrix is None:
+            raise ValueError("diffuse_gaussian_update needs obs_matrix or (diffuse_cross, diffuse_innovation)")
+        h = obs_matrix.expand(*mean.shape[:-1], *obs_matrix.shape[-2:])
+        diffuse_cross = p_inf @ h.mT
+        diffuse_innovation = symmetrize(h @ diffuse_cross)
+    new_mean, p_fin, new_inf, loglik, nis, num_obs = diffuse_update(
+        mean, p_inf, scale, innovation, deviations, diffuse_cross, diffuse_innovation, mask
+    )
+    if add is not None:
+        new_mean = add(mean, new_mean - mean)
+    limit = _trust_limits(mean.dtype)[2]
+    var = torch.diagonal(p_fin, dim1=-2, dim2=-1)
+    untrusted = ~torch.isfinite(loglik) | ~(var >= limit * torch.diagonal(belief["cov"], dim1=-2, dim2=-1)).all(-1)
+    post = {"mean": new_mean, "cov": p_fin, DIFFUSE_COV: new_inf, DIFFUSE_SCALE: scale}
+    return post, StepInfo(loglik, nis, num_obs, innovation, None, untrusted)
+
+
+def square_root_deviations(cov: Tensor, obs_matrix: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """``(dx [B, n, n], dz [B, n, m], wc [n])``: the columns of a square root of ``cov`` and their
+    images under ``obs_matrix`` with unit weights, the deviations form of ``(P, P H^T, H P H^T)``
+    that :func:`diffuse_gaussian_update` takes from filters without sigma points."""
+    dx = psd_sqrt(cov).factor.mT
+    return dx, dx @ obs_matrix.mT, torch.ones(cov.shape[-1], dtype=cov.dtype, device=cov.device)
+
+
+def _masked_noise(r: Tensor, mask: Tensor | None) -> Tensor:
+    """``R`` with the rows and columns of unobserved components zeroed."""
+    if mask is None:
+        return r
+    mo = mask.to(r.dtype)
+    return r * (mo[..., :, None] * mo[..., None, :])
+
+
+def _masked_system(h: Tensor, r: Tensor, mask: Tensor | None) -> tuple[Tensor, Tensor]:
+    """``H`` and ``R`` with the rows (and columns) of unobserved components zeroed."""
+    if mask is None:
+        return h, r
+    return h * mask.to(h.dtype)[..., :, None], _masked_noise(r, mask)
+
+
+def _sigma_joseph(gain: Tensor, dx: Tensor, dz: Tensor, wc: Tensor, r: Tensor | None, mask: Tensor | None) -> Tensor:
+    """Joseph form of an unscented update from its sigma-point deviations (``gaussian_update``)."""
+    if mask is not None:
+        dz = dz * mask.to(dz.dtype)[..., None, :]
+    dev = dx - dz @ gain.mT
+    out = (dev * wc[:, None]).mT @ dev
+    if r is not None:
+        out = out + gain @ _masked_noise(r, mask) @ gain.mT
+    return symmetrize(out)

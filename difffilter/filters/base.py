@@ -30,7 +30,7 @@ from torch.nn.utils import parametrize
 from ..models.base import Controls, DynamicsModel, MeasurementModel, StateSpaceModel
 from ..params import check_covariance
 from .diffuse import DIFFUSE_COV, DIFFUSE_SCALE, drop_resolved, measurement_sensitivity, split_prior, total_cov
-from .update import StepInfo, diffuse_gaussian_update, gaussian_update, mask_measurement_system, square_root_deviations
+from .update import StepInfo, diffuse_gaussian_update, gaussian_update, mask_measurement_system, square_root_deviations, untrusted_steps
 
 __all__ = [
     "Belief",
@@ -415,6 +415,7 @@ class GaussianFilter(nn.Module):
         steps = z.shape[1]
         means, covs, pmeans, pcovs, lls, nis, nobs = [], [], [], [], [], [], []
         extras: dict[str, list[Tensor]] = {}
+        flags: list[tuple[Tensor | None, Tensor | None, bool]] = []
         with parametrize.cached():
             if belief is None:
                 belief = self.start_belief(mean0, cov0, slice_controls(controls, 0))
@@ -432,11 +433,10 @@ class GaussianFilter(nn.Module):
                 nobs.append(info.num_observed)
                 for k, v in self.record(belief).items():
                     extras.setdefault(k, []).append(v)
-                if info.untrusted is not None:
-                    extras.setdefault("untrusted", []).append(info.untrusted)
+                flags.append((info.untrusted, info.jitter, DIFFUSE_COV in prior))
                 belief = drop_resolved(belief)
         stack: Any = lambda xs: torch.stack(xs, 1)  # noqa: E731
-        return FilterResult(
+        result = FilterResult(
             mean=stack(means),
             cov=stack(covs),
             prior_mean=stack(pmeans),
@@ -447,3 +447,19 @@ class GaussianFilter(nn.Module):
             final_belief=belief,
             extras={k: stack(v) for k, v in extras.items()},
         )
+        result.extras["untrusted"] = _untrusted(result, flags)
+        return result
+
+
+def _untrusted(result: FilterResult, flags: list[tuple[Tensor | None, Tensor | None, bool]]) -> Tensor:
+    """``[B, T]``: the run-wide check of :func:`~difffilter.filters.update.untrusted_steps` and
+    the steps' own flags (an innovation covariance that needed jitter, a flagged update)."""
+    exact = torch.tensor([d for _, _, d in flags], dtype=torch.bool, device=result.mean.device)
+    out = untrusted_steps(result.mean, result.cov, result.prior_cov, result.log_likelihood, exact)
+    for i in (0, 1):
+        own = [f[i] for f in flags]
+        if any(v is not None for v in own):
+            like = next(v for v in own if v is not None)
+            zero = torch.zeros_like(like)
+            out = out | (torch.stack([zero if v is None else v for v in own], 1) != 0)
+    return out

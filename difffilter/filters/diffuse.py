@@ -83,17 +83,21 @@ def measurement_sensitivity(model: StateSpaceModel, mean: Tensor, u: Controls) -
 
     ``(g^T u)^2 lambda`` is the variance ratio at which measurement ``i`` resolves a prior
     direction ``u`` of variance ``lambda``, directly (``k = 0``) or through the dynamics.
+    Jacobians the model does not provide come from forward differences: a magnitude is all
+    this needs, and any model a sigma-point filter runs can be differenced.
     """
     n = mean.shape[-1]
-    h = measurement_matrix(model.measurement, mean, u)
-    r = model.measurement.measurement_noise(mean, u)
+    # no torch.no_grad() here: inside parametrize.cached() it would cache Q and R without their
+    # graph for the whole run; the result is detached instead
+    h = measurement_matrix(model.measurement, mean, u, differences=True).detach()
+    r = model.measurement.measurement_noise(mean, u).detach()
     rdiag = torch.diagonal(r, dim1=-2, dim2=-1).expand(*mean.shape[:-1], h.shape[-2])
     inv_sd = torch.rsqrt(rdiag.clamp_min(torch.finfo(mean.dtype).tiny))
-    f = transition_matrix(model.dynamics, mean, u)
+    f = transition_matrix(model.dynamics, mean, u, differences=True).detach()
     rows = [h]
     for _ in range(n - 1):
         rows.append(rows[-1] @ f)
-    return (torch.cat(rows, -2) * torch.cat([inv_sd] * n, -1)[..., None]).detach()
+    return torch.cat(rows, -2) * torch.cat([inv_sd] * n, -1)[..., None]
 
 
 def split_prior(cov: Tensor, sensitivity: Tensor) -> tuple[Tensor, Tensor, Tensor] | None:

@@ -14,7 +14,7 @@ from torch.func import jacrev, jvp, vmap
 
 from ..models.base import Controls, DynamicsModel, MeasurementModel
 
-__all__ = ["autodiff_jacobian", "expand_controls", "measurement_matrix", "transition_matrix"]
+__all__ = ["autodiff_jacobian", "difference_jacobian", "expand_controls", "measurement_matrix", "transition_matrix"]
 
 
 def expand_controls(u: Controls, dim: int = 1) -> Controls:
@@ -51,21 +51,32 @@ def autodiff_jacobian(fn: Callable[[Tensor, Controls], Tensor], x: Tensor, u: Co
     return out.to(x.dtype)
 
 
-def _linear_or_autodiff(model: DynamicsModel | MeasurementModel, base: type, x: Tensor, u: Controls, out_dim: int) -> Tensor:
+def difference_jacobian(fn: Callable[[Tensor, Controls], Tensor], x: Tensor, u: Controls) -> Tensor:
+    """Forward-difference Jacobian ``[B, out, n]`` of ``fn(x [B, n], u)`` (steps
+    ``sqrt(eps) max(1, |x_i|)``): one call of ``fn`` on ``n + 1`` points per batch element, so
+    it works for any model a sigma-point filter can run (no autograd through the model)."""
+    step = torch.finfo(x.dtype).eps ** 0.5 * x.abs().clamp_min(1.0)  # [B, n]
+    pts = torch.cat([x[..., None, :], x[..., None, :] + torch.diag_embed(step)], -2)  # [B, n + 1, n]
+    out = fn(pts, expand_controls(u, x.ndim - 1))
+    return ((out[..., 1:, :] - out[..., :1, :]) / step[..., :, None]).mT
+
+
+def _model_jacobian(model: DynamicsModel | MeasurementModel, base: type, x: Tensor, u: Controls, out_dim: int, differences: bool) -> Tensor:
     jac = model.jacobian(x, u)
     if jac is None and type(model).matrix is not base.matrix:
         jac = model.matrix(u)
     if jac is None:
-        jac = autodiff_jacobian(model, x, u)
+        jac = difference_jacobian(model, x, u) if differences else autodiff_jacobian(model, x, u)
     return jac.expand(*x.shape[:-1], out_dim, x.shape[-1])
 
 
-def transition_matrix(dynamics: DynamicsModel, x: Tensor, u: Controls) -> Tensor:
+def transition_matrix(dynamics: DynamicsModel, x: Tensor, u: Controls, *, differences: bool = False) -> Tensor:
     """``df/dx`` at ``x [B, n]`` as ``[B, n, n]``: the model's analytic ``jacobian``, else its
-    ``matrix`` (linear dynamics), else forward-mode autodiff."""
-    return _linear_or_autodiff(dynamics, DynamicsModel, x, u, x.shape[-1])
+    ``matrix`` (linear dynamics), else forward-mode autodiff (``differences=True``: forward
+    differences, :func:`difference_jacobian`)."""
+    return _model_jacobian(dynamics, DynamicsModel, x, u, x.shape[-1], differences)
 
 
-def measurement_matrix(measurement: MeasurementModel, x: Tensor, u: Controls) -> Tensor:
+def measurement_matrix(measurement: MeasurementModel, x: Tensor, u: Controls, *, differences: bool = False) -> Tensor:
     """``dh/dx`` at ``x [B, n]`` as ``[B, m, n]`` (as :func:`transition_matrix`)."""
-    return _linear_or_autodiff(measurement, MeasurementModel, x, u, int(measurement.measurement_dim))
+    return _model_jacobian(measurement, MeasurementModel, x, u, int(measurement.measurement_dim), differences)

@@ -94,11 +94,6 @@ class SquareRootUKF(UKF):
         loglik, maha = gaussian_log_density(e, szz)
         # Missing components contribute log N(0; 0, 1) each in the padded system: remove it.
         loglik = loglik + 0.5 * (m - num_obs) * torch.log(torch.tensor(2.0 * torch.pi, dtype=e.dtype))
-        new_cov = s_new @ s_new.mT
-        # the re-triangularised Joseph factor keeps ~eps^2 / (variance reduction) relative accuracy
-        limit = torch.finfo(e.dtype).eps ** 2 / 1e-2
-        prior_var = (s * s).sum(-1)
-        untrusted = ~(torch.diagonal(new_cov, dim1=-2, dim2=-1) >= limit * prior_var).all(-1) | ~torch.isfinite(loglik)
-        info = StepInfo(loglik, maha, num_obs, e, szz @ szz.mT, untrusted)
+        info = StepInfo(loglik, maha, num_obs, e, szz @ szz.mT)
         out = {k: v for k, v in belief.items() if k not in ("mean", "cov", "scale_tril")}
-        return {**out, "mean": new_mean, "cov": new_cov, "scale_tril": s_new}, info
+        return {**out, "mean": new_mean, "cov": s_new @ s_new.mT, "scale_tril": s_new}, info

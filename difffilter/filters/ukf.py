@@ -186,8 +186,6 @@ class UKF(GaussianFilter):
             pzz = pzz + r
         pxz = (dx * wc[:, None]).mT @ dz
         e = hm.residual(z, zhat)
-        if r is not None:
-            r = r.expand(*mean.shape[:-1], *r.shape[-2:])
         if DIFFUSE_COV in belief:
             h = measurement_matrix(hm, mean, u)
             post, info = diffuse_gaussian_update(belief, e, (dx, dz, wc, r), mask, obs_matrix=h, add=state_add(dyn))

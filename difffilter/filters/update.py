@@ -18,7 +18,14 @@ from torch import Tensor
 from ..linalg import joseph_update, psd_sqrt, safe_cholesky, symmetrize
 from .diffuse import DIFFUSE_COV, DIFFUSE_SCALE, diffuse_update
 
-__all__ = ["StepInfo", "diffuse_gaussian_update", "gaussian_update", "mask_measurement_system", "square_root_deviations"]
+__all__ = [
+    "StepInfo",
+    "diffuse_gaussian_update",
+    "gaussian_update",
+    "mask_measurement_system",
+    "square_root_deviations",
+    "untrusted_steps",
+]
 
 Belief = dict[str, Tensor]
 _LOG_2PI = math.log(2.0 * math.pi)
@@ -29,7 +36,7 @@ class StepInfo:
     """Per-step update statistics ``[B]``: log-likelihood ``log N(e; 0, S)`` of the observed
     components, normalised innovation squared ``e^T S^{-1} e`` and number of observed components.
     ``untrusted [B]`` (bool, optional) marks updates whose rounding error cannot be vouched for
-    (see :func:`gaussian_update`)."""
+    and ``jitter [B]`` (optional) the innovation covariance's repair (see :func:`gaussian_update`)."""
 
     log_likelihood: Tensor
     nis: Tensor
@@ -37,6 +44,7 @@ class StepInfo:
     innovation: Tensor | None = None
     innovation_cov: Tensor | None = None
     untrusted: Tensor | None = None
+    jitter: Tensor | None = None
 
 
 def mask_measurement_system(
@@ -113,8 +121,10 @@ def gaussian_update(
     subtract only inside ``I - K H`` and keep about ``eps^2 / rho``.  Where a posterior variance
     falls below ``64 sqrt(eps)`` times its prior (``9.5e-7`` in float64, ``2.2e-2`` in float32)
     and a fallback is given, those batch elements are recomputed in the fallback's Joseph form;
-    ``StepInfo.untrusted`` marks elements whose form still cannot resolve the reduction to
-    ``1e-2``, whose ``S`` needed jitter, or whose posterior variances are negative or not finite.
+    ``StepInfo.jitter`` is ``S``'s repair (0 if none); without a Joseph form or a fallback,
+    ``StepInfo.untrusted`` marks elements whose reduction ``P - K S K^T`` cannot resolve to
+    ``1e-2``.  The time loop flags the rest over the whole run at once
+    (:func:`untrusted_steps`), so this function adds no per-step work for it.
     """
     innovation, innovation_cov, cross_cov, num_obs = mask_measurement_system(innovation, innovation_cov, cross_cov, mask)
     chol, jitter = safe_cholesky(innovation_cov)
@@ -123,33 +133,53 @@ def gaussian_update(
     w, v = sol[..., :-1], sol[..., -1]  # W [B, m, n], v = L^{-1} e [B, m]
     correction = (w.mT @ v[..., None])[..., 0]
     new_mean = mean + correction if add is None else add(mean, correction)
-    switch, std_limit, joseph_limit = _trust_limits(mean.dtype)
-    prior_var = torch.diagonal(cov, dim1=-2, dim2=-1)
+    untrusted = None
     if joseph is None:
         new_cov = symmetrize(cov - w.mT @ w)
-        limit: Tensor | float = std_limit
-        if joseph_fallback is not None or sigma_fallback is not None:
-            lossy = ~(torch.diagonal(new_cov, dim1=-2, dim2=-1) >= switch * prior_var).all(-1)
-            if bool(lossy.any()):
-                gain = torch.linalg.solve_triangular(chol.mT, w, upper=True).mT  # K = W^T L^{-1}
-                if joseph_fallback is not None:
-                    stable = joseph_update(cov, gain, *_masked_system(*joseph_fallback, mask))
-                else:
-                    stable = _sigma_joseph(gain, *sigma_fallback, mask)  # type: ignore[misc]
-                new_cov = torch.where(lossy[..., None, None], stable, new_cov)
-                limit = torch.where(lossy, joseph_limit, std_limit)[..., None]
+        switch, std_limit, _ = _trust_limits(mean.dtype)
+        prior_var = torch.diagonal(cov, dim1=-2, dim2=-1)
+        post_var = torch.diagonal(new_cov, dim1=-2, dim2=-1)
+        if joseph_fallback is None and sigma_fallback is None:
+            untrusted = ~(post_var >= std_limit * prior_var).all(-1)
+        elif bool((post_var < switch * prior_var).any()):
+            lossy = (post_var < switch * prior_var).any(-1)
+            gain = torch.linalg.solve_triangular(chol.mT, w, upper=True).mT  # K = W^T L^{-1}
+            if joseph_fallback is not None:
+                stable = joseph_update(cov, gain, *_masked_system(*joseph_fallback, mask))
+            else:
+                stable = _sigma_joseph(gain, *sigma_fallback, mask)  # type: ignore[misc]
+            new_cov = torch.where(lossy[..., None, None], stable, new_cov)
     else:
         gain = torch.linalg.solve_triangular(chol.mT, w, upper=True).mT  # K = W^T L^{-1}
         new_cov = joseph_update(cov, gain, *_masked_system(*joseph, mask))
-        limit = joseph_limit
-    post_var = torch.diagonal(new_cov, dim1=-2, dim2=-1)
     maha = (v * v).sum(-1)
     logdet = 2.0 * torch.log(torch.diagonal(chol, dim1=-2, dim2=-1)).sum(-1)
     loglik = -0.5 * (maha + logdet + num_obs * _LOG_2PI)
-    # a NaN compares False, so non-finite variances are flagged too
-    untrusted = ~(post_var >= limit * prior_var).all(-1) | (jitter != 0) | ~torch.isfinite(loglik) | ~torch.isfinite(new_mean).all(-1)
-    info = StepInfo(loglik, maha, num_obs, innovation, innovation_cov, untrusted)
+    info = StepInfo(loglik, maha, num_obs, innovation, innovation_cov, untrusted, jitter)
     return new_mean, new_cov, info
+
+
+def untrusted_steps(mean: Tensor, cov: Tensor, prior_cov: Tensor, log_likelihood: Tensor, exact: Tensor | None = None) -> Tensor:
+    """``[B, T]`` steps whose posterior cannot be vouched for to ``1e-2`` in a Joseph-type
+    update (the weakest form every filter here ends up using): a variance reduced below
+    ``eps^2 / 1e-2`` of its prior (``4.9e-30`` in float64, ``1.4e-12`` in float32), a negative
+    or non-finite variance, a non-finite mean or log-likelihood.  ``exact [T]`` (bool) marks
+    steps to leave out (diffuse-part updates, which flag themselves).  Vectorised over the run."""
+    limit = _trust_limits(mean.dtype)[2]
+    post_var = torch.diagonal(cov, dim1=-2, dim2=-1)
+    prior_var = torch.diagonal(prior_cov, dim1=-2, dim2=-1)
+    # a NaN compares False, so non-finite variances are flagged too; whole-run checks first
+    # (one reduction each), per-step reductions only when one fails
+    bad = ~torch.isfinite(log_likelihood)
+    low = ~(post_var >= limit * prior_var)
+    if bool(low.any()):
+        bad = bad | low.any(-1)
+    finite = torch.isfinite(mean)
+    if not bool(finite.all()):
+        bad = bad | ~finite.all(-1)
+    if exact is not None:
+        bad = bad & ~exact
+    return bad
 
 
 def diffuse_gaussian_update(

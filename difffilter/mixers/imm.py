@@ -344,5 +344,8 @@ class IMM(GaussianFilter):
         out["mode_log_likelihoods"] = log_lik
         nis = (log_c.exp() * torch.stack([i.nis for i in infos], -1)).sum(-1)
         flags = [i.untrusted for i in infos if i.untrusted is not None]
+        jitters = [i.jitter for i in infos if i.jitter is not None]  # each >= 0: the sum is 0 iff none was repaired
         untrusted = torch.stack(flags, -1).any(-1) if flags else None
-        return out, StepInfo(total, nis, infos[0].num_observed, untrusted=untrusted)
+        return out, StepInfo(
+            total, nis, infos[0].num_observed, untrusted=untrusted, jitter=sum(jitters[1:], jitters[0]) if jitters else None
+        )

@@ -27,38 +27,17 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from difffilter.bench.exact import (  # noqa: E402
+    cv_scenario,
     exact_colored_posteriors,
     exact_fading_kalman,
     exact_imm,
     exact_kalman,
     relative_errors,
+    simulate_linear,
 )
 from difffilter.filters import EKF, RCUKF, UKF, ColoredNoiseUKF, KalmanFilter, SimplifiedUKF, SquareRootUKF  # noqa: E402
 from difffilter.mixers import IMM, Blend  # noqa: E402
 from difffilter.models import LinearModel  # noqa: E402
-
-
-def cv_model(q: float, r: float) -> dict[str, np.ndarray]:
-    f1 = np.array([[1.0, 1.0], [0.0, 1.0]])
-    q1 = q * np.array([[1.0 / 3.0, 0.5], [0.5, 1.0]])
-    return {
-        "F": np.kron(np.eye(2), f1),
-        "Q": np.kron(np.eye(2), q1),
-        "H": np.array([[1.0, 0, 0, 0], [0, 0, 1.0, 0]]),
-        "R": r * np.eye(2),
-    }
-
-
-def simulate(mats: dict[str, np.ndarray], steps: int, seed: int) -> np.ndarray:
-    rng = np.random.default_rng(seed)
-    x = np.array([10.0, 1.0, -5.0, 0.5])
-    lq = np.linalg.cholesky(mats["Q"])
-    zs = []
-    for _ in range(steps):
-        x = mats["F"] @ x + lq @ rng.standard_normal(4)
-        zs.append(mats["H"] @ x + np.sqrt(mats["R"][0, 0]) * rng.standard_normal(2))
-    return np.array(zs)
-
 
 FILTERS = ("kf", "kf_nojoseph", "ekf", "ukf", "sukf", "srukf", "rcukf", "colored0", "colored", "imm", "blend")
 
@@ -105,8 +84,8 @@ def reference(name: str, mats: dict[str, np.ndarray], m0: np.ndarray, P0: np.nda
 
 
 def run_case(name: str, scale: float, dtype: torch.dtype, *, q: float, r: float, steps: int, seed: int) -> dict[str, float]:
-    mats64 = cv_model(q, r)
-    z64 = simulate(mats64, steps, seed)
+    mats64 = cv_scenario(q, r)
+    z64 = simulate_linear(mats64, steps, seed)
     # the reference sees exactly the inputs the filter sees (rounded to its dtype)
     tmats = {k: torch.tensor(v, dtype=dtype) for k, v in mats64.items()}
     mats = {k: v.double().numpy() for k, v in tmats.items()}

@@ -14,7 +14,15 @@ import numpy as np
 import pytest
 import torch
 
-from difffilter.bench.exact import exact_colored_posteriors, exact_fading_kalman, exact_imm, exact_kalman, relative_errors
+from difffilter.bench.exact import (
+    cv_scenario,
+    exact_colored_posteriors,
+    exact_fading_kalman,
+    exact_imm,
+    exact_kalman,
+    relative_errors,
+    simulate_linear,
+)
 from difffilter.filters import EKF, RCUKF, UKF, ColoredNoiseUKF, FusedFilter, KalmanFilter, SimplifiedUKF, SquareRootUKF
 from difffilter.filters.diffuse import split_prior
 from difffilter.mixers import IMM, Blend
@@ -27,20 +35,11 @@ PI = np.array([[0.95, 0.05], [0.1, 0.9]])
 
 
 def cv_model(q: float = 1.0, r: float = 1e-8) -> dict[str, np.ndarray]:
-    f1 = np.array([[1.0, 1.0], [0.0, 1.0]])
-    q1 = q * np.array([[1.0 / 3.0, 0.5], [0.5, 1.0]])
-    return {"F": np.kron(np.eye(2), f1), "Q": np.kron(np.eye(2), q1), "H": np.array([[1.0, 0, 0, 0], [0, 0, 1.0, 0]]), "R": r * np.eye(2)}
+    return cv_scenario(q, r)
 
 
 def simulate(mats: dict[str, np.ndarray], steps: int = STEPS, seed: int = 0) -> np.ndarray:
-    rng = np.random.default_rng(seed)
-    x = np.array([10.0, 1.0, -5.0, 0.5])
-    lq = np.linalg.cholesky(mats["Q"])
-    zs = []
-    for _ in range(steps):
-        x = mats["F"] @ x + lq @ rng.standard_normal(4)
-        zs.append(mats["H"] @ x + np.sqrt(mats["R"][0, 0]) * rng.standard_normal(2))
-    return np.array(zs)
+    return simulate_linear(mats, steps, seed)
 
 
 def build(name: str, mats: dict[str, torch.Tensor]):  # type: ignore[no-untyped-def]

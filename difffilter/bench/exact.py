@@ -31,7 +31,9 @@ __all__ = [
     "exact_imm",
     "exact_kalman",
     "mpmath_available",
+    "cv_scenario",
     "relative_errors",
+    "simulate_linear",
 ]
 
 
@@ -87,23 +89,37 @@ def _kf_update(x, p, z, h, r):  # type: ignore[no-untyped-def]
     return x + gain * e, _sym(p - gain * s * gain.T), _logpdf(e, s), s, pht, e
 
 
-def exact_kalman(
-    F: np.ndarray, H: np.ndarray, Q: np.ndarray, R: np.ndarray, m0: np.ndarray, P0: np.ndarray, z: np.ndarray, *, dps: int = 80
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Kalman filter of one trajectory ``z [T, m]`` from the belief ``(m0, P0)`` before the first
-    measurement; returns posterior ``means [T, n]``, ``covs [T, n, n]`` and ``log_likelihoods [T]``."""
+def _kalman_run(F, H, Q, R, m0, P0, z, *, rho: float | None, dps: int):  # type: ignore[no-untyped-def]  # noqa: N803
     mp = _mp()
     with mp.workdps(dps):
         f, h, q, r = _m(F), _m(H), _m(Q), _m(R)
         x, p = _v(m0), _m(P0)
+        m = h.rows
+        c0 = mp.zeros(m, m)
         means, covs, lls = [], [], []
         for t in range(z.shape[0]):
-            x, p = f * x, _sym(f * p * f.T + q)
+            x = f * x
+            spread = _sym(f * p * f.T)
+            p = spread + q
+            if rho is not None:
+                eps = _v(z[t]) - h * x
+                c0 = (mp.mpf(rho) * c0 + eps * eps.T) / (1 + mp.mpf(rho))
+                num = sum((c0 - r)[i, i] for i in range(m))
+                den = sum((h * p * h.T)[i, i] for i in range(m))
+                p = _sym(p + (max(mp.mpf(1), num / den) - 1) * spread)
             x, p, ll, *_ = _kf_update(x, p, _v(z[t]), h, r)
             means.append(_np_vec(x))
             covs.append(_np(p))
             lls.append(float(ll))
     return np.array(means), np.array(covs), np.array(lls)
+
+
+def exact_kalman(
+    F: np.ndarray, H: np.ndarray, Q: np.ndarray, R: np.ndarray, m0: np.ndarray, P0: np.ndarray, z: np.ndarray, *, dps: int = 80
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Kalman filter of one trajectory ``z [T, m]`` from the belief ``(m0, P0)`` before the first
+    measurement; returns posterior ``means [T, n]``, ``covs [T, n, n]`` and ``log_likelihoods [T]``."""
+    return _kalman_run(F, H, Q, R, m0, P0, z, rho=None, dps=dps)
 
 
 def exact_fading_kalman(
@@ -124,29 +140,28 @@ def exact_fading_kalman(
     (``C0 = 0`` before the first step); ``eta = max(1, tr(C0 - R) / tr(H P- H^T))``;
     ``P-_faded = P- + (eta - 1) S``; then the Kalman update from ``(x-, P-_faded)``.
     """
-    mp = _mp()
-    with mp.workdps(dps):
-        f, h, q, r = _m(F), _m(H), _m(Q), _m(R)
-        x, p = _v(m0), _m(P0)
-        m = h.rows
-        c0 = mp.zeros(m, m)
-        rho_ = mp.mpf(rho)
-        means, covs, lls = [], [], []
-        for t in range(z.shape[0]):
-            x = f * x
-            spread = _sym(f * p * f.T)
-            p = spread + q
-            eps = _v(z[t]) - h * x
-            c0 = (rho_ * c0 + eps * eps.T) / (1 + rho_)
-            num = sum((c0 - r)[i, i] for i in range(m))
-            den = sum((h * p * h.T)[i, i] for i in range(m))
-            eta = max(mp.mpf(1), num / den)
-            p = _sym(p + (eta - 1) * spread)
-            x, p, ll, *_ = _kf_update(x, p, _v(z[t]), h, r)
-            means.append(_np_vec(x))
-            covs.append(_np(p))
-            lls.append(float(ll))
-    return np.array(means), np.array(covs), np.array(lls)
+    return _kalman_run(F, H, Q, R, m0, P0, z, rho=rho, dps=dps)
+
+
+def cv_scenario(q: float = 1.0, r: float = 1e-8) -> dict[str, np.ndarray]:
+    """The reliability scenario's model: 2-D constant velocity ``[px, vx, py, vy]``, ``dt = 1``,
+    white-noise-acceleration ``Q`` of intensity ``q``, both positions measured with ``R = r I``."""
+    f1 = np.array([[1.0, 1.0], [0.0, 1.0]])
+    q1 = q * np.array([[1.0 / 3.0, 0.5], [0.5, 1.0]])
+    return {"F": np.kron(np.eye(2), f1), "Q": np.kron(np.eye(2), q1), "H": np.array([[1.0, 0, 0, 0], [0, 0, 1.0, 0]]), "R": r * np.eye(2)}
+
+
+def simulate_linear(mats: dict[str, np.ndarray], steps: int, seed: int = 0) -> np.ndarray:
+    """Measurements ``[T, m]`` of one seeded trajectory of a linear model (start ``[10, 1, -5, 0.5]``)."""
+    rng = np.random.default_rng(seed)
+    x = np.array([10.0, 1.0, -5.0, 0.5])
+    lq = np.linalg.cholesky(mats["Q"])
+    lr = np.linalg.cholesky(mats["R"])
+    zs = []
+    for _ in range(steps):
+        x = mats["F"] @ x + lq @ rng.standard_normal(x.shape[0])
+        zs.append(mats["H"] @ x + lr @ rng.standard_normal(mats["H"].shape[0]))
+    return np.array(zs)
 
 
 def exact_imm(

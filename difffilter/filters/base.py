@@ -18,7 +18,6 @@ shares the same semantics:
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -30,7 +29,15 @@ from torch.nn.utils import parametrize
 from ..models.base import Controls, DynamicsModel, MeasurementModel, StateSpaceModel
 from ..params import check_covariance
 from .diffuse import DIFFUSE_COV, DIFFUSE_SCALE, drop_resolved, measurement_sensitivity, split_prior, total_cov
-from .update import StepInfo, diffuse_gaussian_update, gaussian_update, mask_measurement_system, square_root_deviations, untrusted_steps
+from .update import (
+    Belief,
+    StepInfo,
+    diffuse_gaussian_update,
+    gaussian_update,
+    mask_measurement_system,
+    square_root_deviations,
+    untrusted_steps,
+)
 
 __all__ = [
     "Belief",
@@ -47,9 +54,6 @@ __all__ = [
     "through_diffuse_phase",
     "detach_belief",
 ]
-
-Belief = dict[str, Tensor]
-_LOG_2PI = math.log(2.0 * math.pi)
 
 
 @dataclass

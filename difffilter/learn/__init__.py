@@ -11,7 +11,7 @@ from __future__ import annotations
 import importlib
 from typing import Any
 
-from .losses import CompositeLoss, HuberLoss, LogNormalPrior, MSELoss, NEESLoss, NLLLoss, NormalPrior
+from .losses import CompositeLoss, HuberLoss, LogNormalPrior, MSELoss, NEESLoss, NLLLoss, NormalPrior, StateNLLLoss
 from .metrics import (
     anees,
     anis,
@@ -35,6 +35,7 @@ __all__ = [
     "NEESLoss",
     "NLLLoss",
     "NormalPrior",
+    "StateNLLLoss",
     "TrajectoryDataModule",
     "TrajectorySet",
     "WindowedTrajectories",

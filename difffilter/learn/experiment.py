@@ -32,6 +32,11 @@ The ``experiment`` config node (per-paper overlays set it)::
       error_quantiles: null       # e.g. [0.5, 0.95]: extra columns pos_err_p50, pos_err_p95 =
                                   # quantiles of the position error norm over all test steps
 
+With a smoother configured (``smoother=rts``, ``cfg.smoother.evaluate``), every filter that a
+smoother supports gets a second row ``"<name> (smoothed)"``: the same metrics of the smoothed
+states ``x_{t|T}`` over each whole test trajectory (``nis``/``nll`` are the filter's, and
+``time_per_step_ms`` covers filter and smoother).
+
 Names in ``hand_tuned``/``params`` follow :func:`difffilter.learn.selection.assign_parameters`
 (a vector sets a covariance's diagonal; a scalar sets ``s I`` or a ScaledMatrix's scale).
 """
@@ -52,6 +57,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from ..filters.base import GaussianFilter
 from ..sim.sampling import as_dtype
+from ..smoothers import Smoother, make_smoother, smoother_spec
 from .data import TrajectorySet
 from .metrics import component_error, finalize_metrics, metric_sums
 from .selection import assign_parameters, match_parameters, parameter_owners
@@ -92,12 +98,14 @@ def evaluate_filter(
     state_index: list[int] | None = None,
     truth_index: list[int] | None = None,
     error_quantiles: list[float] | None = None,
+    smoother: Smoother | None = None,
 ) -> dict[str, float]:
     """Metrics of ``filt`` on every trajectory of ``data`` (see :func:`finalize_metrics`) plus
     ``time_per_step_ms``: wall time of one filter step on a batch of ``batch_size`` trajectories
     (default: all of them at once), and for each ``q`` of ``error_quantiles`` ``pos_err_p{100 q}``:
     the ``q``-quantile of the position error norm ``||e_{b,t}||`` over all steps with a truth
-    (median and tail of the error, which ``rmse_pos`` averages away)."""
+    (median and tail of the error, which ``rmse_pos`` averages away).  With a ``smoother`` (built
+    on ``filt``) the metrics are those of the smoothed states and the time includes the smoother."""
     n = len(data)
     size = batch_size or n
     sums: dict[str, torch.Tensor] = {}
@@ -112,6 +120,8 @@ def evaluate_filter(
         tic = time.perf_counter()
         with bounded_jitter(max_jitter):
             res = filt(batch["measurements"], mean0, cov0, mask=batch["mask"], controls=batch["controls"])
+            if smoother is not None:
+                res = smoother.smooth(res, filt.initial_belief(mean0, cov0, batch_size=len(res.mean)), batch["controls"])
         elapsed += time.perf_counter() - tic
         batches += 1
         if error_quantiles and batch["truth"] is not None:
@@ -230,33 +240,49 @@ def run_experiment(cfg: DictConfig) -> dict[str, Any]:
     indices = {k: None if v is None else [int(i) for i in v] for k, v in indices.items()}
     mean0, cov0 = learner.initial_mean, learner.initial_cov
     learned_names = list(cfg.get("learn") or [])
+    spec = smoother_spec(_plain(cfg.get("smoother")))
+    smoothed_rows = spec is not None and bool(spec.get("evaluate", True))
+    kwargs = {
+        "initial_mean": mean0,
+        "initial_cov": cov0,
+        "batch_size": exp.get("eval_batch_size"),
+        "max_jitter": cfg.learner.get("max_jitter"),
+        "error_quantiles": None if exp.get("error_quantiles") is None else [float(q) for q in exp.error_quantiles],
+        **indices,
+    }
     rows = []
     for name, filt in filters.items():
         filt = filt.to(dtype).eval()
         row: dict[str, Any] = {"filter": name}
-        row.update(
-            evaluate_filter(
-                filt,
-                test,
-                initial_mean=mean0,
-                initial_cov=cov0,
-                batch_size=exp.get("eval_batch_size"),
-                max_jitter=cfg.learner.get("max_jitter"),
-                error_quantiles=None if exp.get("error_quantiles") is None else [float(q) for q in exp.error_quantiles],
-                **indices,
-            )
-        )
+        row.update(evaluate_filter(filt, test, **kwargs))
         if learned_names:
             try:
                 row["parameters"] = _parameter_summary(filt, learned_names)
             except ValueError:
                 row["parameters"] = ""
         rows.append(row)
+        if smoothed_rows:
+            assert spec is not None
+            try:
+                smoother = make_smoother(filt, spec["kind"], lag=spec.get("lag"), time_chunk=spec.get("time_chunk"))
+            except (TypeError, ValueError) as exc:  # e.g. a Blend baseline: no smoother, say so
+                print(f"no smoothed row for {name}: {exc}")
+                continue
+            rows.append({"filter": f"{name} (smoothed)", **evaluate_filter(filt, test, smoother=smoother, **kwargs)})
+            if "parameters" in row:
+                rows[-1]["parameters"] = row["parameters"]
     note = (
         f"experiment `{exp.get('name', '')}`: {len(test)} held-out test trajectories x {test.num_steps} steps, "
         f"loss `{cfg.loss.get('_target_', cfg.loss)}`, learned {learned_names}; rmse in the truth's units; "
         "anees/nis with 95 % chi-square bounds (_lo/_hi); nll per observed step (nats); time_per_step_ms for the whole test batch."
     )
+    if smoothed_rows:
+        assert spec is not None
+        kind = spec["kind"] if spec["kind"] == "rts" else f"fixed-lag (L = {spec.get('lag')})"
+        note += (
+            f" '(smoothed)' rows: the same filter followed by the {kind} smoother over each whole test trajectory "
+            f"(training {'on smoothed' if spec.get('train', True) else 'on filtered'} states); their nis/nll are the filter's."
+        )
     output_dir = Path(cfg.paths.output_dir)
     write_results(rows, output_dir, title=f"difffilter results: {exp.get('name', '')}", note=note)
     print(format_results(rows, title=f"results ({output_dir})", note=note))

@@ -5,6 +5,7 @@ from .base import Belief, FilterResult, GaussianFilter, StepInfo
 from .colored import ColoredNoiseUKF
 from .ekf import EKF
 from .fused import FusedFilter, fuse
+from .iterated import IteratedEKF
 from .kalman import KalmanFilter
 from .sigma_points import Cubature, Julier, MerweScaled, SigmaPoints
 from .square_root import SquareRootUKF
@@ -20,6 +21,7 @@ __all__ = [
     "FilterResult",
     "FusedFilter",
     "GaussianFilter",
+    "IteratedEKF",
     "Julier",
     "KalmanFilter",
     "MerweScaled",

@@ -1,6 +1,7 @@
 """State-space models: interfaces, motion models and navigation models."""
 
 from .base import Controls, DynamicsModel, FunctionalModel, LinearModel, MeasurementModel, StateSpaceModel
+from .noise import NonAdditiveModel
 from .motion import ConstantAcceleration, ConstantVelocity, CurrentStatistical, Singer, singer_process_noise, singer_transition
 from .navigation import *  # noqa: F403
 from .navigation import __all__ as _navigation_all
@@ -14,6 +15,7 @@ __all__ = [
     "FunctionalModel",
     "LinearModel",
     "MeasurementModel",
+    "NonAdditiveModel",
     "Singer",
     "StateSpaceModel",
     "singer_process_noise",

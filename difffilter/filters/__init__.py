@@ -7,6 +7,7 @@ from .ekf import EKF
 from .fused import FusedFilter, fuse
 from .iterated import IteratedEKF
 from .kalman import KalmanFilter
+from .sequential import SequentialUpdate
 from .sigma_points import Cubature, Julier, MerweScaled, SigmaPoints
 from .square_root import SquareRootUKF
 from .ukf import UKF, SimplifiedUKF
@@ -25,6 +26,7 @@ __all__ = [
     "Julier",
     "KalmanFilter",
     "MerweScaled",
+    "SequentialUpdate",
     "SigmaPoints",
     "SimplifiedUKF",
     "SquareRootUKF",

@@ -2,6 +2,7 @@
 
 from .base import Controls, DynamicsModel, FunctionalModel, LinearModel, MeasurementModel, StateSpaceModel
 from .noise import NonAdditiveModel
+from .sensors import MultiSensorMeasurement, SensorGrid, align_streams, event_times
 from .motion import ConstantAcceleration, ConstantVelocity, CurrentStatistical, Singer, singer_process_noise, singer_transition
 from .navigation import *  # noqa: F403
 from .navigation import __all__ as _navigation_all
@@ -15,9 +16,13 @@ __all__ = [
     "FunctionalModel",
     "LinearModel",
     "MeasurementModel",
+    "MultiSensorMeasurement",
     "NonAdditiveModel",
+    "SensorGrid",
     "Singer",
     "StateSpaceModel",
+    "align_streams",
+    "event_times",
     "singer_process_noise",
     "singer_transition",
     *_navigation_all,

@@ -10,7 +10,7 @@ from ..filters.ukf import UKF
 from ..models.base import Controls
 from .base import Smoother, previous_posteriors, rts_backward, smoother_gains
 from .result import SmootherResult
-from .transition import check_smoothable, transition_cross_covariance
+from .transition import check_smoothable, predicting_filter, transition_cross_covariance
 
 __all__ = ["RTSSmoother", "UnscentedRTSSmoother", "faded_prior_cov"]
 
@@ -62,7 +62,7 @@ class RTSSmoother(Smoother):
     def effective_prior_cov(self, result: FilterResult, prev_mean: Tensor, controls: Controls) -> Tensor:
         """The prior covariance ``[B, T, n, n]`` the filter's update used (the recorded prior, or
         RCUKF's faded one)."""
-        if not isinstance(self.filter, RCUKF):
+        if not isinstance(predicting_filter(self.filter), RCUKF):
             return result.prior_cov
         q = self.per_step(lambda m, p, u: self.process_noise(m, u), prev_mean, result.prior_cov, controls)
         return faded_prior_cov(result.prior_cov, q, result.extras["fading_factor"])
@@ -70,7 +70,7 @@ class RTSSmoother(Smoother):
     def process_noise(self, mean: Tensor, u: Controls) -> Tensor:
         """The filter model's ``Q`` at the posterior ``mean [N, n]``, expanded to ``[N, n, n]``."""
         n = mean.shape[-1]
-        return self.filter.model.dynamics.process_noise(mean, u).expand(mean.shape[0], n, n)
+        return predicting_filter(self.filter).model.dynamics.process_noise(mean, u).expand(mean.shape[0], n, n)
 
     def gains(self, result: FilterResult, initial: Belief, controls: Controls = None) -> tuple[Tensor, Tensor]:
         """Smoother gains ``G_t [B, T, n, n]`` and the prior covariances they use."""
@@ -98,6 +98,6 @@ class UnscentedRTSSmoother(RTSSmoother):
     """
 
     def __init__(self, filter: GaussianFilter, *, time_chunk: int | None = None) -> None:  # noqa: A002
-        if not isinstance(filter, UKF):
+        if not isinstance(predicting_filter(filter), UKF):
             raise TypeError(f"UnscentedRTSSmoother needs a UKF-family filter, got {type(filter).__name__}; use RTSSmoother")
         super().__init__(filter, time_chunk=time_chunk)

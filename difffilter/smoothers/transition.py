@@ -11,7 +11,8 @@ approximation the filter's prediction uses:
 * :class:`~difffilter.filters.UKF` and its subclasses (``SquareRootUKF``, ``RCUKF``): the
   unscented transform of the prediction, ``C = sum_i wc_i (chi_i - x)(f(chi_i) - x-)^T`` over
   the same sigma points (Sarkka's unscented RTS smoother), with the augmented points
-  ``[x; w(; v)]`` when the filter uses ``noise="augmented"``.
+  ``[x; w(; v)]`` when the filter uses ``noise="augmented"``;
+* :class:`~difffilter.filters.SequentialUpdate`: the wrapped filter's.
 
 Everything is batched over the leading dimension, so a smoother evaluates all ``B * T`` steps
 of a window in one call.
@@ -25,15 +26,24 @@ from torch import Tensor
 from ..filters.base import GaussianFilter
 from ..filters.colored import ColoredNoiseUKF
 from ..filters.ekf import EKF
+from ..filters.sequential import SequentialUpdate
 from ..filters.ukf import UKF, SimplifiedUKF, expand_controls, weighted_mean
 from ..linalg import block_diag
 from ..models.base import Controls
 
-__all__ = ["check_smoothable", "is_unscented", "transition_cross_covariance"]
+__all__ = ["check_smoothable", "is_unscented", "predicting_filter", "transition_cross_covariance"]
+
+
+def predicting_filter(filt: GaussianFilter) -> GaussianFilter:
+    """The filter whose prediction ``filt`` runs (a :class:`SequentialUpdate`'s wrapped filter)."""
+    while isinstance(filt, SequentialUpdate):
+        filt = filt.filter
+    return filt
 
 
 def check_smoothable(filt: GaussianFilter) -> None:
     """Raise ``TypeError`` unless :func:`transition_cross_covariance` supports ``filt``."""
+    filt = predicting_filter(filt)
     if isinstance(filt, ColoredNoiseUKF):
         raise TypeError(
             "ColoredNoiseUKF cannot be smoothed: its prediction couples the state with the previous step's "
@@ -48,6 +58,7 @@ def check_smoothable(filt: GaussianFilter) -> None:
 
 def is_unscented(filt: GaussianFilter) -> bool:
     """Whether the filter's prediction is an unscented transform (not SimplifiedUKF's Kalman one)."""
+    filt = predicting_filter(filt)
     return isinstance(filt, UKF) and not isinstance(filt, SimplifiedUKF)
 
 
@@ -93,6 +104,7 @@ def transition_cross_covariance(filt: GaussianFilter, mean: Tensor, cov: Tensor,
     step).  See the module docstring for the approximation used per filter family.
     """
     check_smoothable(filt)
+    filt = predicting_filter(filt)
     if is_unscented(filt):
         return _unscented_cross(filt, mean, cov, u)  # type: ignore[arg-type]
     return cov @ _linear_transition(filt, mean, u).mT

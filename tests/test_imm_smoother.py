@@ -110,7 +110,9 @@ def test_refuses_what_it_cannot_smooth():
     ca_f = torch.eye(6, dtype=F64)
     ca = LinearModel(F=ca_f, H=torch.eye(6, dtype=F64)[[0, 3]], Q=torch.eye(6, dtype=F64), R=torch.eye(2, dtype=F64))
     emb = SubspaceEmbedding([0, 1, 3, 4], 6)
-    imm = IMM([KalmanFilter(cv), KalmanFilter(ca)], torch.tensor(PI), torch.tensor(MU0), embed=[emb.embed, None], project=[emb.project, None])
+    imm = IMM(
+        [KalmanFilter(cv), KalmanFilter(ca)], torch.tensor(PI), torch.tensor(MU0), embed=[emb.embed, None], project=[emb.project, None]
+    )
     with pytest.raises(ValueError, match="embed/project"):
         IMMSmoother(imm)
     with pytest.raises(ValueError, match="fixed-interval"):

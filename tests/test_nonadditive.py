@@ -56,7 +56,9 @@ def test_prediction_and_update_match_closed_forms():
 def linear_noise_models():
     mats = cv_matrices()
     # five noise inputs drive the four states (so G Q G^T is positive definite), three drive two measurements
-    g = torch.tensor([[0.5, 0.0, 0.1, 0.0, 0.0], [1.0, 0.1, 0.0, 0.3, 0.0], [0.0, 0.5, 0.0, 0.0, 0.2], [0.2, 1.0, 0.0, 0.0, 0.4]], dtype=F64)
+    g = torch.tensor(
+        [[0.5, 0.0, 0.1, 0.0, 0.0], [1.0, 0.1, 0.0, 0.3, 0.0], [0.0, 0.5, 0.0, 0.0, 0.2], [0.2, 1.0, 0.0, 0.0, 0.4]], dtype=F64
+    )
     dmat = torch.tensor([[1.0, 0.3, 0.0], [0.0, 0.5, 1.0]], dtype=F64)
     qw = torch.diag(torch.tensor([0.4, 0.3, 0.2, 0.1, 0.3], dtype=F64))
     qw[0, 1] = qw[1, 0] = 0.1

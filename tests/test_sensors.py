@@ -70,7 +70,10 @@ def test_per_trajectory_streams_out_of_grid_samples_and_conflicts():
     assert float(last.measurements[0, 0, 0]) == 5.0 and last.superseded == {"a": 1}
     with pytest.raises(ValueError, match="unknown sensors"):
         align_streams({"b": (grid_t, torch.zeros(10, 1))}, grid_t, sensors=["a"])
-    torch.testing.assert_close(event_times({"x": (torch.tensor([3.0, 1.0]), None), "y": (torch.tensor([1.0, 2.0]), None)}), torch.tensor([1.0, 2.0, 3.0], dtype=F64))
+    torch.testing.assert_close(
+        event_times({"x": (torch.tensor([3.0, 1.0]), None), "y": (torch.tensor([1.0, 2.0]), None)}),
+        torch.tensor([1.0, 2.0, 3.0], dtype=F64),
+    )
 
 
 def test_joint_and_sequential_updates_equal_the_dense_joint_gaussian():
@@ -99,7 +102,9 @@ def test_joint_and_sequential_updates_equal_the_dense_joint_gaussian():
 
 def test_nonlinear_sensors_sequential_and_joint_agree_closely_and_learn():
     dyn = ConstantAcceleration(axes=2, dt=0.1, q=1.0, dtype=F64)
-    rng = FunctionalModel(f=lambda x: x, h=lambda x: x[..., [0, 3]].norm(dim=-1, keepdim=True), Q=torch.eye(6, dtype=F64), R=torch.tensor([[0.5]], dtype=F64))
+    rng = FunctionalModel(
+        f=lambda x: x, h=lambda x: x[..., [0, 3]].norm(dim=-1, keepdim=True), Q=torch.eye(6, dtype=F64), R=torch.tensor([[0.5]], dtype=F64)
+    )
     gnss = linear_measurement(R=[9.0, 9.0], state_dim=6, observed=[0, 3])
     sensors = MultiSensorMeasurement({"range": rng.measurement, "gnss": gnss}, rates={"range": 10.0, "gnss": 2.0})
     model = StateSpaceModel(dyn, sensors)

@@ -27,7 +27,9 @@ def cv_model(q: float = 0.5, r: float = 25.0):
 
 
 def _dm(n=4, steps=30, window=None, seed_model=None):
-    sim = ModelSimulator(model=seed_model or cv_model(), num_steps=steps, initial_mean=CV_PRIOR[0], initial_cov=CV_PRIOR[1], missing_prob=0.1)
+    sim = ModelSimulator(
+        model=seed_model or cv_model(), num_steps=steps, initial_mean=CV_PRIOR[0], initial_cov=CV_PRIOR[1], missing_prob=0.1
+    )
     dm = TrajectoryDataModule(sim, train_size=n, val_size=2, test_size=n, batch_size=n, window=window, shuffle=False)
     dm.setup("fit")
     return dm

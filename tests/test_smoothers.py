@@ -174,7 +174,11 @@ def pendulum(dtype=F64, dt=0.05, r=0.02, q=1.0):
     def h(x):
         return torch.sin(x[..., :1]) + 0.5 * x[..., 1:] ** 2 / 10
 
-    return FunctionalModel(f=f, h=h, Q=q * torch.tensor([[1e-4, 5e-5], [5e-5, 2e-3]], dtype=dtype), R=torch.tensor([[r]], dtype=dtype)), f, h
+    return (
+        FunctionalModel(f=f, h=h, Q=q * torch.tensor([[1e-4, 5e-5], [5e-5, 2e-3]], dtype=dtype), R=torch.tensor([[r]], dtype=dtype)),
+        f,
+        h,
+    )
 
 
 def pendulum_data(B=2, T=40, seed=0):
@@ -275,7 +279,11 @@ def test_matches_dynamax_extended_and_unscented_smoothers(kind, monkeypatch):
             emission_function=h, emission_covariance=jnp.asarray(model.R.detach().numpy()),
         )  # fmt: skip
         ys = jnp.asarray(z[b].numpy())
-        post = extended_kalman_smoother(params, ys) if kind == "ekf" else unscented_kalman_smoother(params, ys, UKFHyperParams(alpha, beta, kappa))
+        post = (
+            extended_kalman_smoother(params, ys)
+            if kind == "ekf"
+            else unscented_kalman_smoother(params, ys, UKFHyperParams(alpha, beta, kappa))
+        )
         np.testing.assert_allclose(out.filtered.mean[b].detach().numpy(), np.asarray(post.filtered_means), rtol=0, atol=1e-10)
         np.testing.assert_allclose(out.mean[b].detach().numpy(), np.asarray(post.smoothed_means), rtol=0, atol=1e-10)
         np.testing.assert_allclose(out.cov[b].detach().numpy(), np.asarray(post.smoothed_covariances), rtol=0, atol=1e-10)
@@ -296,7 +304,10 @@ def test_gradients_match_finite_differences():
             return out.mean.sum(-1), out.cov.diagonal(dim1=-2, dim2=-1).sum(-1), out.cross_cov[..., 0, 1]
 
         assert list(raw) == ["model.dynamics.parametrizations.Q.original", "model.measurement.parametrizations.R.original"]
-        args = tuple(p.detach().clone().requires_grad_(True) for p in raw.values()) + (z.clone().requires_grad_(True), M0.clone().requires_grad_(True))
+        args = tuple(p.detach().clone().requires_grad_(True) for p in raw.values()) + (
+            z.clone().requires_grad_(True),
+            M0.clone().requires_grad_(True),
+        )
         assert torch.autograd.gradcheck(fn, args, atol=1e-6, rtol=1e-5)
 
 

@@ -121,6 +121,8 @@ class NonAdditiveModel(StateSpaceModel):
                 raise ValueError(f"additive measurement noise needs R [{measurement_dim}, {measurement_dim}], got {tuple(R.shape)}")
             meas = _FunctionalMeasurement(h, R, None, R_structure, controls)
         dyn: DynamicsModel = (
-            _NoisyDynamics(f, Q, state_dim, controls, Q_structure) if "f" in which else _FunctionalDynamics(f, Q, None, Q_structure, controls)
+            _NoisyDynamics(f, Q, state_dim, controls, Q_structure)
+            if "f" in which
+            else _FunctionalDynamics(f, Q, None, Q_structure, controls)
         )
         super().__init__(dyn, meas)

@@ -117,7 +117,10 @@ class MultiSensorMeasurement(MeasurementModel):
             if jac is None:
                 return None
             blocks.append(jac.expand(*x.shape[:-1], *jac.shape[-2:]))
-        rows = [torch.cat([b if i == j else b.new_zeros(*b.shape[:-1], o.shape[-1]) for j, o in enumerate(blocks)], -1) for i, b in enumerate(blocks)]
+        rows = [
+            torch.cat([b if i == j else b.new_zeros(*b.shape[:-1], o.shape[-1]) for j, o in enumerate(blocks)], -1)
+            for i, b in enumerate(blocks)
+        ]
         return torch.cat(rows, -2)
 
     def component_groups(self) -> list[list[int]]:
@@ -282,7 +285,9 @@ def align_streams(
             near, ok, values = near.gather(1, order), ok.gather(1, order), values.gather(1, order[..., None].expand_as(values))
             b_idx, k_idx = ok.nonzero(as_tuple=True)
             t_idx = near[b_idx, k_idx]
-            counts = torch.zeros(bsz, steps, dtype=torch.long, device=grid.device).index_put_((b_idx, t_idx), torch.ones_like(t_idx), accumulate=True)
+            counts = torch.zeros(bsz, steps, dtype=torch.long, device=grid.device).index_put_(
+                (b_idx, t_idx), torch.ones_like(t_idx), accumulate=True
+            )
             extra = int((counts - 1).clamp(min=0).sum())
             if extra and on_conflict == "error":
                 raise ValueError(

@@ -155,7 +155,7 @@ def sample_trajectories(
     f64 = torch.float64
     gen = _generator(seed)
     sim = copy.deepcopy(model).to(f64)
-    n, m = sim.state_dim, sim.measurement_dim
+    n = sim.state_dim
     mean0 = torch.as_tensor(initial_mean, dtype=f64)
     cov0 = torch.as_tensor(initial_cov, dtype=f64)
     if cov0.ndim == 1:

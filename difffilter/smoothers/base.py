@@ -61,7 +61,9 @@ def smoother_gains(cross_cov: Tensor, prior_cov: Tensor) -> Tensor:
     return psd_solve(symmetrize(prior_cov), cross_cov.mT).mT
 
 
-def rts_step(mean: Tensor, cov: Tensor, gain: Tensor, prior_mean: Tensor, prior_cov: Tensor, s_mean: Tensor, s_cov: Tensor) -> tuple[Tensor, Tensor]:
+def rts_step(
+    mean: Tensor, cov: Tensor, gain: Tensor, prior_mean: Tensor, prior_cov: Tensor, s_mean: Tensor, s_cov: Tensor
+) -> tuple[Tensor, Tensor]:
     """One backward step: smoothed ``(x_{t-1|T}, P_{t-1|T})`` from the posterior at ``t - 1``,
     the gain and prior at ``t`` and the smoothed moments at ``t`` (any leading dimensions)."""
     new_mean = mean + (gain @ (s_mean - prior_mean)[..., None])[..., 0]
@@ -126,7 +128,9 @@ class Smoother(nn.Module):
     def state_dim(self) -> int:
         return self.filter.state_dim
 
-    def initial_belief(self, measurements: Tensor, initial_mean: Tensor | None, initial_cov: Tensor | None, belief: Belief | None) -> Belief:
+    def initial_belief(
+        self, measurements: Tensor, initial_mean: Tensor | None, initial_cov: Tensor | None, belief: Belief | None
+    ) -> Belief:
         """The belief about ``x_{-1}`` a window starts from (``belief`` if given)."""
         if belief is not None:
             return belief

@@ -79,9 +79,7 @@ class FixedLagSmoother(Smoother):
         belief = self.filter.initial_belief(initial_mean, initial_cov, batch_size)
         return {"belief": belief}  # type: ignore[dict-item]
 
-    def step(
-        self, state: dict, measurement: Tensor, mask: Tensor | None = None, controls: Controls = None
-    ) -> tuple[dict, Tensor, Tensor]:
+    def step(self, state: dict, measurement: Tensor, mask: Tensor | None = None, controls: Controls = None) -> tuple[dict, Tensor, Tensor]:
         """One online step (arguments as :meth:`GaussianFilter.step`); returns ``(state, mean, cov)``
         with ``(mean, cov)`` the smoothed estimate of the oldest buffered step (see the class doc)."""
         belief = state["belief"]

@@ -67,7 +67,9 @@ class IMMSmoother(Smoother):
         for j in range(mode_means.shape[2]):
             row = []
             for filt in self.filter.filters:
-                row.append(self.per_step(lambda m, p, u, f=filt: _predict_packed(f, m, p, u), mode_means[:, :, j], mode_covs[:, :, j], controls))
+                row.append(
+                    self.per_step(lambda m, p, u, f=filt: _predict_packed(f, m, p, u), mode_means[:, :, j], mode_covs[:, :, j], controls)
+                )
             out.append(torch.stack(row, 2))
         packed = torch.stack(out, 2)  # [B, T, j, i, n, 1 + 2n]
         return packed[..., 0], packed[..., 1 : n + 1], packed[..., n + 1 :]

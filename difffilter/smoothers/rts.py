@@ -82,7 +82,9 @@ class RTSSmoother(Smoother):
     def smooth(self, result: FilterResult, initial: Belief, controls: Controls = None) -> SmootherResult:
         """Backward pass over ``result`` of a window that started from the belief ``initial``."""
         gains, prior_cov = self.gains(result, initial, controls)
-        mean, cov, cross, m0, p0 = rts_backward(result.mean, result.cov, result.prior_mean, prior_cov, gains, initial["mean"], initial["cov"])
+        mean, cov, cross, m0, p0 = rts_backward(
+            result.mean, result.cov, result.prior_mean, prior_cov, gains, initial["mean"], initial["cov"]
+        )
         return SmootherResult(mean=mean, cov=cov, filtered=result, cross_cov=cross, initial_mean=m0, initial_cov=p0)
 
 

@@ -100,6 +100,22 @@ def test_joint_and_sequential_updates_equal_the_dense_joint_gaussian():
         assert joint.filtered.log_likelihood[b].sum().item() == pytest.approx(ref["log_likelihood"], abs=1e-9)
 
 
+def test_sensors_of_different_dimensions_stack_jacobians_noise_and_residuals():
+    one = linear_measurement(R=[2.0], state_dim=6, observed=[1])
+    two = linear_measurement(R=[4.0, 9.0], state_dim=6, observed=[0, 3])
+    both = MultiSensorMeasurement({"speed": one, "gnss": two})
+    x = torch.randn(5, 3, 6, dtype=F64)
+    h = torch.zeros(3, 6, dtype=F64)
+    h[0, 1] = h[1, 0] = h[2, 3] = 1.0
+    torch.testing.assert_close(both.jacobian(x), h.expand(5, 3, 3, 6))
+    torch.testing.assert_close(both.matrix(), h)
+    torch.testing.assert_close(both(x), x @ h.T)
+    torch.testing.assert_close(both.measurement_noise(x[0]), torch.diag(torch.tensor([2.0, 4.0, 9.0], dtype=F64)))
+    assert both.component_groups() == [[0], [1, 2]]
+    mask = both.expand_mask({"gnss": torch.tensor([[True, False]])})
+    assert mask.tolist() == [[[False, True, True], [False, False, False]]]
+
+
 def test_nonlinear_sensors_sequential_and_joint_agree_closely_and_learn():
     dyn = ConstantAcceleration(axes=2, dt=0.1, q=1.0, dtype=F64)
     rng = FunctionalModel(

@@ -80,7 +80,7 @@ class MultiSensorMeasurement(MeasurementModel):
         jacs = [s.jacobian(x, u) for s in self.sensors.values()]
         if any(j is None for j in jacs):
             return None
-        return torch.cat(torch.broadcast_tensors(*[j.expand(*x.shape[:-1], *j.shape[-2:]) for j in jacs]), -2)  # type: ignore[union-attr]
+        return torch.cat([j.expand(*x.shape[:-1], *j.shape[-2:]) for j in jacs], -2)  # type: ignore[union-attr]
 
     def matrix(self, u: Controls = None) -> Tensor | None:
         mats = [s.matrix(u) for s in self.sensors.values()]

@@ -34,7 +34,10 @@ from ..linalg import psd_solve, symmetrize
 from ..models.base import Controls
 from .result import SmootherResult
 
-__all__ = ["Smoother", "flatten_steps", "previous_posteriors", "rts_backward", "rts_step", "smoother_gains"]
+#: Default bound on the states (batch x time steps) of one batched cross-covariance call.
+MAX_CHUNK_STATES = 65536
+
+__all__ = ["MAX_CHUNK_STATES", "Smoother", "flatten_steps", "previous_posteriors", "rts_backward", "rts_step", "smoother_gains"]
 
 
 def flatten_steps(controls: Controls, start: int, stop: int) -> Controls:
@@ -85,14 +88,16 @@ def rts_backward(
     Returns ``(mean, cov, cross_cov, initial_mean, initial_cov)`` smoothed, with
     ``cross_cov[:, t] = P_{t-1,t|T}``.
     """
-    steps = mean.shape[1]
-    s_mean, s_cov = mean[:, -1], cov[:, -1]
+    # unbind once: indexing [:, t] inside the loop would make every step's backward fill a
+    # zero gradient of the whole [B, T, ...] tensor (quadratic in T)
+    m_t, p_t, pm_t, pp_t, g_t = (x.unbind(1) for x in (mean, cov, prior_mean, prior_cov, gains))
+    s_mean, s_cov = m_t[-1], p_t[-1]
     means, covs, crosses = [s_mean], [s_cov], []
-    for t in range(steps - 1, -1, -1):
-        g = gains[:, t]
+    for t in range(len(m_t) - 1, -1, -1):
+        g = g_t[t]
         crosses.append(g @ s_cov)
-        prev_m, prev_p = (mean[:, t - 1], cov[:, t - 1]) if t > 0 else (initial_mean, initial_cov)
-        s_mean, s_cov = rts_step(prev_m, prev_p, g, prior_mean[:, t], prior_cov[:, t], s_mean, s_cov)
+        prev_m, prev_p = (m_t[t - 1], p_t[t - 1]) if t > 0 else (initial_mean, initial_cov)
+        s_mean, s_cov = rts_step(prev_m, prev_p, g, pm_t[t], pp_t[t], s_mean, s_cov)
         means.append(s_mean)
         covs.append(s_cov)
     init_mean, init_cov = means.pop(), covs.pop()
@@ -111,8 +116,8 @@ class Smoother(nn.Module):
     Args:
         filter: the forward filter.
         time_chunk: compute the cross-covariances of at most this many time steps per batched
-            call (``None``: the whole window at once; smaller values bound the memory of the
-            sigma points of long windows).
+            call (``None``: as many as keep a call within :data:`MAX_CHUNK_STATES` states, which
+            bounds the memory of the sigma points of long windows; results do not depend on it).
     """
 
     def __init__(self, filter: GaussianFilter, *, time_chunk: int | None = None) -> None:  # noqa: A002 - the field's word
@@ -160,7 +165,7 @@ class Smoother(nn.Module):
         """``fn(mean, cov, u)`` evaluated on all ``[B, T]`` steps as one flattened batch (in chunks
         of ``time_chunk`` steps), reshaped to ``[B, T, ...]``; ``mean [B, T, n]``, ``cov [B, T, n, n]``."""
         bsz, steps, n = mean.shape
-        chunk = self.time_chunk or steps
+        chunk = self.time_chunk or max(1, MAX_CHUNK_STATES // bsz)
         outs = []
         with parametrize.cached():
             for start in range(0, steps, chunk):

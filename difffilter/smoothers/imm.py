@@ -83,17 +83,17 @@ class IMMSmoother(Smoother):
         pm, pc, cross = self._pair_moments(means[:, :-1], covs[:, :-1], controls)
         gains = smoother_gains(cross, pc)
         log_pi = self.filter.log_transition()  # [j, i]
-        s_mean, s_cov, s_log_mu = means[:, -1], covs[:, -1], log_mu[:, -1]
+        # per-step views (unbound once: see rts_backward)
+        m_t, c_t, l_t, g_t, pm_t, pc_t = (x.unbind(1) for x in (means, covs, log_mu, gains, pm, pc))
+        s_mean, s_cov, s_log_mu = m_t[-1], c_t[-1], l_t[-1]
         out_means, out_covs, out_log = [s_mean], [s_cov], [s_log_mu]
         for t in range(result.mean.shape[1] - 1, -1, -1):
-            log_joint = log_mu[:, t, :, None] + log_pi  # [B, j, i]
+            log_joint = l_t[t][:, :, None] + log_pi  # [B, j, i]
             log_back = log_joint - torch.logsumexp(log_joint, 1, keepdim=True)  # P(j at t-1 | i at t)
             log_u = log_back + s_log_mu[:, None, :]
             s_log_prev = torch.logsumexp(log_u, 2).clamp_min(tiny)  # [B, j]
             w = torch.exp(log_u - s_log_prev[..., None])  # W[i | j]
-            x_ji, p_ji = rts_step(
-                means[:, t, :, None], covs[:, t, :, None], gains[:, t], pm[:, t], pc[:, t], s_mean[:, None], s_cov[:, None]
-            )  # fmt: skip
+            x_ji, p_ji = rts_step(m_t[t][:, :, None], c_t[t][:, :, None], g_t[t], pm_t[t], pc_t[t], s_mean[:, None], s_cov[:, None])
             s_mean, s_cov = combine_gaussians(w, x_ji, p_ji)
             s_log_mu = s_log_prev - torch.logsumexp(s_log_prev, -1, keepdim=True)
             out_means.append(s_mean)

@@ -1,6 +1,6 @@
 """difffilter: batched, differentiable Kalman-family filters in PyTorch."""
 
-from . import linalg, mixers, params
+from . import linalg, mixers, params, smoothers
 from .filters import EKF, RCUKF, UKF, ColoredNoiseUKF, GaussianFilter, KalmanFilter, SimplifiedUKF, SquareRootUKF
 from .mixers import IMM, Blend
 from .models import FunctionalModel, LinearModel, StateSpaceModel
@@ -22,5 +22,6 @@ __all__ = [
     "linalg",
     "mixers",
     "params",
+    "smoothers",
 ]
 __version__ = "0.1.0"

@@ -16,7 +16,6 @@ from collections.abc import Callable, Sequence
 
 from torch import Tensor
 
-from ..params import check_covariance, register_covariance
 from .base import Controls, DynamicsModel, MeasurementModel, StateSpaceModel, _FunctionalDynamics, _FunctionalMeasurement
 
 __all__ = ["NonAdditiveModel"]
@@ -26,15 +25,14 @@ def _zeros(x: Tensor, dim: int) -> Tensor:
     return x.new_zeros(*x.shape[:-1], dim)
 
 
-class _NoisyDynamics(DynamicsModel):
+class _NoisyDynamics(_FunctionalDynamics):
+    """``f(x, w[, u])``: the functional dynamics with the noise as an input (``Q`` is ``w``'s)."""
+
     additive_noise = False
 
     def __init__(self, f: Callable[..., Tensor], Q: Tensor, state_dim: int, takes_u: bool, structure: str) -> None:  # noqa: N803
-        super().__init__()
-        check_covariance("Q", Q)
+        super().__init__(f, Q, None, structure, takes_u)
         self.state_dim = int(state_dim)
-        self._f, self._takes_u = f, takes_u
-        register_covariance(self, "Q", Q, structure)
 
     def with_noise(self, x: Tensor, w: Tensor, u: Controls = None) -> Tensor:
         return self._f(x, w, u) if self._takes_u else self._f(x, w)
@@ -43,15 +41,14 @@ class _NoisyDynamics(DynamicsModel):
         return self.with_noise(x, _zeros(x, self.Q.shape[-1]), u)
 
 
-class _NoisyMeasurement(MeasurementModel):
+class _NoisyMeasurement(_FunctionalMeasurement):
+    """``h(x, v[, u])``: the functional measurement with the noise as an input (``R`` is ``v``'s)."""
+
     additive_noise = False
 
     def __init__(self, h: Callable[..., Tensor], R: Tensor, measurement_dim: int, takes_u: bool, structure: str) -> None:  # noqa: N803
-        super().__init__()
-        check_covariance("R", R)
+        super().__init__(h, R, None, structure, takes_u)
         self.measurement_dim = int(measurement_dim)
-        self._h, self._takes_u = h, takes_u
-        register_covariance(self, "R", R, structure)
 
     def with_noise(self, x: Tensor, v: Tensor, u: Controls = None) -> Tensor:
         return self._h(x, v, u) if self._takes_u else self._h(x, v)

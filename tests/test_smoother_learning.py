@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -112,3 +113,31 @@ def test_smoothed_state_nll_recovers_q_and_r():
     q = values["model.dynamics.inner.q"]
     assert float(((r - 25.0).abs() / 25.0).max()) < 0.15
     assert float(((q - 0.5).abs() / 0.5).max()) < 0.3
+
+
+@pytest.mark.parametrize("choice", ["rts", "fixed_lag"])
+def test_smoother_switch_adds_smoothed_rows(tmp_path, choice):
+    from hydra import compose, initialize_config_dir
+
+    from difffilter.learn.experiment import run_experiment
+    from tests.smoke_helpers import read_rows
+
+    conf = str(Path(__file__).resolve().parents[1] / "conf")
+    overrides = ["debug=smoke", f"smoother={choice}", "loss=state_nll", "logger=csv", "callbacks=none", "trainer.max_epochs=1"]
+    overrides += [
+        "data.train_size=4",
+        "data.test_size=4",
+        "data.max_steps=30",
+        f"paths.output_dir={tmp_path}",
+        f"paths.log_dir={tmp_path}/logs",
+    ]
+    with initialize_config_dir(config_dir=conf, version_base="1.3"):
+        cfg = compose("train", overrides=overrides)
+    run_experiment(cfg)
+    rows = {r["filter"]: r for r in read_rows(tmp_path / "results.csv")}
+    assert list(rows) == ["hand-tuned", "hand-tuned (smoothed)", "learned", "learned (smoothed)", "oracle", "oracle (smoothed)"]
+    for name in ("hand-tuned", "learned", "oracle"):
+        # same filter, same innovations; smoothing uses later measurements, so its error is lower
+        assert rows[f"{name} (smoothed)"]["nll"] == rows[name]["nll"]
+        assert float(rows[f"{name} (smoothed)"]["rmse_pos"]) < float(rows[name]["rmse_pos"])
+    assert "(smoothed)' rows" in (tmp_path / "results.md").read_text()

@@ -6,6 +6,8 @@ import math
 from pathlib import Path
 
 import pytest
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
 
 from difffilter.bench.runner import BenchSettings
 from difffilter.bench.smoothers import SMOOTHER_COLUMNS, run_smoother_benchmark
@@ -16,9 +18,6 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_smoke_config_writes_smoother_rows(tmp_path: Path) -> None:
-    from hydra import compose, initialize_config_dir
-    from omegaconf import OmegaConf
-
     with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
         cfg = compose(config_name="benchmark", overrides=["benchmark=smoke", "benchmark.libraries=[difffilter]", "benchmark.filters=[kf]"])
     md = run_suite(OmegaConf.to_container(cfg.benchmark, resolve=True), tmp_path, log=lambda s: None)

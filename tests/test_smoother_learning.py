@@ -10,14 +10,17 @@ import numpy as np
 import pytest
 import pytorch_lightning as pl
 import torch
+from hydra import compose, initialize_config_dir
 from scipy.stats import multivariate_normal
 
 from difffilter.filters import KalmanFilter
 from difffilter.learn import FilterLearner, MSELoss, StateNLLLoss, TrajectoryDataModule, evaluate_filter, learnable_values
 from difffilter.learn.builders import tracking_model
+from difffilter.learn.experiment import run_experiment
 from difffilter.models.motion import ConstantVelocity
 from difffilter.sim.sampling import ModelSimulator
 from difffilter.smoothers import RTSSmoother, SmootherResult
+from tests.smoke_helpers import read_rows
 
 f64 = torch.float64
 CV_PRIOR = ([0.0, 10.0, 0.0, 5.0], [100.0, 4.0, 100.0, 4.0])
@@ -117,11 +120,6 @@ def test_smoothed_state_nll_recovers_q_and_r():
 
 @pytest.mark.parametrize("choice", ["rts", "fixed_lag"])
 def test_smoother_switch_adds_smoothed_rows(tmp_path, choice):
-    from hydra import compose, initialize_config_dir
-
-    from difffilter.learn.experiment import run_experiment
-    from tests.smoke_helpers import read_rows
-
     conf = str(Path(__file__).resolve().parents[1] / "conf")
     overrides = ["debug=smoke", f"smoother={choice}", "loss=state_nll", "logger=csv", "callbacks=none", "trainer.max_epochs=1"]
     overrides += [

@@ -9,7 +9,8 @@ from collections.abc import Callable, Mapping
 from typing import Any
 
 from .report import write_report
-from .runner import BenchSettings, run_benchmark
+from .runner import BenchSettings, _Bench, run_benchmark
+from .smoothers import run_smoother_benchmark
 
 __all__ = ["run_suite", "settings_from_config"]
 
@@ -55,9 +56,6 @@ def run_suite(cfg: Mapping[str, Any], outdir: str | os.PathLike[str], *, command
         report.extra_tables["compile"] = rows
     smo = cfg.get("smoothers") or {}
     if smo.get("enabled"):
-        from .runner import _Bench
-        from .smoothers import run_smoother_benchmark
-
         log("smoothers beside their filters")
         bench = _Bench(settings, log=lambda s: None)  # the throughput cases' data: same trajectories
         largest = bench.base.measurements.shape[0]

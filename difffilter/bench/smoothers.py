@@ -5,7 +5,9 @@ Each case is ``(filter, dtype, B, mode)`` for difffilter's reference filters of 
 smoother for the IMM).  ``forward`` times the filter alone and the filter followed by the
 smoother without gradients; ``train`` times a training step, value and gradient w.r.t. the
 learnable parameters (``Q``, ``R``; the IMM's probabilities) of the position mean squared error
-against the truth, of the filtered and of the smoothed states respectively.
+against the truth, of the filtered and of the smoothed states respectively.  Times are the best
+of the repeats, wall clock (``*_s``) and process CPU time (``*_cpu_s``, steadier on a shared
+machine); ``smoother_over_filter`` is the time of filter + smoother over the filter's.
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ __all__ = ["SMOOTHER_COLUMNS", "run_smoother_benchmark"]
 
 SMOOTHER_COLUMNS = [
     "filter", "smoother", "dtype", "B", "T", "mode", "filter_s", "smoother_s", "filter_steps_per_s", "smoother_steps_per_s",
-    "smoother_over_filter", "repeats",
+    "smoother_over_filter", "filter_cpu_s", "smoother_cpu_s", "smoother_over_filter_cpu", "repeats",
 ]  # fmt: skip
 MODES = ("forward", "train")
 SMOOTHER_NAMES = {"kf": "RTS", "ekf": "extended RTS", "ukf": "unscented RTS", "imm": "Kim IMM"}
@@ -88,12 +90,15 @@ def run_smoother_benchmark(
                         "filter": kind, "smoother": SMOOTHER_NAMES[kind],
                         "dtype": dname, "B": int(batch), "T": steps, "mode": mode, "filter_s": f_s, "smoother_s": s_s,
                         "filter_steps_per_s": batch * steps / f_s, "smoother_steps_per_s": batch * steps / s_s,
-                        "smoother_over_filter": s_s / f_s, "repeats": min(times[False].repeats, times[True].repeats),
+                        "smoother_over_filter": s_s / f_s, "filter_cpu_s": times[False].cpu_s, "smoother_cpu_s": times[True].cpu_s,
+                        "smoother_over_filter_cpu": times[True].cpu_s / times[False].cpu_s,
+                        "repeats": min(times[False].repeats, times[True].repeats),
                     }  # fmt: skip
                     rows.append(row)
                     log(
                         f"smoother {kind:4s} {dname} B={batch:<5d} {mode:8s} filter {row['filter_steps_per_s']:11.0f} steps/s, "
-                        f"filter+smoother {row['smoother_steps_per_s']:11.0f} steps/s ({row['smoother_over_filter']:.2f}x the time)"
+                        f"filter+smoother {row['smoother_steps_per_s']:11.0f} steps/s ({row['smoother_over_filter']:.2f}x the time, "
+                        f"{row['smoother_over_filter_cpu']:.2f}x the CPU time)"
                     )
     return rows
 

@@ -12,8 +12,7 @@ import pytest
 import torch
 
 from difffilter.filters import EKF, UKF, KalmanFilter, SequentialUpdate
-from difffilter.learn.builders import linear_measurement
-from difffilter.models import FunctionalModel, MultiSensorMeasurement, StateSpaceModel, align_streams, event_times
+from difffilter.models import FunctionalModel, MultiSensorMeasurement, StateSpaceModel, align_streams, event_times, linear_measurement
 from difffilter.models.motion import ConstantAcceleration
 from difffilter.smoothers import RTSSmoother
 from tests.smoother_reference import dense_smoother

@@ -15,8 +15,8 @@ from scipy.stats import multivariate_normal
 
 from difffilter.filters import KalmanFilter
 from difffilter.learn import FilterLearner, MSELoss, StateNLLLoss, TrajectoryDataModule, evaluate_filter, learnable_values
-from difffilter.learn.builders import tracking_model
 from difffilter.learn.experiment import run_experiment
+from difffilter.models import tracking_model
 from difffilter.models.motion import ConstantVelocity
 from difffilter.sim.sampling import ModelSimulator
 from difffilter.smoothers import RTSSmoother, SmootherResult

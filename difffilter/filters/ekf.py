@@ -10,8 +10,8 @@ from torch.func import jacrev, jvp, vmap
 
 from ..linalg import symmetrize
 from ..models.base import Controls, StateSpaceModel
-from .base import Belief, GaussianFilter, StepInfo, gaussian_update
-from .ukf import expand_controls
+from ._common import expand_controls
+from .base import Belief, RecursiveFilter, StepInfo, gaussian_update
 
 __all__ = ["EKF", "autodiff_jacobian", "noise_jacobian"]
 
@@ -53,7 +53,7 @@ def noise_jacobian(fn: Callable[[Tensor, Tensor, Controls], Tensor], x: Tensor, 
     return tangents.mT.to(x.dtype)
 
 
-class EKF(GaussianFilter):
+class EKF(RecursiveFilter):
     """Extended Kalman filter.
 
     Predict: ``x- = f(x, u)``, ``P- = F P F^T + Q`` with ``F = df/dx`` at the posterior mean.

@@ -3,15 +3,15 @@
 from __future__ import annotations
 
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
 from ..models.base import Controls, StateSpaceModel
-from .base import Belief, GaussianFilter, StepInfo
+from .base import Belief, RecursiveFilter, StepInfo
 
 __all__ = ["SequentialUpdate"]
 
 
-class SequentialUpdate(GaussianFilter):
+class SequentialUpdate(RecursiveFilter):
     """Wraps a filter so that each step's update processes the measurement groups in turn.
 
     The prediction is the wrapped filter's; the update runs the wrapped filter's own update once
@@ -24,7 +24,7 @@ class SequentialUpdate(GaussianFilter):
     residual statistics) apply it per group.
 
     Args:
-        filter: the filter whose predict/update run (any :class:`GaussianFilter`, IMM included).
+        filter: the filter whose predict/update run (any :class:`RecursiveFilter`, IMM included).
         groups: measurement component indices per group, in update order; default: the sensors
             of a :class:`~difffilter.models.sensors.MultiSensorMeasurement` (``component_groups``),
             else one group per component.
@@ -32,10 +32,10 @@ class SequentialUpdate(GaussianFilter):
     Learnable: the wrapped filter's parameters (same names under ``filter.``).
     """
 
-    def __init__(self, filter: GaussianFilter, *, groups: list[list[int]] | None = None) -> None:  # noqa: A002
-        nn.Module.__init__(self)
-        if not isinstance(filter, GaussianFilter):
-            raise TypeError(f"filter must be a difffilter GaussianFilter, got {type(filter).__name__}")
+    def __init__(self, filter: RecursiveFilter, *, groups: list[list[int]] | None = None) -> None:  # noqa: A002
+        super().__init__()
+        if not isinstance(filter, RecursiveFilter):
+            raise TypeError(f"filter must be a difffilter RecursiveFilter, got {type(filter).__name__}")
         m = filter.measurement_dim
         if groups is None:
             meas = getattr(getattr(filter, "model", None), "measurement", None)

@@ -29,7 +29,7 @@ import torch
 from torch import Tensor, nn
 from torch.nn.utils import parametrize
 
-from ..filters.base import Belief, FilterResult, GaussianFilter
+from ..filters.base import Belief, FilterResult, RecursiveFilter
 from ..linalg import psd_solve, symmetrize
 from ..models.base import Controls
 from .result import SmootherResult
@@ -120,10 +120,10 @@ class Smoother(nn.Module):
             bounds the memory of the sigma points of long windows; results do not depend on it).
     """
 
-    def __init__(self, filter: GaussianFilter, *, time_chunk: int | None = None) -> None:  # noqa: A002 - the field's word
+    def __init__(self, filter: RecursiveFilter, *, time_chunk: int | None = None) -> None:  # noqa: A002 - the field's word
         super().__init__()
-        if not isinstance(filter, GaussianFilter):
-            raise TypeError(f"filter must be a difffilter GaussianFilter, got {type(filter).__name__}")
+        if not isinstance(filter, RecursiveFilter):
+            raise TypeError(f"filter must be a difffilter RecursiveFilter, got {type(filter).__name__}")
         if time_chunk is not None and int(time_chunk) < 1:
             raise ValueError(f"time_chunk must be a positive int or None, got {time_chunk!r}")
         self.filter = filter

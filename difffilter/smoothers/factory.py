@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
-from ..filters.base import GaussianFilter
+from ..filters.base import RecursiveFilter
 from ..mixers.imm import IMM
 from .base import Smoother
 from .fixed_lag import FixedLagSmoother
@@ -35,7 +35,7 @@ def smoother_spec(spec: str | Mapping[str, Any] | None) -> dict[str, Any] | None
     return out
 
 
-def make_smoother(filter: GaussianFilter, kind: str = "rts", *, lag: int | None = None, time_chunk: int | None = None) -> Smoother:  # noqa: A002
+def make_smoother(filter: RecursiveFilter, kind: str = "rts", *, lag: int | None = None, time_chunk: int | None = None) -> Smoother:  # noqa: A002
     """The smoother of ``kind`` for ``filter``.
 
     ``"rts"``: :class:`IMMSmoother` for an :class:`~difffilter.mixers.IMM`, else

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ..filters.base import Belief, FilterResult, GaussianFilter
+from ..filters.base import Belief, FilterResult, RecursiveFilter
 from ..models.base import Controls
 from .base import Smoother, rts_step, smoother_gains
 from .result import SmootherResult
@@ -59,7 +59,7 @@ class FixedLagSmoother(Smoother):
         time_chunk: as :class:`~difffilter.smoothers.base.Smoother`.
     """
 
-    def __init__(self, filter: GaussianFilter | RTSSmoother, *, lag: int, time_chunk: int | None = None) -> None:  # noqa: A002
+    def __init__(self, filter: RecursiveFilter | RTSSmoother, *, lag: int, time_chunk: int | None = None) -> None:  # noqa: A002
         rts = filter if isinstance(filter, RTSSmoother) else RTSSmoother(filter, time_chunk=time_chunk)
         if isinstance(lag, bool) or not isinstance(lag, int) or lag < 0:
             raise ValueError(f"lag must be an int >= 0, got {lag!r}")
@@ -80,7 +80,7 @@ class FixedLagSmoother(Smoother):
         return {"belief": belief}  # type: ignore[dict-item]
 
     def step(self, state: dict, measurement: Tensor, mask: Tensor | None = None, controls: Controls = None) -> tuple[dict, Tensor, Tensor]:
-        """One online step (arguments as :meth:`GaussianFilter.step`); returns ``(state, mean, cov)``
+        """One online step (arguments as :meth:`RecursiveFilter.step`); returns ``(state, mean, cov)``
         with ``(mean, cov)`` the smoothed estimate of the oldest buffered step (see the class doc)."""
         belief = state["belief"]
         cross = self._rts.cross_covariance(belief["mean"], belief["cov"], controls)

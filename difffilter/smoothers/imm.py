@@ -7,7 +7,7 @@ import math
 import torch
 from torch import Tensor
 
-from ..filters.base import Belief, FilterResult, GaussianFilter
+from ..filters.base import Belief, FilterResult, RecursiveFilter
 from ..mixers.imm import IMM, combine_gaussians
 from ..models.base import Controls
 from .base import Smoother, rts_step, smoother_gains
@@ -108,7 +108,7 @@ class IMMSmoother(Smoother):
         )  # fmt: skip
 
 
-def _predict_packed(filt: GaussianFilter, mean: Tensor, cov: Tensor, u: Controls) -> Tensor:
+def _predict_packed(filt: RecursiveFilter, mean: Tensor, cov: Tensor, u: Controls) -> Tensor:
     """``[N, n, 1 + 2n]``: the filter's prediction (mean, covariance) and its cross-covariance."""
     prior = filt.predict(filt.init_belief(mean, cov), u)
     cross = transition_cross_covariance(filt, mean, cov, u)

@@ -5,7 +5,7 @@ from __future__ import annotations
 from torch import Tensor
 
 from ..filters.adaptive import RCUKF
-from ..filters.base import Belief, FilterResult, GaussianFilter
+from ..filters.base import Belief, FilterResult, RecursiveFilter
 from ..filters.ukf import UKF
 from ..models.base import Controls
 from .base import Smoother, previous_posteriors, rts_backward, smoother_gains
@@ -51,7 +51,7 @@ class RTSSmoother(Smoother):
     Learnable: the filter's parameters (gradients flow through both passes).
     """
 
-    def __init__(self, filter: GaussianFilter, *, time_chunk: int | None = None) -> None:  # noqa: A002
+    def __init__(self, filter: RecursiveFilter, *, time_chunk: int | None = None) -> None:  # noqa: A002
         check_smoothable(filter)
         super().__init__(filter, time_chunk=time_chunk)
 
@@ -99,7 +99,7 @@ class UnscentedRTSSmoother(RTSSmoother):
     smoother (the unscented transform is exact there).  Learnable: the filter's parameters.
     """
 
-    def __init__(self, filter: GaussianFilter, *, time_chunk: int | None = None) -> None:  # noqa: A002
+    def __init__(self, filter: RecursiveFilter, *, time_chunk: int | None = None) -> None:  # noqa: A002
         if not isinstance(predicting_filter(filter), UKF):
             raise TypeError(f"UnscentedRTSSmoother needs a UKF-family filter, got {type(filter).__name__}; use RTSSmoother")
         super().__init__(filter, time_chunk=time_chunk)

@@ -23,7 +23,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ..filters.base import GaussianFilter
+from ..filters.base import RecursiveFilter
 from ..filters.colored import ColoredNoiseUKF
 from ..filters.ekf import EKF
 from ..filters.sequential import SequentialUpdate
@@ -34,14 +34,14 @@ from ..models.base import Controls
 __all__ = ["check_smoothable", "is_unscented", "predicting_filter", "transition_cross_covariance"]
 
 
-def predicting_filter(filt: GaussianFilter) -> GaussianFilter:
+def predicting_filter(filt: RecursiveFilter) -> RecursiveFilter:
     """The filter whose prediction ``filt`` runs (a :class:`SequentialUpdate`'s wrapped filter)."""
     while isinstance(filt, SequentialUpdate):
         filt = filt.filter
     return filt
 
 
-def check_smoothable(filt: GaussianFilter) -> None:
+def check_smoothable(filt: RecursiveFilter) -> None:
     """Raise ``TypeError`` unless :func:`transition_cross_covariance` supports ``filt``."""
     filt = predicting_filter(filt)
     if isinstance(filt, ColoredNoiseUKF):
@@ -56,13 +56,13 @@ def check_smoothable(filt: GaussianFilter) -> None:
         )
 
 
-def is_unscented(filt: GaussianFilter) -> bool:
+def is_unscented(filt: RecursiveFilter) -> bool:
     """Whether the filter's prediction is an unscented transform (not SimplifiedUKF's Kalman one)."""
     filt = predicting_filter(filt)
     return isinstance(filt, UKF) and not isinstance(filt, SimplifiedUKF)
 
 
-def _linear_transition(filt: GaussianFilter, mean: Tensor, u: Controls) -> Tensor:
+def _linear_transition(filt: RecursiveFilter, mean: Tensor, u: Controls) -> Tensor:
     if isinstance(filt, EKF):
         return filt.transition_jacobian(mean, u)
     dyn = filt.model.dynamics
@@ -97,7 +97,7 @@ def _unscented_cross(filt: UKF, mean: Tensor, cov: Tensor, u: Controls) -> Tenso
     return dx.mT @ (prop - pred[..., None, :])
 
 
-def transition_cross_covariance(filt: GaussianFilter, mean: Tensor, cov: Tensor, u: Controls) -> Tensor:
+def transition_cross_covariance(filt: RecursiveFilter, mean: Tensor, cov: Tensor, u: Controls) -> Tensor:
     """``Cov(x_{t-1}, x_t) [N, n, n]`` of the filter's prediction from ``N(mean [N, n], cov)``.
 
     ``u`` are the controls of the predicted step (leading dimension ``N``, as in a filter

@@ -51,6 +51,7 @@ from ..smoothers import Smoother, SmootherResult, make_smoother, smoother_spec
 from .losses import FilterLoss, MSELoss, NEESLoss, NLLLoss, Prior, StateNLLLoss
 from .metrics import finalize_metrics, metric_sums
 from .plots import plot_errors, plot_mode_probs, plot_trajectory
+from .replicates import perturb_initial_values
 from .stability import OnceWarner, bounded_jitter
 
 __all__ = ["FilterLearner", "make_loss", "parameter_scalars"]
@@ -127,6 +128,10 @@ class FilterLearner(pl.LightningModule):
             Parameters, their names and checkpoints are the filter's either way.
         smoother: ``None``, ``"rts"``, ``"fixed_lag"`` or a mapping (see the module docstring);
             the smoother runs on the filter's result (also a fused one).
+        init_perturbation: log-scale standard deviation of a seeded perturbation of the learned
+            parameters' initial values (:func:`~difffilter.learn.replicates.perturb_initial_values`);
+            0 (default) starts from the given values exactly.
+        init_seed: seed of that perturbation (a multirun's ``${seed}``).
     """
 
     def __init__(
@@ -153,6 +158,8 @@ class FilterLearner(pl.LightningModule):
         max_logged_elements: int = 64,
         fused: bool | str = False,
         smoother: str | Mapping[str, Any] | None = None,
+        init_perturbation: float = 0.0,
+        init_seed: int = 0,
     ) -> None:
         super().__init__()
         if not isinstance(filter, Filter):
@@ -166,6 +173,7 @@ class FilterLearner(pl.LightningModule):
         self.filter = filter if dtype is None else filter.to(as_dtype(dtype))
         self.loss_fn = make_loss(loss)
         self.learned_names = select_parameters(self.filter, None if learn is None else list(learn))
+        perturb_initial_values(self.filter, self.learned_names, init_perturbation, seed=init_seed)
         # An empty config group (scheduler: none) arrives as an empty mapping: no scheduler.
         self.optimizer_factory = optimizer or None
         self.scheduler_factory = scheduler or None
@@ -371,8 +379,8 @@ class FilterLearner(pl.LightningModule):
             packed = self.trainer.strategy.reduce(packed, reduce_op="sum")
         sums = dict(zip(keys, packed, strict=True))
         self._sums = {}
-        metrics = finalize_metrics({k: v for k, v in sums.items() if not k.startswith("smoothed/")}, bounds=False)
-        smoothed = finalize_metrics({k.removeprefix("smoothed/"): v for k, v in sums.items() if k.startswith("smoothed/")}, bounds=False)
+        metrics = finalize_metrics({k: v for k, v in sums.items() if not k.startswith("smoothed/")})
+        smoothed = finalize_metrics({k.removeprefix("smoothed/"): v for k, v in sums.items() if k.startswith("smoothed/")})
         metrics.update({f"smoothed_{k}": smoothed[k] for k in _SMOOTHED_METRICS if k in smoothed})
         count = float(sums["loss_count"])
         metrics["loss"] = float(sums["loss_sum"]) / count if count > 0 else float("nan")

@@ -18,15 +18,11 @@ output is not finite.
 from __future__ import annotations
 
 import argparse
-import sys
-from pathlib import Path
 
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from difffilter.bench.exact import (  # noqa: E402
+from difffilter.bench.exact import (
     cv_scenario,
     exact_colored_posteriors,
     exact_fading_kalman,
@@ -35,9 +31,9 @@ from difffilter.bench.exact import (  # noqa: E402
     relative_errors,
     simulate_linear,
 )
-from difffilter.filters import EKF, RCUKF, UKF, ColoredNoiseUKF, KalmanFilter, SimplifiedUKF, SquareRootUKF  # noqa: E402
-from difffilter.mixers import IMM, Blend  # noqa: E402
-from difffilter.models import LinearModel  # noqa: E402
+from difffilter.filters import EKF, RCUKF, UKF, ColoredNoiseUKF, KalmanFilter, SimplifiedUKF, SquareRootUKF
+from difffilter.mixers import IMM, Blend
+from difffilter.models import LinearModel
 
 FILTERS = ("kf", "kf_nojoseph", "ekf", "ukf", "sukf", "srukf", "rcukf", "colored0", "colored", "imm", "blend")
 

@@ -28,7 +28,7 @@ from difffilter.filters import (
     fuse,
 )
 from difffilter.filters.fused import _chol
-from difffilter.learn.builders import tracking_model
+from difffilter.models import tracking_model
 from difffilter.models.base import DynamicsModel, MeasurementModel, StateSpaceModel, wrap_angle
 from difffilter.models.motion import Singer
 from difffilter.params import register_covariance

@@ -8,11 +8,12 @@ from torch import Tensor
 from ..linalg import symmetrize
 from ..models.base import Controls, StateSpaceModel
 from ..params import Bounded, Positive, register_constrained
+from ._common import expand_controls
 from .base import Belief, StepInfo
 from .diffuse import DIFFUSE_COV, DIFFUSE_SCALE
 from .jacobians import measurement_matrix
 from .sigma_points import SigmaPoints
-from .ukf import UKF, deviations, expand_controls, weighted_mean
+from .ukf import UKF, deviations, weighted_mean
 
 __all__ = ["RCUKF"]
 

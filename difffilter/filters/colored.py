@@ -8,11 +8,12 @@ from torch import Tensor
 from ..linalg import psd_sqrt, symmetrize
 from ..models.base import Controls, StateSpaceModel
 from ..params import Bounded, register_constrained
+from ._common import expand_controls
 from .base import Belief, StepInfo, diffuse_gaussian_update, gaussian_update
 from .diffuse import DIFFUSE_COV, propagate_diffuse
 from .jacobians import measurement_matrix, transition_matrix
 from .sigma_points import SigmaPoints
-from .ukf import UKF, deviations, expand_controls, state_add, weighted_mean, weighted_moments
+from .ukf import UKF, deviations, state_add, weighted_mean, weighted_moments
 
 __all__ = ["ColoredNoiseUKF"]
 

@@ -2,19 +2,36 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
+import torch
 from torch import Tensor
+from torch.func import jvp
 
 from ..linalg import symmetrize
 from ..models.base import Controls, StateSpaceModel
-from .base import Belief, GaussianFilter, StepInfo, diffuse_gaussian_update, gaussian_update, square_root_deviations
+from ._common import expand_controls
+from .base import Belief, RecursiveFilter, StepInfo, diffuse_gaussian_update, gaussian_update, square_root_deviations
 from .diffuse import DIFFUSE_COV, propagate_diffuse
 from .jacobians import autodiff_jacobian
 from .ukf import state_add
 
-__all__ = ["EKF", "autodiff_jacobian"]
+__all__ = ["EKF", "autodiff_jacobian", "noise_jacobian"]
 
 
-class EKF(GaussianFilter):
+def noise_jacobian(fn: Callable[[Tensor, Tensor, Controls], Tensor], x: Tensor, noise_dim: int, u: Controls) -> Tensor:
+    """``d fn(x, w, u) / d w`` at ``w = 0``, ``[B, out, q]`` for ``x [B, n]`` (forward mode: one
+    evaluation of ``fn`` on ``B * q`` points, differentiable for the outer backward pass)."""
+    n = x.shape[-1]
+    lead = x.shape[:-1]
+    basis = torch.eye(noise_dim, dtype=x.dtype, device=x.device).expand(*lead, noise_dim, noise_dim).contiguous()
+    rep = x[..., None, :].expand(*lead, noise_dim, n)
+    u1 = expand_controls(u, x.ndim - 1)
+    _, tangents = jvp(lambda w: fn(rep, w, u1), (torch.zeros_like(basis),), (basis,))
+    return tangents.mT.to(x.dtype)
+
+
+class EKF(RecursiveFilter):
     """Extended Kalman filter.
 
     Predict: ``x- = f(x, u)``, ``P- = F P F^T + Q`` with ``F = df/dx`` at the posterior mean.
@@ -23,6 +40,12 @@ class EKF(GaussianFilter):
     else from ``torch.func`` (``jacobian_mode="fwd"`` or ``"rev"``).  ``joseph=False`` uses
     ``P - K S K^T`` and switches to the Joseph form where that cancels (see
     :func:`~difffilter.filters.base.gaussian_update`).
+
+    Non-additive noise (``dynamics.additive_noise`` / ``measurement.additive_noise`` False, e.g.
+    :class:`~difffilter.models.noise.NonAdditiveModel`): ``x- = f(x, 0, u)``,
+    ``P- = F P F^T + F_w Q F_w^T`` and ``S = H P- H^T + H_v R H_v^T`` with the Jacobians
+    ``F_w = df/dw``, ``H_v = dh/dv`` at zero noise (the model's ``noise_jacobian`` or forward-mode
+    autodiff of ``with_noise``).
 
     Learnable: whatever the model registers (Q, R, model parameters).
     """
@@ -46,10 +69,30 @@ class EKF(GaussianFilter):
             jac = autodiff_jacobian(self.model.measurement, x, u, mode=self.jacobian_mode)
         return jac
 
+    def process_noise_cov(self, x: Tensor, u: Controls) -> Tensor:
+        """``Q``, or ``F_w Q F_w^T`` at ``x`` for non-additive process noise."""
+        dyn = self.model.dynamics
+        q = dyn.process_noise(x, u)
+        if dyn.additive_noise:
+            return q
+        fw = dyn.noise_jacobian(x, u)
+        fw = noise_jacobian(dyn.with_noise, x, q.shape[-1], u) if fw is None else fw
+        return fw @ q @ fw.mT
+
+    def measurement_noise_cov(self, x: Tensor, u: Controls) -> Tensor:
+        """``R`` expanded to ``[B, m, m]``, or ``H_v R H_v^T`` at ``x`` for non-additive noise."""
+        hm = self.model.measurement
+        r = hm.measurement_noise(x, u)
+        if not hm.additive_noise:
+            hv = hm.noise_jacobian(x, u)
+            hv = noise_jacobian(hm.with_noise, x, r.shape[-1], u) if hv is None else hv
+            r = hv @ r @ hv.mT
+        return r.expand(*x.shape[:-1], *r.shape[-2:])
+
     def predict(self, belief: Belief, u: Controls) -> Belief:
         mean, cov = belief["mean"], belief["cov"]
         jac = self.transition_jacobian(mean, u)
-        q = self.model.dynamics.process_noise(mean, u)
+        q = self.process_noise_cov(mean, u)
         new_mean = self.model.dynamics(mean, u)
         out = {**belief, "mean": new_mean, "cov": symmetrize(jac @ cov @ jac.mT + q)}
         propagate_diffuse(belief, out, jac, self.model, u)
@@ -58,8 +101,7 @@ class EKF(GaussianFilter):
     def update(self, belief: Belief, z: Tensor, mask: Tensor | None, u: Controls) -> tuple[Belief, StepInfo]:
         mean, cov = belief["mean"], belief["cov"]
         h = self.measurement_jacobian(mean, u)
-        r = self.model.measurement.measurement_noise(mean, u)
-        r = r.expand(*mean.shape[:-1], *r.shape[-2:])
+        r = self.measurement_noise_cov(mean, u)
         zhat = self.model.measurement(mean, u)
         pht = cov @ h.mT
         s = h @ pht + r

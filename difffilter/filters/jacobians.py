@@ -13,17 +13,9 @@ from torch import Tensor
 from torch.func import jacrev, jvp, vmap
 
 from ..models.base import Controls, DynamicsModel, MeasurementModel
+from ._common import expand_controls
 
 __all__ = ["autodiff_jacobian", "difference_jacobian", "expand_controls", "measurement_matrix", "transition_matrix"]
-
-
-def expand_controls(u: Controls, dim: int = 1) -> Controls:
-    """Insert a singleton sigma-point dimension so ``u [B, ...]`` broadcasts with ``x [B, S, n]``."""
-    if u is None:
-        return None
-    if isinstance(u, Tensor):
-        return u.unsqueeze(dim)
-    return {k: v.unsqueeze(dim) for k, v in u.items()}
 
 
 def autodiff_jacobian(fn: Callable[[Tensor, Controls], Tensor], x: Tensor, u: Controls, *, mode: str = "fwd") -> Tensor:

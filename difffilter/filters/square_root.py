@@ -7,11 +7,12 @@ from torch import Tensor
 
 from ..linalg import chol_rank1_update, gaussian_log_density, psd_sqrt, tria
 from ..models.base import Controls, StateSpaceModel
+from ._common import expand_controls
 from .base import Belief, StepInfo, diffuse_gaussian_update, mask_measurement_system
 from .diffuse import DIFFUSE_COV, propagate_diffuse
 from .jacobians import measurement_matrix
 from .sigma_points import SigmaPoints
-from .ukf import UKF, deviations, expand_controls, state_add, weighted_mean
+from .ukf import UKF, deviations, state_add, weighted_mean
 
 __all__ = ["SquareRootUKF"]
 

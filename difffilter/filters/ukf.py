@@ -9,12 +9,13 @@ from torch import Tensor
 
 from ..linalg import block_diag, psd_sqrt, symmetrize
 from ..models.base import Controls, DynamicsModel, MeasurementModel, StateSpaceModel, wrap_components
-from .base import Belief, GaussianFilter, StepInfo, diffuse_gaussian_update, gaussian_update
+from ._common import expand_controls
+from .base import Belief, RecursiveFilter, StepInfo, diffuse_gaussian_update, gaussian_update
 from .diffuse import DIFFUSE_COV, propagate_diffuse
-from .jacobians import expand_controls, measurement_matrix
+from .jacobians import measurement_matrix
 from .sigma_points import MerweScaled, SigmaPoints
 
-__all__ = ["UKF", "SimplifiedUKF", "deviations", "expand_controls", "weighted_mean", "weighted_moments"]
+__all__ = ["UKF", "SimplifiedUKF", "deviations", "state_add", "weighted_mean", "weighted_moments"]
 
 #: What the unscented helpers need to know of a state or measurement space: a model part
 #: (``DynamicsModel`` or ``MeasurementModel``) with ``angular`` indices and ``residual``.
@@ -57,7 +58,7 @@ def state_add(space: DynamicsModel) -> Callable[[Tensor, Tensor], Tensor] | None
     return space.add if space.angular else None
 
 
-class UKF(GaussianFilter):
+class UKF(RecursiveFilter):
     """Unscented Kalman filter with a choice of sigma points, noise handling and point reuse.
 
     Predict (additive noise): points ``chi_i`` of ``N(x, P)``, ``x- = sum wm_i f(chi_i)``,
@@ -79,7 +80,10 @@ class UKF(GaussianFilter):
         noise: ``"additive"`` (``2n + 1`` points in ``n`` dimensions, the p003 "AUKF") or
             ``"augmented"`` (noise appended to the state: ``[x; w]`` for the prediction and
             ``[x; v]`` for a redrawn update, or ``[x; w; v]`` when reusing points, p003's
-            augmented UKF).
+            augmented UKF).  The noise points pass through the model's ``with_noise``: ``f(x) + w``
+            for additive models, ``f(x, w, u)`` / ``h(x, v, u)`` for models that declare
+            non-additive noise (:class:`~difffilter.models.noise.NonAdditiveModel`), which
+            need ``"augmented"``.
 
     Learnable: the model's parameters (Q, R, ...).
     """
@@ -95,6 +99,8 @@ class UKF(GaussianFilter):
         super().__init__(model)
         if noise not in ("additive", "augmented"):
             raise ValueError(f"noise must be 'additive' or 'augmented', got {noise!r}")
+        if noise == "additive" and not (model.dynamics.additive_noise and model.measurement.additive_noise):
+            raise ValueError("the model declares non-additive noise (f(x, w, u) or h(x, v, u)): use UKF(..., noise='augmented')")
         self.sigma_points = sigma_points if sigma_points is not None else MerweScaled(alpha=1.0, beta=2.0, kappa=0.0)
         self.redraw_after_predict = bool(redraw_after_predict)
         self.noise = noise
@@ -133,19 +139,20 @@ class UKF(GaussianFilter):
                 out["sigma_wm"] = torch.cat([wm, torch.zeros_like(wq)])
                 out["sigma_wc"] = torch.cat([wc, wq])
         else:
-            m = r.shape[-1]
+            # noise dimensions q, r: those of Q and R (non-additive models may differ from n, m)
+            qd, m = q.shape[-1], r.shape[-1]
             reuse = not self.redraw_after_predict
             blocks = [cov, q, r] if reuse else [cov, q]
-            aug_mean = torch.cat([mean, mean.new_zeros(*mean.shape[:-1], n + (m if reuse else 0))], -1)
+            aug_mean = torch.cat([mean, mean.new_zeros(*mean.shape[:-1], qd + (m if reuse else 0))], -1)
             chi = self._points(aug_mean, block_diag(*blocks))
             dim = aug_mean.shape[-1]
             wm, wc = self._weights(dim, mean)
-            prop = f.add(f(chi[..., :n], u1), chi[..., n : 2 * n])
+            prop = f.with_noise(chi[..., :n], chi[..., n : n + qd], u1)
             xm, dev, pf = weighted_moments(prop, wm, wc, f)
             new_cov = symmetrize(pf)
             if reuse:
                 out["sigma_points"] = prop
-                out["sigma_noise"] = chi[..., 2 * n :]
+                out["sigma_noise"] = chi[..., n + qd :]
                 out["sigma_wm"], out["sigma_wc"] = wm, wc
         out["mean"], out["cov"] = xm, new_cov
         propagate_diffuse(belief, out, None, self.model, u)
@@ -173,9 +180,7 @@ class UKF(GaussianFilter):
         mean, cov = belief["mean"], belief["cov"]
         chi, vnoise, wm, wc, add_r = self._update_points(belief, u)
         hm = self.model.measurement
-        zeta = hm(chi, expand_controls(u))
-        if vnoise is not None:
-            zeta = zeta + vnoise
+        zeta = hm(chi, expand_controls(u)) if vnoise is None else hm.with_noise(chi, vnoise, expand_controls(u))
         zhat = weighted_mean(zeta, wm, hm)
         dz = hm.residual(zeta, zhat[..., None, :])
         dyn = self.model.dynamics
@@ -208,7 +213,7 @@ class SimplifiedUKF(UKF):
     parameters.
 
     When the dynamics offer ``linear_prediction(x, u) -> (f(x, u), F, Q)`` (e.g.
-    :class:`~difffilter.models.sins.SinsErrorDynamics`), the prediction takes all three from that
+    :class:`~difffilter.models.navigation.sins.SinsErrorDynamics`), the prediction takes all three from that
     one call, so a model whose ``F`` is expensive (matrix exponential) builds it once per step
     instead of once each in ``matrix``, ``process_noise`` and ``f``.
     """

@@ -3,71 +3,31 @@
 :func:`gaussian_update` (covariance form, with the Joseph forms where they are needed) and
 :func:`diffuse_gaussian_update` (the exact update of a belief with a diffuse part, see
 :mod:`difffilter.filters.diffuse`), and the exact removal of unobserved components
-(:func:`mask_measurement_system`).  Re-exported by :mod:`difffilter.filters.base`.
+(:func:`~difffilter.filters._common.mask_measurement_system`).  Re-exported by
+:mod:`difffilter.filters.base`.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
 from ..linalg import joseph_update, psd_sqrt, safe_cholesky, symmetrize
+from ._common import StepInfo, mask_measurement_system
 from .diffuse import DIFFUSE_COV, DIFFUSE_SCALE, diffuse_update
+from .protocol import Belief
 
 __all__ = [
-    "StepInfo",
     "diffuse_gaussian_update",
     "gaussian_update",
-    "mask_measurement_system",
     "square_root_deviations",
     "untrusted_steps",
 ]
 
-Belief = dict[str, Tensor]
 _LOG_2PI = math.log(2.0 * math.pi)
-
-
-@dataclass
-class StepInfo:
-    """Per-step update statistics ``[B]``: log-likelihood ``log N(e; 0, S)`` of the observed
-    components, normalised innovation squared ``e^T S^{-1} e`` and number of observed components.
-    ``untrusted [B]`` (bool, optional) marks updates whose rounding error cannot be vouched for
-    and ``jitter [B]`` (optional) the innovation covariance's repair (see :func:`gaussian_update`)."""
-
-    log_likelihood: Tensor
-    nis: Tensor
-    num_observed: Tensor
-    innovation: Tensor | None = None
-    innovation_cov: Tensor | None = None
-    untrusted: Tensor | None = None
-    jitter: Tensor | None = None
-
-
-def mask_measurement_system(
-    innovation: Tensor, cov: Tensor, deviations: Tensor, mask: Tensor | None
-) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Remove unobserved measurement components exactly from an update.
-
-    ``innovation [B, m]``, ``cov [B, m, m]`` (innovation or noise covariance), ``deviations
-    [..., m]`` (anything indexed by measurement component last: ``P_xz``, sigma-point
-    deviations); ``mask [B, m]`` True = observed.  Missing components get a zero innovation
-    (``where``, so NaN never propagates), zero deviations, zero covariance rows/columns and a unit
-    diagonal: the padded system's update equals the update on the observed subset, and each
-    missing component adds exactly ``log N(0; 0, 1)`` to the log-density.  Returns the masked
-    ``(innovation, cov, deviations, num_observed [B])``.
-    """
-    m = innovation.shape[-1]
-    if mask is None:
-        num_obs = torch.full(innovation.shape[:-1], float(m), dtype=innovation.dtype, device=innovation.device)
-        return innovation, cov, deviations, num_obs
-    mo = mask.to(innovation.dtype)
-    innovation = torch.where(mask, innovation, torch.zeros_like(innovation))
-    cov = cov * (mo[..., :, None] * mo[..., None, :]) + torch.diag_embed(1.0 - mo)
-    return innovation, cov, deviations * mo[..., None, :], mo.sum(-1)
 
 
 def _trust_limits(dtype: torch.dtype) -> tuple[float, float, float]:

@@ -1,17 +1,17 @@
-"""Learning filter parameters by back-propagation through the filter.
+"""Learning filter parameters by back-propagation through the filter: the Lightning learner, the
+trajectory data module (TBPTT windows), losses, metrics, figures and the experiment protocol
+(``run_experiment``: hand-tuned vs learned vs oracle).  Generic only: the papers' set-ups live in
+:mod:`difffilter.papers`."""
 
-Light modules (losses, metrics, parameter selection, builders) import eagerly; the ones that
-need PyTorch Lightning (:class:`FilterLearner`, :class:`TrajectoryDataModule`,
-:func:`run_experiment`) are imported on first access, so that ``difffilter.sim`` and
-``difffilter.learn.metrics`` stay cheap to import.
-"""
-
-from __future__ import annotations
-
-import importlib
-from typing import Any
-
-from .losses import CompositeLoss, HuberLoss, LogNormalPrior, MSELoss, NEESLoss, NLLLoss, NormalPrior
+from ..selection import assign_parameters, learnable_values, match_parameters, select_parameters
+from . import replicates  # noqa: F401 - registers the `replicate_seed` resolver of the configs
+from .consistency import Consistency, consistency
+from .data import TrajectoryDataModule, TrajectorySet, WindowedTrajectories
+from .evaluation import evaluate_runs
+from .experiment import evaluate_filter, run_experiment
+from .intervals import GapClosed, Interval, block_bootstrap_difference, crossed_interval, gap_closed, t_interval
+from .learner import FilterLearner
+from .losses import CompositeLoss, HuberLoss, LogNormalPrior, MSELoss, NEESLoss, NLLLoss, NormalPrior, StateNLLLoss
 from .metrics import (
     anees,
     anis,
@@ -24,26 +24,36 @@ from .metrics import (
     nll_per_step,
     rmse,
 )
-from .selection import assign_parameters, learnable_values, match_parameters, select_parameters
+from .sweep import SweepSummary, summarize_sweep
 
 __all__ = [
     "CompositeLoss",
+    "Consistency",
     "FilterLearner",
+    "GapClosed",
     "HuberLoss",
+    "Interval",
     "LogNormalPrior",
     "MSELoss",
     "NEESLoss",
     "NLLLoss",
     "NormalPrior",
+    "StateNLLLoss",
+    "SweepSummary",
     "TrajectoryDataModule",
     "TrajectorySet",
     "WindowedTrajectories",
     "anees",
     "anis",
     "assign_parameters",
+    "block_bootstrap_difference",
     "chi2_interval",
+    "consistency",
+    "crossed_interval",
     "evaluate_filter",
+    "evaluate_runs",
     "finalize_metrics",
+    "gap_closed",
     "innovation_whiteness",
     "learnable_values",
     "match_parameters",
@@ -54,19 +64,6 @@ __all__ = [
     "rmse",
     "run_experiment",
     "select_parameters",
+    "summarize_sweep",
+    "t_interval",
 ]
-
-_LAZY = {
-    "FilterLearner": ".learner",
-    "TrajectoryDataModule": ".data",
-    "TrajectorySet": ".data",
-    "WindowedTrajectories": ".data",
-    "evaluate_filter": ".experiment",
-    "run_experiment": ".experiment",
-}
-
-
-def __getattr__(name: str) -> Any:
-    if name in _LAZY:
-        return getattr(importlib.import_module(_LAZY[name], __name__), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

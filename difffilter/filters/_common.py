@@ -1,0 +1,84 @@
+"""Pieces shared by the recursive filters: per-step statistics, controls slicing and masking
+(the Gaussian measurement updates are in :mod:`difffilter.filters.update`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from ..models.base import Controls
+from .protocol import Belief
+
+__all__ = [
+    "StepInfo",
+    "detach_belief",
+    "expand_controls",
+    "mask_measurement_system",
+    "slice_controls",
+]
+
+
+@dataclass
+class StepInfo:
+    """Per-step update statistics ``[B]``: log-likelihood ``log N(e; 0, S)`` of the observed
+    components, normalised innovation squared ``e^T S^{-1} e`` and number of observed components.
+    ``untrusted [B]`` (bool, optional) marks updates whose rounding error cannot be vouched for
+    and ``jitter [B]`` (optional) the innovation covariance's repair (see
+    :func:`~difffilter.filters.update.gaussian_update`)."""
+
+    log_likelihood: Tensor
+    nis: Tensor
+    num_observed: Tensor
+    innovation: Tensor | None = None
+    innovation_cov: Tensor | None = None
+    untrusted: Tensor | None = None
+    jitter: Tensor | None = None
+
+
+def slice_controls(controls: Controls, t: int) -> Controls:
+    """Step ``t`` of per-step inputs ``[B, T, ...]`` (tensor or dict of tensors)."""
+    if controls is None:
+        return None
+    if isinstance(controls, Tensor):
+        return controls[:, t]
+    return {k: v[:, t] for k, v in controls.items()}
+
+
+def expand_controls(u: Controls, dim: int = 1) -> Controls:
+    """Insert a singleton sigma-point dimension so ``u [B, ...]`` broadcasts with ``x [B, S, n]``."""
+    if u is None:
+        return None
+    if isinstance(u, Tensor):
+        return u.unsqueeze(dim)
+    return {k: v.unsqueeze(dim) for k, v in u.items()}
+
+
+def detach_belief(belief: Belief) -> Belief:
+    """Detach every tensor of a belief (truncated back-propagation boundaries)."""
+    return {k: v.detach() for k, v in belief.items()}
+
+
+def mask_measurement_system(
+    innovation: Tensor, cov: Tensor, deviations: Tensor, mask: Tensor | None
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Remove unobserved measurement components exactly from an update.
+
+    ``innovation [B, m]``, ``cov [B, m, m]`` (innovation or noise covariance), ``deviations
+    [..., m]`` (anything indexed by measurement component last: ``P_xz``, sigma-point
+    deviations); ``mask [B, m]`` True = observed.  Missing components get a zero innovation
+    (``where``, so NaN never propagates), zero deviations, zero covariance rows/columns and a unit
+    diagonal: the padded system's update equals the update on the observed subset, and each
+    missing component adds exactly ``log N(0; 0, 1)`` to the log-density.  Returns the masked
+    ``(innovation, cov, deviations, num_observed [B])``.
+    """
+    m = innovation.shape[-1]
+    if mask is None:
+        num_obs = torch.full(innovation.shape[:-1], float(m), dtype=innovation.dtype, device=innovation.device)
+        return innovation, cov, deviations, num_obs
+    observed = mask.to(innovation.dtype)
+    innovation = torch.where(mask, innovation, torch.zeros_like(innovation))
+    cov = cov * (observed[..., :, None] * observed[..., None, :]) + torch.diag_embed(1.0 - observed)
+    return innovation, cov, deviations * observed[..., None, :], observed.sum(-1)

@@ -67,8 +67,9 @@ class _Recorder(nn.Module):
 
     def forward(self, *args: Any, **kwargs: Any) -> Any:
         res = self.filt(*args, **kwargs)
-        if res.mode_probs is not None:
-            self.mode_probs.append(res.mode_probs.detach())
+        mode_probs = res.extras.get("mode_probs")  # only IMMs have them (the single-UKF oracle has none)
+        if mode_probs is not None:
+            self.mode_probs.append(mode_probs.detach())
         return res
 
 

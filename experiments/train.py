@@ -5,11 +5,15 @@
     python experiments/train.py experiment=cv2d loss=mse_nees
     python experiments/train.py trainer=ddp_sim        # 2 CPU processes (DDP, gloo)
     python experiments/train.py -m optimizer.lr=0.02,0.05,0.1 hydra/launcher=joblib
+    python experiments/train.py hydra.run.dir=<interrupted run> resume=true   # continue from its last.ckpt
+    python experiments/train.py train=false ckpt_path=<file>  # evaluate only (= experiments/eval.py)
 
 Builds everything from conf/train.yaml, fits, tests, then evaluates the hand-tuned, learned and
 oracle filters on held-out test trajectories; writes results.md / results.csv and TensorBoard
 events to the run directory, prints the table and returns the experiment's metric (what a
-Hydra sweeper such as Optuna minimises).  The logic lives in difffilter.learn.experiment.
+Hydra sweeper such as Optuna minimises).  SIGTERM/SIGINT write checkpoints/last.ckpt and exit
+with status 143/130; status.json in the run directory says completed, interrupted or failed.
+The logic lives in difffilter.learn.experiment.
 """
 
 from __future__ import annotations

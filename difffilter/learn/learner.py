@@ -264,6 +264,7 @@ class FilterLearner(pl.LightningModule):
         belief = self._carries.get(window - 1) if window > 0 else None
         if window > 0 and belief is None:
             self._warn("carry", "a continuation window arrived without its previous window; restarting from the initial belief")
+        self._restored_carry = False
         result = self(batch, belief)
         # Keyed by window so that an optimiser re-evaluating a window (LBFGS closures) still
         # starts it from the previous window's belief.

@@ -81,6 +81,7 @@ def test_interrupted_run_resumes_bit_identically(tmp_path, uninterrupted, step, 
     assert read_status(second)["status"] == "completed"
 
 
+@pytest.mark.slow
 def test_resume_true_continues_the_run_directory_and_cli_exit_status(tmp_path, uninterrupted):
     run_dir = tmp_path / "run"
     cmd = [sys.executable, str(ROOT / "experiments" / "train.py"), *RUN, f"hydra.run.dir={run_dir}", f"paths.log_dir={tmp_path}/logs"]

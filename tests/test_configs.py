@@ -18,7 +18,7 @@ from omegaconf import DictConfig, OmegaConf
 from difffilter._util import as_dtype
 from difffilter.filters import Filter
 from difffilter.learn.data import TrajectoryDataModule
-from difffilter.learn.experiment import build_filter, run_experiment
+from difffilter.learn.experiment import apply_model_defaults, build_filter, build_learner, run_experiment
 from difffilter.learn.learner import FilterLearner
 from difffilter.models.base import StateSpaceModel
 
@@ -123,6 +123,34 @@ def test_experiment_overlay_builds_and_filters(tmp_path, experiment):
     assert loss.shape == (2,) and bool(torch.isfinite(loss).all())
     for spec in (OmegaConf.to_container(cfg.experiment.baselines, resolve=True) or {}).values():
         assert isinstance(build_filter(spec.get("filter") or cfg.filter, dtype=dtype, params=spec.get("params")), Filter)
+
+
+@pytest.mark.parametrize("experiment", EXPERIMENTS)
+def test_learner_checkpoint_of_every_experiment_loads_without_arguments(tmp_path, experiment):
+    # run_experiment's learner (a paper's factory may reshape the filter: p003's grouped Q,
+    # smartLoc's soft gate) keeps in its hyperparameters how to rebuild it, so that
+    # FilterLearner.load_from_checkpoint(path) alone gives the same filter.
+    cfg = _compose(tmp_path, [f"experiment={experiment}"])
+    dtype = as_dtype(cfg.dtype)
+    hand = build_filter(cfg.filter, dtype=dtype, params=cfg.experiment.hand_tuned)
+    apply_model_defaults(cfg, hand)
+    learner = build_learner(cfg, hand)
+    with torch.no_grad():  # learned values that differ from every config value
+        for p in learner.filter.parameters():
+            if p.requires_grad:
+                p.add_(0.05)
+    path = tmp_path / "learner.ckpt"
+    torch.save(
+        {"state_dict": learner.state_dict(), "hyper_parameters": dict(learner.hparams), "pytorch-lightning_version": pl.__version__}, path
+    )
+    loaded = FilterLearner.load_from_checkpoint(str(path))  # torch.load(weights_only=True) inside
+    # (torch.nn.utils.parametrize makes a class per module: compare the names)
+    assert type(loaded.filter).__name__ == type(learner.filter).__name__ and type(loaded.loss_fn) is type(learner.loss_fn)
+    batch = _small_data(cfg).dataset("test").all()
+    with torch.no_grad():
+        a, b = learner(batch), loaded(batch)
+    torch.testing.assert_close(b.mean, a.mean, rtol=0, atol=0, equal_nan=True)
+    torch.testing.assert_close(b.cov, a.cov, rtol=0, atol=0, equal_nan=True)
 
 
 def test_debug_and_hydra_launcher_configs_compose(tmp_path):

@@ -33,7 +33,16 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["CHECKPOINT_KEY", "get_rng_state", "learner_state", "read_checkpoint", "restore_learner_state", "run_config", "set_rng_state"]
+__all__ = [
+    "CHECKPOINT_KEY",
+    "best_checkpoint",
+    "get_rng_state",
+    "learner_state",
+    "read_checkpoint",
+    "restore_learner_state",
+    "run_config",
+    "set_rng_state",
+]
 
 #: Key of the learner's own entries in a checkpoint.
 CHECKPOINT_KEY = "difffilter"
@@ -45,6 +54,22 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
     if not p.is_file():
         raise FileNotFoundError(f"no checkpoint file {p}")
     return torch.load(p, map_location="cpu", weights_only=True)
+
+
+def best_checkpoint(run_dir: str | Path) -> Path:
+    """The best validation checkpoint of a run directory (``checkpoints/*.ckpt`` other than
+    ``last*.ckpt``; with several, the one the newest names as best)."""
+    folder = Path(run_dir) / "checkpoints"
+    kept = sorted((p for p in folder.glob("*.ckpt") if not p.name.startswith("last")), key=lambda p: p.stat().st_mtime)
+    if not kept:
+        raise FileNotFoundError(f"no checkpoint other than last.ckpt under {folder}")
+    if len(kept) == 1:
+        return kept[0]
+    for state in read_checkpoint(kept[-1]).get("callbacks", {}).values():
+        best = Path(str(state.get("best_model_path") or "")) if isinstance(state, Mapping) else None
+        if best is not None and (folder / best.name) in kept:
+            return folder / best.name
+    return kept[-1]
 
 
 def run_config(path_or_checkpoint: str | Path | Mapping[str, Any]) -> dict[str, Any] | None:

@@ -36,6 +36,11 @@ The ``experiment`` config node (per-paper overlays set it)::
       error_quantiles: null       # e.g. [0.5, 0.95]: extra columns pos_err_p50, pos_err_p95 =
                                   # quantiles of the position error norm over all test steps
 
+With a smoother configured (``smoother=rts``, ``cfg.smoother.evaluate``), every filter that a
+smoother supports gets a second row ``"<name> (smoothed)"``: the same metrics of the smoothed
+states ``x_{t|T}`` over each whole test trajectory (``nis``/``nll`` are the filter's, and
+``time_per_step_ms`` covers filter and smoother).
+
 Names in ``hand_tuned``/``params`` follow :func:`difffilter.selection.assign_parameters`
 (a vector sets a covariance's diagonal; a scalar sets ``s I`` or a ScaledMatrix's scale).
 
@@ -65,6 +70,7 @@ from .._util import as_dtype
 from ..filters.protocol import Filter
 from ..models.layout import model_defaults
 from ..selection import assign_parameters, parameter_owners
+from ..smoothers import Smoother, make_smoother, smoother_spec
 from .callbacks import EpochSummary, GracefulInterrupt
 from .data import TrajectorySet
 from .evaluation import PER_RUN_FILE, consistency_table, evaluate_runs, write_per_run
@@ -136,9 +142,11 @@ def evaluate_filter(
     error_quantiles: list[float] | None = None,
     blocks: Mapping[str, list[int]] | None = None,
     truth_blocks: Mapping[str, list[int]] | None = None,
+    smoother: Smoother | None = None,
 ) -> dict[str, float]:
     """The pooled results row of ``filt`` on every trajectory of ``data``: the ``summary`` of
-    :func:`difffilter.learn.evaluation.evaluate_runs` (same arguments; its per-run metrics too)."""
+    :func:`difffilter.learn.evaluation.evaluate_runs` (same arguments; its per-run metrics too;
+    with a ``smoother`` built on ``filt``, of the smoothed states)."""
     return evaluate_runs(
         filt,
         data,
@@ -153,6 +161,7 @@ def evaluate_filter(
         error_quantiles=error_quantiles,
         blocks=blocks,
         truth_blocks=truth_blocks,
+        smoother=smoother,
     ).summary
 
 
@@ -351,24 +360,25 @@ def evaluate_experiment(cfg: DictConfig, hand: Filter, learner: FilterLearner, t
     truth_blocks = {str(k): [int(i) for i in v] for k, v in (_plain(exp.get("truth_blocks")) or {}).items()} or None
     per_run: dict[str, dict[str, torch.Tensor]] = {}
     learned_names = list(cfg.get("learn") or [])
+    spec = smoother_spec(_plain(cfg.get("smoother")))
+    smoothed_rows = spec is not None and bool(spec.get("evaluate", True))
+    kwargs = {
+        "initial_mean": learner.initial_mean,
+        "initial_cov": learner.initial_cov,
+        "batch_size": exp.get("eval_batch_size"),
+        "max_jitter": cfg.learner.get("max_jitter"),
+        "error_quantiles": None if exp.get("error_quantiles") is None else [float(q) for q in exp.error_quantiles],
+        "blocks": blocks,
+        "truth_blocks": truth_blocks,
+        **indices,
+    }
     rows = []
     for k, (name, filt) in enumerate(filters.items(), start=1):
         log.info("evaluating %s (%d/%d) on %d test trajectories x %d steps", name, k, len(filters), len(test), test.num_steps)
         tic = time.perf_counter()
         filt = filt.to(dtype).eval()
         row: dict[str, Any] = {"filter": name}
-        evaluation = evaluate_runs(
-            filt,
-            test,
-            initial_mean=learner.initial_mean,
-            initial_cov=learner.initial_cov,
-            batch_size=exp.get("eval_batch_size"),
-            max_jitter=cfg.learner.get("max_jitter"),
-            error_quantiles=None if exp.get("error_quantiles") is None else [float(q) for q in exp.error_quantiles],
-            blocks=blocks,
-            truth_blocks=truth_blocks,
-            **indices,
-        )
+        evaluation = evaluate_runs(filt, test, **kwargs)
         row.update(evaluation.summary)
         per_run[name] = evaluation.per_run
         if learned_names:
@@ -378,13 +388,21 @@ def evaluate_experiment(cfg: DictConfig, hand: Filter, learner: FilterLearner, t
             except ValueError:
                 row["parameters"] = row["parameter_values"] = ""
         rows.append(row)
-        log.info(
-            "evaluated %s: %s %.4g (%.1f s)",
-            name,
-            exp.get("metric", "rmse_pos"),
-            row.get(exp.get("metric", "rmse_pos"), math.nan),
-            time.perf_counter() - tic,
-        )
+        metric = exp.get("metric", "rmse_pos")
+        log.info("evaluated %s: %s %.4g (%.1f s)", name, metric, row.get(metric, math.nan), time.perf_counter() - tic)
+        if smoothed_rows:
+            assert spec is not None
+            try:
+                smoother = make_smoother(filt, spec["kind"], lag=spec.get("lag"), time_chunk=spec.get("time_chunk"))
+            except (TypeError, ValueError) as exc:  # e.g. a Blend baseline: no smoother, say so
+                log.info("no smoothed row for %s: %s", name, exc)
+                continue
+            smoothed = evaluate_runs(filt, test, smoother=smoother, **kwargs)
+            rows.append({"filter": f"{name} (smoothed)", **smoothed.summary})
+            per_run[f"{name} (smoothed)"] = smoothed.per_run
+            for key in ("parameters", "parameter_values"):
+                if key in row:
+                    rows[-1][key] = row[key]
     write_per_run(per_run, Path(cfg.paths.output_dir) / PER_RUN_FILE)
     note = (
         f"experiment `{exp.get('name', '')}`: {len(test)} held-out test trajectories x {test.num_steps} steps, "
@@ -393,4 +411,11 @@ def evaluate_experiment(cfg: DictConfig, hand: Filter, learner: FilterLearner, t
         "per-step chi-square band (_step_band_frac); nll per observed step (nats); time_per_step_ms for the whole test batch; "
         "parameters: learned values in short (matrices by their diagonal), full values in results.csv."
     )
+    if smoothed_rows:
+        assert spec is not None
+        kind = spec["kind"] if spec["kind"] == "rts" else f"fixed-lag (L = {spec.get('lag')})"
+        note += (
+            f" '(smoothed)' rows: the same filter followed by the {kind} smoother over each whole test trajectory "
+            f"(training {'on smoothed' if spec.get('train', True) else 'on filtered'} states); their nis/nll are the filter's."
+        )
     return rows, note

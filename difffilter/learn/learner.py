@@ -53,23 +53,19 @@ from .._util import as_dtype
 from ..filters.base import detach_belief
 from ..filters.fused import FusedFilter
 from ..filters.protocol import Belief, Filter, FilterResult
-from ..models.layout import model_defaults
 from ..selection import learnable_values, match_parameters, parameter_owners, select_parameters
 from ..smoothers import Smoother, SmootherResult, make_smoother, smoother_spec
 from .checkpoints import CHECKPOINT_KEY, learner_state, restore_learner_state, set_rng_state
+from .eval_steps import EvaluationSteps
 from .losses import FilterLoss, Prior, make_loss
-from .metrics import finalize_metrics, metric_sums
-from .plots import diagnostic_figures
 from .replicates import perturb_initial_values
 from .reporting import parameter_scalars
 from .stability import OnceWarner, bounded_jitter
 
 __all__ = ["FilterLearner", "load_filter", "make_loss", "parameter_scalars"]
 
-_SMOOTHED_METRICS = ("rmse_pos", "rmse_state", "anees")
 
-
-class FilterLearner(pl.LightningModule):
+class FilterLearner(EvaluationSteps, pl.LightningModule):
     """Learn a filter's parameters from trajectories.
 
     Args:
@@ -348,86 +344,6 @@ class FilterLearner(pl.LightningModule):
         # identical on every process (parameters are synchronised by DDP); sync_dist averages
         # equal values, which leaves them unchanged
         self.log_dict(scalars, on_step=False, on_epoch=True, batch_size=1, sync_dist=True)
-
-    def _eval_step(self, batch: Mapping[str, Any], batch_idx: int, stage: str) -> None:
-        result = self(batch)
-        loss, bad = self._reduce_loss(self.loss_fn(result, batch), stage)
-        n = int(batch["measurements"].shape[0])
-        f64 = torch.float64
-        filtered = result.filtered if isinstance(result, SmootherResult) else result
-        sums = metric_sums(filtered, batch.get("truth"), **self.indices)
-        if self._smoother is not None and batch.get("truth") is not None:
-            smoothed = result if isinstance(result, SmootherResult) else self.smooth(result, batch)
-            sums.update({f"smoothed/{k}": v for k, v in metric_sums(smoothed, batch["truth"], **self.indices).items()})
-        result = filtered
-        sums["loss_sum"] = (loss.detach() if loss is not None else torch.zeros((), device=self.device)).to(f64) * (n - bad)
-        sums["loss_count"] = torch.tensor(float(n - bad), dtype=f64, device=self.device)
-        for k, v in sums.items():
-            self._sums[k] = self._sums.get(k, torch.zeros((), dtype=f64, device=self.device)) + v.to(f64)
-        if batch_idx == 0:
-            self._figure_data = {
-                "truth": None if batch.get("truth") is None else batch["truth"][0].detach(),
-                "mean": result.mean[0].detach(),
-                "cov": result.cov[0].detach(),
-                "mode_probs": result.extras["mode_probs"][0].detach() if "mode_probs" in result.extras else None,
-                "modes": None if batch.get("modes") is None else batch["modes"][0].detach(),
-            }
-
-    def _eval_epoch_end(self, stage: str) -> None:
-        keys = sorted(self._sums)
-        if not keys:
-            return
-        packed = torch.stack([self._sums[k] for k in keys])
-        if self.trainer.world_size > 1:
-            packed = self.trainer.strategy.reduce(packed, reduce_op="sum")
-        sums = dict(zip(keys, packed, strict=True))
-        self._sums = {}
-        metrics = finalize_metrics({k: v for k, v in sums.items() if not k.startswith("smoothed/")})
-        smoothed = finalize_metrics({k.removeprefix("smoothed/"): v for k, v in sums.items() if k.startswith("smoothed/")})
-        metrics.update({f"smoothed_{k}": smoothed[k] for k in _SMOOTHED_METRICS if k in smoothed})
-        count = float(sums["loss_count"])
-        metrics["loss"] = float(sums["loss_sum"]) / count if count > 0 else float("nan")
-        # Already summed over processes above; sync_dist only averages identical values.
-        self.log_dict({f"{stage}/{k}": v for k, v in metrics.items()}, on_step=False, on_epoch=True, batch_size=1, sync_dist=True)
-        every = self.figure_every_n_epochs
-        if stage == "test" or (every > 0 and self.current_epoch % every == 0 and not self.trainer.sanity_checking):
-            self._log_figures(stage)
-
-    def _log_figures(self, stage: str) -> None:
-        data = self._figure_data
-        if data is None or not self.trainer.is_global_zero:
-            return
-        writers = [lg.experiment for lg in self.loggers if hasattr(lg.experiment, "add_figure")]
-        if not writers:
-            return
-        defaults = model_defaults(self.filter)
-        figures = diagnostic_figures(
-            data,
-            position_index=self.indices["position_index"],
-            truth_position_index=self.indices["truth_position_index"],
-            layout=None if defaults is None else defaults.layout,
-        )
-        for writer in writers:
-            for name, fig in figures.items():
-                writer.add_figure(f"{stage}/{name}", fig, global_step=self.global_step, close=False)
-
-    def on_validation_epoch_start(self) -> None:
-        self._sums, self._figure_data = {}, None
-
-    def validation_step(self, batch: Mapping[str, Any], batch_idx: int) -> None:
-        self._eval_step(batch, batch_idx, "val")
-
-    def on_validation_epoch_end(self) -> None:
-        self._eval_epoch_end("val")
-
-    def on_test_epoch_start(self) -> None:
-        self._sums, self._figure_data = {}, None
-
-    def test_step(self, batch: Mapping[str, Any], batch_idx: int) -> None:
-        self._eval_step(batch, batch_idx, "test")
-
-    def on_test_epoch_end(self) -> None:
-        self._eval_epoch_end("test")
 
     def on_train_epoch_start(self) -> None:
         if not self._restored_carry:  # a run resumed mid-epoch continues the batch in progress

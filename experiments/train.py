@@ -30,12 +30,12 @@ log = logging.getLogger(__name__)
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="train")
 def main(cfg: DictConfig) -> float | None:
-    """Train and evaluate; the return value is the metric a sweeper optimises."""
+    """Train and evaluate; the return value is the metric a sweeper optimises (optimized_metric)."""
     out = run_experiment(cfg)
     if not out:  # non-zero DDP ranks evaluate nothing
         return None
     log.info("results written to %s", out["output_dir"])
-    return out["metric"]
+    return out["optimized"]
 
 
 if __name__ == "__main__":

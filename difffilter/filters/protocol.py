@@ -130,11 +130,21 @@ class Filter(nn.Module):
         self, measurements: Tensor, initial_mean: Tensor | None, initial_cov: Tensor | None, mask: Tensor | None, controls: Controls
     ) -> tuple[Tensor, Tensor | None, Tensor | None, Tensor | None]:
         """Validate shapes, dtypes and values; return ``(z, mask [B,T,m] or None, mean, cov)``."""
+        if torch.compiler.is_compiling():
+            # the checks below and the filters' Cholesky retries depend on the data: compiled,
+            # every step would break the graph (long compile, eager speed)
+            raise RuntimeError(
+                f"torch.compile({type(self).__name__}) is not supported: input checks and Cholesky retries depend on the data. "
+                "Use difffilter.filters.FusedFilter(filter) (or fuse(filter)): the same filter as one compiled, branch-free step"
+            )
         n, m = self.state_dim, self.measurement_dim
         if not isinstance(measurements, Tensor):
             raise TypeError(f"measurements must be a torch.Tensor [B, T, {m}], got {type(measurements).__name__}")
-        if not measurements.is_floating_point():
-            raise TypeError(f"measurements must be floating point, got {measurements.dtype}")
+        if measurements.dtype not in (torch.float32, torch.float64):
+            raise TypeError(
+                f"measurements must be float32 or float64 (the dtypes difffilter computes in; half precision cannot hold "
+                f"covariances), got {measurements.dtype}"
+            )
         if measurements.ndim != 3 or measurements.shape[-1] != m:
             raise ValueError(f"measurements must have shape [B, T, {m}], got {tuple(measurements.shape)}")
         bsz, steps = measurements.shape[:2]

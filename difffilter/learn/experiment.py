@@ -65,6 +65,7 @@ import pytorch_lightning as pl
 import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
+from pytorch_lightning.callbacks import LearningRateMonitor, ModelCheckpoint
 
 from .._util import as_dtype
 from ..filters.protocol import Filter
@@ -81,6 +82,7 @@ from .runs import checkpoint_config, resume_checkpoint, run_status
 __all__ = [
     "apply_model_defaults",
     "build_filter",
+    "best_logged_value",
     "build_learner",
     "evaluate_experiment",
     "evaluate_filter",
@@ -282,6 +284,8 @@ def build_learner(cfg: DictConfig, hand: Filter) -> FilterLearner:
 def _trainer(cfg: DictConfig) -> tuple[pl.Trainer, list[Any]]:
     loggers = [instantiate(v, _convert_="all") for v in (cfg.get("logger") or {}).values() if v is not None]
     callbacks = [instantiate(v, _convert_="all") for v in (cfg.get("callbacks") or {}).values() if v is not None]
+    if not loggers:  # Lightning refuses a learning-rate monitor without a logger to write to
+        callbacks = [c for c in callbacks if not isinstance(c, LearningRateMonitor)]
     # always on: a line per epoch, and a checkpoint when a signal stops training
     for kind in (EpochSummary, GracefulInterrupt):
         if not any(isinstance(c, kind) for c in callbacks):
@@ -291,7 +295,9 @@ def _trainer(cfg: DictConfig) -> tuple[pl.Trainer, list[Any]]:
 
 
 def run_experiment(cfg: DictConfig) -> dict[str, Any]:
-    """Train and evaluate as configured; returns ``{"metric": value, "rows": [...], ...}``.
+    """Train and evaluate as configured; returns ``{"metric": the learned filter's
+    experiment.metric, "optimized": what a sweeper minimises (cfg.optimized_metric), "rows": [...],
+    ...}``.
 
     ``cfg.train: false`` evaluates the checkpoint ``cfg.ckpt_path`` instead of training (what
     ``experiments/eval.py`` runs), under the config stored in the checkpoint unless
@@ -321,8 +327,11 @@ def _run(cfg: DictConfig, train: bool) -> dict[str, Any]:
     learner = build_learner(cfg, hand)
     learner.run_config = OmegaConf.to_container(cfg, resolve=True)  # type: ignore[assignment]
     trainer, loggers = _trainer(cfg)
+    optimized = math.nan
     if train:
         trainer.fit(learner, datamodule=datamodule, ckpt_path=resume_checkpoint(cfg))
+        if cfg.get("optimized_metric"):
+            optimized = best_logged_value(trainer, str(cfg.optimized_metric))
         best = getattr(trainer.checkpoint_callback, "best_model_path", "") if trainer.checkpoint_callback else ""
         trainer.test(learner, datamodule=datamodule, ckpt_path="best" if best else None)
     else:
@@ -339,8 +348,20 @@ def _run(cfg: DictConfig, train: bool) -> dict[str, Any]:
         loggers, config=learner.run_config or {}, rows=rows, text=format_results(rows, title=title, note=note), step=trainer.global_step
     )
     learned = next(r for r in rows if r["filter"] == "learned")
-    metric_name = exp.get("metric", "rmse_pos")
-    return {"metric": float(learned.get(metric_name, math.nan)), "rows": rows, "output_dir": str(output_dir), "trainer": trainer}
+    metric = float(learned.get(exp.get("metric", "rmse_pos"), math.nan))
+    optimized = optimized if cfg.get("optimized_metric") else metric
+    return {"metric": metric, "optimized": optimized, "rows": rows, "output_dir": str(output_dir), "trainer": trainer}
+
+
+def best_logged_value(trainer: pl.Trainer, name: str) -> float:
+    """The best value of the logged metric ``name`` during training: the checkpoint callback's
+    best score when it monitors ``name``, else the last logged value."""
+    keeper = trainer.checkpoint_callback
+    if isinstance(keeper, ModelCheckpoint) and keeper.monitor == name and keeper.best_model_score is not None:
+        return float(keeper.best_model_score)
+    if name not in trainer.callback_metrics:
+        raise ValueError(f"optimized_metric {name!r} was not logged; logged: {sorted(trainer.callback_metrics)}")
+    return float(trainer.callback_metrics[name])
 
 
 def evaluate_experiment(cfg: DictConfig, hand: Filter, learner: FilterLearner, test: TrajectorySet) -> tuple[list[dict[str, Any]], str]:

@@ -130,13 +130,9 @@ class Filter(nn.Module):
         self, measurements: Tensor, initial_mean: Tensor | None, initial_cov: Tensor | None, mask: Tensor | None, controls: Controls
     ) -> tuple[Tensor, Tensor | None, Tensor | None, Tensor | None]:
         """Validate shapes, dtypes and values; return ``(z, mask [B,T,m] or None, mean, cov)``."""
-        if torch.compiler.is_compiling():
-            # the checks below and the filters' Cholesky retries depend on the data: compiled,
-            # every step would break the graph (long compile, eager speed)
-            raise RuntimeError(
-                f"torch.compile({type(self).__name__}) is not supported: input checks and Cholesky retries depend on the data. "
-                "Use difffilter.filters.FusedFilter(filter) (or fuse(filter)): the same filter as one compiled, branch-free step"
-            )
+        # Checks of values (finite, symmetric, positive definite) read the data, which breaks a
+        # torch.compile graph: inside a compiled region only shapes and dtypes are checked.
+        values = not torch.compiler.is_compiling()
         n, m = self.state_dim, self.measurement_dim
         if not isinstance(measurements, Tensor):
             raise TypeError(f"measurements must be a torch.Tensor [B, T, {m}], got {type(measurements).__name__}")
@@ -162,12 +158,12 @@ class Filter(nn.Module):
                     f"mask must have shape [B, T] = [{bsz}, {steps}] or [B, T, m] = [{bsz}, {steps}, {m}], got {tuple(mask.shape)}"
                 )
             if mask.dtype != torch.bool:
-                if mask.is_floating_point() and not bool(((mask == 0) | (mask == 1)).all()):
+                if values and mask.is_floating_point() and not bool(((mask == 0) | (mask == 1)).all()):
                     raise ValueError("mask must be boolean (True = observed)")
                 mask = mask.to(torch.bool)
         finite = torch.isfinite(measurements)
         bad = ~finite if mask is None else (~finite & mask)
-        if bool(bad.any()):
+        if values and bool(bad.any()):
             idx = tuple(int(i) for i in bad.nonzero()[0])
             raise ValueError(
                 f"measurements contain a non-finite value at [b, t, i] = {list(idx)} that is not masked; "
@@ -176,14 +172,14 @@ class Filter(nn.Module):
         if mask is not None:
             measurements = torch.where(mask, measurements, torch.zeros((), dtype=dtype, device=measurements.device))
         if initial_mean is not None:
-            initial_mean = self._check_mean(initial_mean, bsz, n, dtype)
+            initial_mean = self._check_mean(initial_mean, bsz, n, dtype, values=values)
         if initial_cov is not None:
-            initial_cov = self._check_cov(initial_cov, bsz, n, dtype)
+            initial_cov = self._check_cov(initial_cov, bsz, n, dtype, values=values)
         self._check_controls(controls, bsz, steps)
         return measurements, mask, initial_mean, initial_cov
 
     @staticmethod
-    def _check_mean(mean: Tensor, bsz: int, n: int, dtype: torch.dtype) -> Tensor:
+    def _check_mean(mean: Tensor, bsz: int, n: int, dtype: torch.dtype, *, values: bool = True) -> Tensor:
         if not isinstance(mean, Tensor):
             raise TypeError(f"initial_mean must be a torch.Tensor [{n}] or [B, {n}]")
         if mean.dtype != dtype:
@@ -192,12 +188,12 @@ class Filter(nn.Module):
             mean = mean.expand(bsz, n)
         elif mean.shape != (bsz, n):
             raise ValueError(f"initial_mean must have shape [{n}] or [B, {n}] = [{bsz}, {n}], got {tuple(mean.shape)}")
-        if not bool(torch.isfinite(mean).all()):
+        if values and not bool(torch.isfinite(mean).all()):
             raise ValueError("initial_mean contains non-finite values")
         return mean
 
     @staticmethod
-    def _check_cov(cov: Tensor, bsz: int, n: int, dtype: torch.dtype) -> Tensor:
+    def _check_cov(cov: Tensor, bsz: int, n: int, dtype: torch.dtype, *, values: bool = True) -> Tensor:
         if not isinstance(cov, Tensor):
             raise TypeError(f"initial_cov must be a torch.Tensor [{n}, {n}] or [B, {n}, {n}]")
         if cov.dtype != dtype:
@@ -206,6 +202,8 @@ class Filter(nn.Module):
             cov = cov.expand(bsz, n, n)
         elif cov.shape != (bsz, n, n):
             raise ValueError(f"initial_cov must have shape [{n}, {n}] or [B, {n}, {n}] = [{bsz}, {n}, {n}], got {tuple(cov.shape)}")
+        if not values:
+            return cov
         if not bool(torch.isfinite(cov).all()):
             raise ValueError("initial_cov contains non-finite values")
         scale = cov.abs().flatten(-2).amax(-1).clamp_min(torch.finfo(dtype).tiny)[..., None, None]

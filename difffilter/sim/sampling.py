@@ -287,7 +287,7 @@ def simulate(
     seed: int | torch.Generator = 0,
     initial_mean: Tensor | Sequence[float] | None = None,
     initial_cov: Tensor | Sequence[float] | Sequence[Sequence[float]] | None = None,
-    controls: Callable[..., Controls] | Tensor | None = None,
+    controls: Callable[..., Controls] | Mapping[str, Tensor] | Tensor | None = None,
     missing_prob: float = 0.0,
     dtype: torch.dtype | str | None = torch.float64,
 ) -> SampledTrajectories:
@@ -296,7 +296,8 @@ def simulate(
 
     ``initial_mean``/``initial_cov`` (the belief before the first measurement, ``x_0 ~ N(m_0,
     P_0)``; ``initial_cov`` ``[n, n]`` or its diagonal) and ``controls`` (a ``[1|B, T, ...]``
-    tensor or a ``(batch_size, num_steps, generator, dtype) -> controls`` sampler) default to the
+    tensor, a dict of ``[B, T, ...]`` tensors, or a ``(batch_size, num_steps, generator, dtype) ->
+    controls`` sampler) default to the
     model's :class:`~difffilter.models.layout.ModelDefaults` when it has them.  The result's
     ``truth [B, T, n]``, ``measurements [B, T, m]``, ``mask``, ``controls``, ``initial_mean`` and
     ``initial_cov`` go straight into any filter::
@@ -307,8 +308,12 @@ def simulate(
     A thin front of :class:`ModelSimulator` (what the data module calls) and
     :func:`sample_trajectories` (seeded; the same seed gives the same trajectories everywhere).
     """
-    if isinstance(controls, Tensor) and controls.shape[0] == batch_size and batch_size > 1:
-        fixed: Callable[..., Controls] | Tensor | None = lambda b, t, g, d: controls[:, :t].to(d)  # noqa: E731
+    fixed: Callable[..., Controls] | Tensor | None
+    if isinstance(controls, Mapping) or (isinstance(controls, Tensor) and controls.shape[0] == batch_size and batch_size > 1):
+        given = controls  # per-trajectory inputs, used as they are
+        fixed = lambda b, t, g, d: _cast_controls(  # noqa: E731
+            given[:, :t] if isinstance(given, Tensor) else {k: v[:, :t] for k, v in given.items()}, d
+        )
     else:
         fixed = controls
     sim = ModelSimulator(

@@ -28,7 +28,9 @@ ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
 #: Warnings printed by third-party code that no change here can avoid: Lightning 2.6 builds a
 #: torch pytree spec that torch 2.13 deprecates (any Lightning run prints it once).
 THIRD_PARTY = [re.compile(r"pytorch_lightning/utilities/_pytree\.py:\d+: .*LeafSpec")]
-WARNING_LINE = re.compile(r"^(?P<file>\S+\.py):(?P<line>\d+): (?P<category>\w*Warning): ", re.M)
+# "file.py:12: Category: message", or "file.py:12: message" (Lightning's format for warnings raised in
+# its own files, e.g. the advice its checks give about a user's data loader or logging calls)
+WARNING_LINE = re.compile(r"^(?P<file>\S+\.py):(?P<line>\d+): ", re.M)
 
 
 def _table(run_dir: Path) -> list[dict[str, str]]:

@@ -125,6 +125,9 @@ def test_cli_ddp_sim_two_processes(tmp_path):
     assert "MEMBER: 2/2" in proc.stderr + proc.stdout or (run_dir / "train_ddp_process_1.log").exists()
     rows = read_rows(run_dir / "results.csv")
     assert [r["filter"] for r in rows] == ["hand-tuned", "learned", "oracle"]
+    # values logged per epoch are synchronised (no "use sync_dist=True" advice), no project warning
+    assert "sync_dist" not in proc.stderr and "Warning" not in proc.stderr.replace("FutureWarning", ""), proc.stderr[-3000:]
+    assert '"status": "completed"' in (run_dir / "status.json").read_text()
 
 
 def test_oracle_specifications():

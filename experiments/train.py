@@ -11,8 +11,9 @@
 Builds everything from conf/train.yaml, fits, tests, then evaluates the hand-tuned, learned and
 oracle filters on held-out test trajectories; writes results.md / results.csv and TensorBoard
 events to the run directory, prints the table and returns the experiment's metric (what a
-Hydra sweeper such as Optuna minimises).  SIGTERM/SIGINT write checkpoints/last.ckpt and exit
-with status 143/130; status.json in the run directory says completed, interrupted or failed.
+Hydra sweeper such as Optuna minimises).  SIGTERM/SIGINT (and SIGUSR2, submitit's warning before
+a SLURM time limit) write checkpoints/last.ckpt and exit with status 128 + the signal number
+(143/130/140); status.json in the run directory says completed, interrupted or failed.
 The logic lives in difffilter.learn.experiment.
 """
 

@@ -1,7 +1,8 @@
-"""Training survives interruption: a run stopped by SIGTERM or SIGINT in the middle of an epoch
-writes a checkpoint, exits non-zero and is marked interrupted; resuming it (``resume=true`` in its
-directory, or ``ckpt_path=`` into a new one) gives exactly the results of the uninterrupted run
-(data order, optimizer, carried TBPTT belief and generator states restored)."""
+"""Training survives interruption: a run stopped by SIGTERM, SIGINT or SIGUSR2 (submitit's warning
+before a SLURM time limit) in the middle of an epoch writes a checkpoint, exits non-zero and is
+marked interrupted; resuming it (``resume=true`` in its directory, or ``ckpt_path=`` into a new
+one) gives exactly the results of the uninterrupted run (data order, optimizer, carried TBPTT
+belief and generator states restored)."""
 
 from __future__ import annotations
 
@@ -61,8 +62,8 @@ def uninterrupted(tmp_path_factory) -> list[dict[str, str]]:
 
 @pytest.mark.parametrize(
     ("step", "signum"),
-    [(5, signal.SIGTERM), (8, signal.SIGINT)],
-    ids=["sigterm-mid-epoch", "sigint-last-batch-of-epoch"],
+    [(5, signal.SIGTERM), (8, signal.SIGINT), (3, signal.SIGUSR2)],
+    ids=["sigterm-mid-epoch", "sigint-last-batch-of-epoch", "sigusr2-submitit-warning"],
 )
 def test_interrupted_run_resumes_bit_identically(tmp_path, uninterrupted, step, signum):
     first = tmp_path / "interrupted"

@@ -3,8 +3,9 @@ and checkpoints that travel with a resumed run.
 
 * :class:`EpochSummary` - one log line per epoch (``epoch 3/25: train/loss 7.91, val/loss
   7.86, val/rmse_pos 10.8 (1.2 s)``), into the run's log file and the console;
-* :class:`GracefulInterrupt` - SIGTERM (a scheduler's stop, ``scancel``) or SIGINT (Ctrl+C)
-  during training lets the current batch finish, writes ``last.ckpt`` and stops the run with
+* :class:`GracefulInterrupt` - SIGTERM (a scheduler's stop, ``scancel``), SIGUSR2 (the warning
+  the submitit launcher asks SLURM to send before a time limit) or SIGINT (Ctrl+C) during
+  training lets the current batch finish, writes ``last.ckpt`` and stops the run with
   :class:`TrainingInterrupted` (exit status 128 + the signal number, so a scheduler does not
   record success); a second Ctrl+C stops at once;
 * :class:`RunCheckpoint` - Lightning's ``ModelCheckpoint``; a run resumed from another run's
@@ -32,6 +33,12 @@ from pytorch_lightning.utilities.rank_zero import rank_zero_only
 __all__ = ["EpochSummary", "GracefulInterrupt", "RunCheckpoint", "TrainingInterrupted"]
 
 log = logging.getLogger(__name__)
+
+# Signals this module's handler takes over during training (SIGTERM goes through Lightning's own
+# handler, trainer.received_sigterm).  SIGUSR2 is what submitit asks SLURM to send signal_delay_s
+# before a time limit or at preemption; left to submitit's handler it would end the job without
+# a checkpoint (it raises or requeues from inside the training step).
+_HANDLED = tuple(getattr(signal, name) for name in ("SIGINT", "SIGUSR2") if hasattr(signal, name))
 
 
 class TrainingInterrupted(SystemExit):
@@ -74,7 +81,8 @@ class EpochSummary(Callback):
 
 
 class GracefulInterrupt(Callback):
-    """On SIGTERM or SIGINT during training: finish the batch, write a checkpoint, stop non-zero.
+    """On SIGTERM, SIGUSR2 or SIGINT during training: finish the batch, write a checkpoint, stop
+    non-zero (``128 + signal``: 143, 140, 130).
 
     The checkpoint is written at a batch boundary (``on_train_batch_end``), the point from which
     Lightning, the data loader (:class:`~difffilter.learn.data.WindowedTrajectories`) and the
@@ -92,7 +100,7 @@ class GracefulInterrupt(Callback):
         self.dirpath, self.filename = dirpath, filename
         self.received: int | None = None
         self.saved: str | None = None
-        self._previous: Any = None
+        self._previous: dict[int, Any] = {}
 
     def _handler(self, signum: int, frame: FrameType | None) -> None:
         if self.received is not None:  # asked twice: stop now
@@ -103,12 +111,13 @@ class GracefulInterrupt(Callback):
     def on_train_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
         self.received, self.saved = None, None
         if threading.current_thread() is threading.main_thread():
-            self._previous = signal.signal(signal.SIGINT, self._handler)
+            self._previous = {int(s): signal.signal(s, self._handler) for s in _HANDLED}
 
     def _restore(self) -> None:
-        if self._previous is not None and threading.current_thread() is threading.main_thread():
-            signal.signal(signal.SIGINT, self._previous)
-            self._previous = None
+        if self._previous and threading.current_thread() is threading.main_thread():
+            for signum, previous in self._previous.items():
+                signal.signal(signum, previous)
+            self._previous = {}
 
     def on_train_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
         self._restore()

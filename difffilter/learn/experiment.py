@@ -65,7 +65,7 @@ import pytorch_lightning as pl
 import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
-from pytorch_lightning.callbacks import LearningRateMonitor, ModelCheckpoint
+from pytorch_lightning.callbacks import LearningRateMonitor, ModelCheckpoint, ProgressBar, TQDMProgressBar
 
 from .._util import as_dtype
 from ..filters.protocol import Filter
@@ -290,6 +290,11 @@ def _trainer(cfg: DictConfig) -> tuple[pl.Trainer, list[Any]]:
     for kind in (EpochSummary, GracefulInterrupt):
         if not any(isinstance(c, kind) for c in callbacks):
             callbacks.append(kind())
+    # Lightning's tqdm bar, chosen here so that the console looks the same on every machine
+    # (Lightning would pick its rich bar where the rich package happens to be installed); not in
+    # the callbacks config, which trainer.enable_progress_bar=false would contradict.
+    if cfg.trainer.get("enable_progress_bar", True) and not any(isinstance(c, ProgressBar) for c in callbacks):
+        callbacks.append(TQDMProgressBar())
     trainer = instantiate(cfg.trainer, _convert_="all", logger=loggers or False, callbacks=callbacks)
     return trainer, loggers
 

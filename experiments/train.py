@@ -4,7 +4,7 @@
     python experiments/train.py debug=smoke            # < 1 minute end-to-end
     python experiments/train.py experiment=cv2d loss=mse_nees
     python experiments/train.py trainer=ddp_sim        # 2 CPU processes (DDP, gloo)
-    python experiments/train.py -m optimizer.lr=0.02,0.05,0.1 hydra/launcher=joblib
+    python experiments/train.py -m optimizer.lr=0.02,0.05,0.1 hydra/launcher=joblib hydra.launcher.n_jobs=2
     python experiments/train.py hydra.run.dir=<interrupted run> resume=true   # continue from its last.ckpt
     python experiments/train.py train=false ckpt_path=<file>  # evaluate only (= experiments/eval.py)
 

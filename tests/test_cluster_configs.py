@@ -8,6 +8,7 @@ import importlib.util
 import os
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import pytest
@@ -38,16 +39,23 @@ def test_multinode_ddp_trainer_config():
     assert cfg.trainer.max_epochs == 25 and cfg.trainer.gradient_clip_val == 10.0
 
 
-@pytest.mark.parametrize("launcher", ["submitit_slurm", "submitit_local"])
+@pytest.mark.parametrize("launcher", ["slurm", "slurm_local"])
 def test_submitit_launchers_compose(tmp_path, launcher):
     if not _plugin("hydra_submitit_launcher"):
         pytest.skip("hydra-submitit-launcher is not installed (optional extra `sweep`)")
-    cfg = _compose(tmp_path, [f"hydra/launcher={launcher}", "hydra.launcher.timeout_min=30"], return_hydra_config=True)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        cfg = _compose(tmp_path, [f"hydra/launcher={launcher}", "hydra.launcher.timeout_min=30"], return_hydra_config=True)
+    # the configs extend the plugin's own (no deprecated schema matching by name, no unknown field)
+    assert not [str(w.message) for w in caught if "schema" in str(w.message)]
     launcher_cls = cfg.hydra.launcher._target_.rsplit(".", 1)
     module = importlib.import_module(launcher_cls[0])
     assert hasattr(module, launcher_cls[1])
     assert cfg.hydra.launcher.timeout_min == 30
     assert str(cfg.hydra.launcher.submitit_folder).startswith(str(cfg.hydra.sweep.dir))
+    if launcher == "slurm":  # this project's resources over the plugin's defaults; its other fields kept
+        assert cfg.hydra.launcher.cpus_per_task == 2 and cfg.hydra.launcher.signal_delay_s == 120
+        assert "partition" in cfg.hydra.launcher and "array_parallelism" in cfg.hydra.launcher
 
 
 def test_optuna_search_composes_and_selects_on_validation(tmp_path):

@@ -53,7 +53,7 @@ from torch import Tensor
 
 from ..linalg import symmetrize
 from ..models.base import Controls, StateSpaceModel
-from .jacobians import measurement_matrix, transition_matrix
+from .jacobians import measurement_matrix, measurement_noise_cov, transition_matrix
 
 __all__ = [
     "DIFFUSE_COV",
@@ -90,7 +90,7 @@ def measurement_sensitivity(model: StateSpaceModel, mean: Tensor, u: Controls) -
     # no torch.no_grad() here: inside parametrize.cached() it would cache Q and R without their
     # graph for the whole run; the result is detached instead
     h = measurement_matrix(model.measurement, mean, u, differences=True).detach()
-    r = model.measurement.measurement_noise(mean, u).detach()
+    r = measurement_noise_cov(model.measurement, mean, u).detach()
     rdiag = torch.diagonal(r, dim1=-2, dim2=-1).expand(*mean.shape[:-1], h.shape[-2])
     inv_sd = torch.rsqrt(rdiag.clamp_min(torch.finfo(mean.dtype).tiny))
     f = transition_matrix(model.dynamics, mean, u, differences=True).detach()

@@ -2,33 +2,16 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
-
-import torch
 from torch import Tensor
-from torch.func import jvp
 
 from ..linalg import symmetrize
 from ..models.base import Controls, StateSpaceModel
-from ._common import expand_controls
 from .base import Belief, RecursiveFilter, StepInfo, diffuse_gaussian_update, gaussian_update, square_root_deviations
 from .diffuse import DIFFUSE_COV, propagate_diffuse
-from .jacobians import autodiff_jacobian
+from .jacobians import autodiff_jacobian, measurement_noise_cov, noise_jacobian
 from .ukf import state_add
 
 __all__ = ["EKF", "autodiff_jacobian", "noise_jacobian"]
-
-
-def noise_jacobian(fn: Callable[[Tensor, Tensor, Controls], Tensor], x: Tensor, noise_dim: int, u: Controls) -> Tensor:
-    """``d fn(x, w, u) / d w`` at ``w = 0``, ``[B, out, q]`` for ``x [B, n]`` (forward mode: one
-    evaluation of ``fn`` on ``B * q`` points, differentiable for the outer backward pass)."""
-    n = x.shape[-1]
-    lead = x.shape[:-1]
-    basis = torch.eye(noise_dim, dtype=x.dtype, device=x.device).expand(*lead, noise_dim, noise_dim).contiguous()
-    rep = x[..., None, :].expand(*lead, noise_dim, n)
-    u1 = expand_controls(u, x.ndim - 1)
-    _, tangents = jvp(lambda w: fn(rep, w, u1), (torch.zeros_like(basis),), (basis,))
-    return tangents.mT.to(x.dtype)
 
 
 class EKF(RecursiveFilter):
@@ -81,13 +64,7 @@ class EKF(RecursiveFilter):
 
     def measurement_noise_cov(self, x: Tensor, u: Controls) -> Tensor:
         """``R`` expanded to ``[B, m, m]``, or ``H_v R H_v^T`` at ``x`` for non-additive noise."""
-        hm = self.model.measurement
-        r = hm.measurement_noise(x, u)
-        if not hm.additive_noise:
-            hv = hm.noise_jacobian(x, u)
-            hv = noise_jacobian(hm.with_noise, x, r.shape[-1], u) if hv is None else hv
-            r = hv @ r @ hv.mT
-        return r.expand(*x.shape[:-1], *r.shape[-2:])
+        return measurement_noise_cov(self.model.measurement, x, u)
 
     def predict(self, belief: Belief, u: Controls) -> Belief:
         mean, cov = belief["mean"], belief["cov"]

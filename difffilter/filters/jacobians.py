@@ -15,7 +15,15 @@ from torch.func import jacrev, jvp, vmap
 from ..models.base import Controls, DynamicsModel, MeasurementModel
 from ._common import expand_controls
 
-__all__ = ["autodiff_jacobian", "difference_jacobian", "expand_controls", "measurement_matrix", "transition_matrix"]
+__all__ = [
+    "autodiff_jacobian",
+    "difference_jacobian",
+    "expand_controls",
+    "measurement_matrix",
+    "measurement_noise_cov",
+    "noise_jacobian",
+    "transition_matrix",
+]
 
 
 def autodiff_jacobian(fn: Callable[[Tensor, Controls], Tensor], x: Tensor, u: Controls, *, mode: str = "fwd") -> Tensor:
@@ -72,3 +80,27 @@ def transition_matrix(dynamics: DynamicsModel, x: Tensor, u: Controls, *, differ
 def measurement_matrix(measurement: MeasurementModel, x: Tensor, u: Controls, *, differences: bool = False) -> Tensor:
     """``dh/dx`` at ``x [B, n]`` as ``[B, m, n]`` (as :func:`transition_matrix`)."""
     return _model_jacobian(measurement, MeasurementModel, x, u, int(measurement.measurement_dim), differences)
+
+
+def noise_jacobian(fn: Callable[[Tensor, Tensor, Controls], Tensor], x: Tensor, noise_dim: int, u: Controls) -> Tensor:
+    """``d fn(x, w, u) / d w`` at ``w = 0``, ``[B, out, q]`` for ``x [B, n]`` (forward mode: one
+    evaluation of ``fn`` on ``B * q`` points, differentiable for the outer backward pass)."""
+    n = x.shape[-1]
+    lead = x.shape[:-1]
+    basis = torch.eye(noise_dim, dtype=x.dtype, device=x.device).expand(*lead, noise_dim, noise_dim).contiguous()
+    rep = x[..., None, :].expand(*lead, noise_dim, n)
+    u1 = expand_controls(u, x.ndim - 1)
+    _, tangents = jvp(lambda w: fn(rep, w, u1), (torch.zeros_like(basis),), (basis,))
+    return tangents.mT.to(x.dtype)
+
+
+def measurement_noise_cov(measurement: MeasurementModel, x: Tensor, u: Controls) -> Tensor:
+    """The measurement noise as it enters the measurement space: ``R``, or ``H_v R H_v^T`` at ``x``
+    when the noise is not additive (``H_v = dh/dv`` at ``v = 0``: the model's ``noise_jacobian``
+    or forward mode), expanded to ``[B, m, m]``."""
+    r = measurement.measurement_noise(x, u)
+    if not measurement.additive_noise:
+        hv = measurement.noise_jacobian(x, u)
+        hv = noise_jacobian(measurement.with_noise, x, r.shape[-1], u) if hv is None else hv
+        r = hv @ r @ hv.mT
+    return r.expand(*x.shape[:-1], *r.shape[-2:])

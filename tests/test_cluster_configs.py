@@ -1,10 +1,12 @@
 """Configs for outgrowing one machine compose: Lightning multi-node DDP, Hydra's submitit
-launchers (SLURM, local) and the Optuna hyperparameter search.  The Hydra plugins are optional
+launchers (SLURM, local) and the Optuna hyperparameter search; a job of the local submitit
+launcher stopped by its time-limit signal leaves a checkpoint and an `interrupted` status.  The Hydra plugins are optional
 (extra `sweep`): a test needing one skips cleanly when it is not installed."""
 
 from __future__ import annotations
 
 import importlib.util
+import json
 import os
 import subprocess
 import sys
@@ -90,3 +92,33 @@ def test_optuna_search_runs_two_trials(tmp_path):
     best = OmegaConf.load(sweep / "optimization_results.yaml")
     assert set(best.best_params) == {"optimizer.lr", "data.window", "data.batch_size"}
     assert (sweep / "summary.md").exists() and len(list(sweep.glob("*/results.csv"))) == 2
+
+
+@pytest.mark.slow
+def test_submitit_time_limit_signal_writes_a_checkpoint_and_marks_the_job(tmp_path):
+    # hydra/launcher=slurm_local: submitit's local executor sends SIGUSR2 30 s before the job's time
+    # limit (1 min), as SLURM does signal_delay_s before it; the job is still training then and must
+    # stop at a batch boundary with last.ckpt, status `interrupted` and the command that resumes it.
+    if not _plugin("hydra_submitit_launcher"):
+        pytest.skip("hydra-submitit-launcher is not installed (optional extra `sweep`)")
+    sweep = tmp_path / "sweep"
+    cmd = [
+        sys.executable,
+        str(ROOT / "experiments" / "train.py"),
+        "-m",
+        "seed=0",
+        "debug=smoke",
+        "trainer.max_epochs=100000",  # far longer than the time limit
+        "logger=none",
+        "trainer.enable_progress_bar=false",
+        "hydra/launcher=slurm_local",
+        "hydra.launcher.timeout_min=1",
+        f"hydra.sweep.dir={sweep}",
+    ]
+    proc = subprocess.run(cmd, capture_output=True, text=True, cwd=tmp_path, timeout=300, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert proc.returncode != 0  # the launcher reports the unfinished job: no success recorded
+    status = json.loads((sweep / "0" / "status.json").read_text())
+    assert status["status"] == "interrupted" and status["signal"] == "SIGUSR2", status
+    assert status["checkpoint"] == str(sweep / "0" / "checkpoints" / "last.ckpt") and Path(status["checkpoint"]).is_file()
+    assert f"hydra.run.dir={sweep / '0'}" in status["resume"] and "resume=true" in status["resume"]
+    assert not (sweep / "0" / "results.csv").exists() and not (sweep / "summary.md").exists()

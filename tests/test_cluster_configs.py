@@ -1,7 +1,8 @@
 """Configs for outgrowing one machine compose: Lightning multi-node DDP, Hydra's submitit
 launchers (SLURM, local) and the Optuna hyperparameter search; a job of the local submitit
-launcher stopped by its time-limit signal leaves a checkpoint and an `interrupted` status.  The Hydra plugins are optional
-(extra `sweep`): a test needing one skips cleanly when it is not installed."""
+launcher stopped by its time-limit signal leaves a checkpoint and an `interrupted` status.  The
+Hydra plugins are optional (extra `sweep`): a test needing one skips cleanly when it is not
+installed."""
 
 from __future__ import annotations
 

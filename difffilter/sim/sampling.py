@@ -308,12 +308,12 @@ def simulate(
     A thin front of :class:`ModelSimulator` (what the data module calls) and
     :func:`sample_trajectories` (seeded; the same seed gives the same trajectories everywhere).
     """
-    fixed: Callable[..., Controls] | Tensor | None
     if isinstance(controls, Mapping) or (isinstance(controls, Tensor) and controls.shape[0] == batch_size and batch_size > 1):
         given = controls  # per-trajectory inputs, used as they are
-        fixed = lambda b, t, g, d: _cast_controls(  # noqa: E731
-            given[:, :t] if isinstance(given, Tensor) else {k: v[:, :t] for k, v in given.items()}, d
-        )
+
+        def fixed(b: int, t: int, g: torch.Generator | None, d: torch.dtype) -> Controls:
+            return _cast_controls(given[:, :t] if isinstance(given, Tensor) else {k: v[:, :t] for k, v in given.items()}, d)
+
     else:
         fixed = controls
     sim = ModelSimulator(

@@ -37,6 +37,7 @@ from omegaconf import DictConfig, OmegaConf
 from torch import Tensor, nn
 
 from ...filters.protocol import Filter
+from ...learn.checkpoints import best_checkpoint, read_checkpoint
 from ...learn.data import TrajectorySet
 from ...learn.evaluation import PER_RUN_FILE, Evaluation, evaluate_runs, write_per_run
 from ...learn.experiment import build_filter, write_results
@@ -154,10 +155,8 @@ def paper_profile_report(
         delays = {name: switch_delays(mp, modes, threshold) for name, (_, mp) in evals.items() if mp is not None}
         learned_delays: list[dict[str, Tensor]] = []
         for job in gjobs:
-            ckpts = sorted((job.directory / "checkpoints").glob("*.ckpt"))
-            if not ckpts:
-                raise FileNotFoundError(f"no checkpoint under {job.directory / 'checkpoints'}")
-            state = torch.load(ckpts[-1], map_location="cpu", weights_only=False)["state_dict"]
+            ckpt = best_checkpoint(job.directory)  # the best validation checkpoint
+            state = read_checkpoint(ckpt)["state_dict"]
             learned = learned_from_state(fixed["hand-tuned"], state, cfg.learner.get("q_groups"), cfg.learner.get("r_groups"))
             ev, mp = _evaluate(learned, data, exp)
             if mp is not None:
@@ -168,7 +167,7 @@ def paper_profile_report(
                 shutil.copyfile(job.directory / ".hydra" / "overrides.yaml", job_out / ".hydra" / "overrides.yaml")
             every = {**{n: e for n, (e, _) in evals.items()}, "learned": ev}
             write_per_run({n: e.per_run for n, e in every.items()}, job_out / PER_RUN_FILE)
-            note = f"{group}: {len(data)} flights x {data.num_steps} s of p003's profile (seed {seed}), checkpoint {ckpts[-1].name}"
+            note = f"{group}: {len(data)} flights x {data.num_steps} s of p003's profile (seed {seed}), checkpoint {ckpt.name}"
             write_results([{"filter": n, **e.summary} for n, e in every.items()], job_out, title=f"paper profile: {group}", note=note)
         if learned_delays:
             delays["learned"] = {k: torch.stack([d[k] for d in learned_delays]) for k in SWITCH_KEYS}

@@ -232,7 +232,9 @@ def test_pseudorange_noise_model_reproduces_the_receiver_variances() -> None:
     u = {"sat_pos": sat, "pr_var": 10.0 + torch.rand(4, 5, generator=g, dtype=F64), "elevation": 10.0 + 70 * torch.rand(4, 5, dtype=F64)}
     ref = PseudorangeMeasurement(num_satellites=5, layout=lay, noise_from_data=True, robust="reject", gate=2.5, gate_floor=8.0)
     u["pr_obs"] = ref(x, u) + 30.0 * torch.randn(4, 5, generator=g, dtype=F64)
-    new = PseudorangeMeasurement(num_satellites=5, layout=lay, robust="reject", gate=2.5, gate_floor=8.0, noise_model=ScaledVariance(scale=1.0))
+    new = PseudorangeMeasurement(
+        num_satellites=5, layout=lay, robust="reject", gate=2.5, gate_floor=8.0, noise_model=ScaledVariance(scale=1.0)
+    )
     torch.testing.assert_close(new.measurement_noise(x, u), ref.measurement_noise(x, u), rtol=0, atol=0)
     elev = PseudorangeMeasurement(num_satellites=5, layout=lay, noise_model=ElevationVariance(a=2.0, b=3.0))
     expect = 2.0 + 3.0 / torch.sin(torch.deg2rad(u["elevation"])) ** 2

@@ -241,7 +241,9 @@ class ScaledVariance(SideInformationVariance):
     """``sigma^2 = s_g u[key]``: a variance the sensor reports (``"pr_var"``), times a learnable
     scale per group (``groups=1``: the single-scale ``R``)."""
 
-    def __init__(self, *, scale: float | Sequence[float] = 1.0, key: str = "pr_var", dtype: torch.dtype = torch.float64, **kwargs: object) -> None:
+    def __init__(
+        self, *, scale: float | Sequence[float] = 1.0, key: str = "pr_var", dtype: torch.dtype = torch.float64, **kwargs: object
+    ) -> None:
         super().__init__(**kwargs)  # type: ignore[arg-type]
         self.key = str(key)
         self._register("scale", scale, dtype)

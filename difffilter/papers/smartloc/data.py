@@ -28,6 +28,7 @@ import torch
 from torch import Tensor
 
 from ... import geometry as geo
+from ...models.sensors import event_times
 from .librsf import Records, read_records
 
 __all__ = ["SmartLocBatch", "SmartLocData", "default_smartloc_path", "find_drives", "load_drive", "load_smartloc"]
@@ -295,7 +296,12 @@ def load_drive(
         f"{inp.path}: {int((~keep).sum())} pseudoranges of systems other than {systems} skipped",
     )
     pr = pr[keep]
-    times = np.union1d(pr[:, 0], odom[:, 0])  # the filter's steps: every time a sensor reports
+    # the filter's steps: every time a sensor reports (odometry at its own rate only predicts)
+    streams = {
+        "gnss": (torch.from_numpy(pr[:, 0]), torch.empty(len(pr), 0)),
+        "odometry": (torch.from_numpy(odom[:, 0]), torch.empty(len(odom), 0)),
+    }
+    times = event_times(streams).numpy()
     for rec, kind, t in ((ref, "point3", gt[:, 0]), (inp, "odom3", odom[:, 0])):
         if t[0] > times[0] or t[-1] < times[-1]:
             raise ValueError(f"{rec.path}: the {kind} time stamps [{t[0]}, {t[-1]}] do not cover the drive's [{times[0]}, {times[-1]}]")

@@ -121,12 +121,13 @@ class SideInformationVariance(nn.Module):
 class ElevationVariance(SideInformationVariance):
     """``sigma^2 = a_g + b_g / sin^2(el)`` from the elevation ``u[key]`` (degrees, or radians
     with ``degrees=False``), clamped below at ``min_elevation_deg`` so that empty slots (elevation
-    0) stay finite.  ``a``, ``b`` in the measurement's squared units."""
+    0) stay finite.  ``a``, ``b`` in the measurement's squared units; ``a=None`` drops the
+    constant (for a sum with another model that has one)."""
 
     def __init__(
         self,
         *,
-        a: float | Sequence[float] = 4.0,
+        a: float | Sequence[float] | None = 4.0,
         b: float | Sequence[float] = 4.0,
         key: str = "elevation",
         degrees: bool = True,
@@ -137,25 +138,28 @@ class ElevationVariance(SideInformationVariance):
         super().__init__(**kwargs)  # type: ignore[arg-type]
         self.key, self.degrees = str(key), bool(degrees)
         self.min_elevation = math.radians(float(min_elevation_deg))
-        self._register("a", a, dtype)
+        self.has_constant = a is not None
+        if a is not None:
+            self._register("a", a, dtype)
         self._register("b", b, dtype)
 
     def forward(self, u: Controls, like: Tensor) -> Tensor:
         el = control(u, self.key).to(like.dtype)
         el = torch.deg2rad(el) if self.degrees else el
         s = torch.sin(el.clamp_min(self.min_elevation))
-        return self._per_group(self.a, u, like) + self._per_group(self.b, u, like) / (s * s)
+        out = self._per_group(self.b, u, like) / (s * s)
+        return out + self._per_group(self.a, u, like) if self.has_constant else out
 
 
 class CN0Variance(SideInformationVariance):
     """``sigma^2 = a_g + b_g 10^(-C/N0 / 10)`` from the carrier-to-noise density ``u[key]``
     (dB-Hz); ``10^(-C/N0/10)`` is the inverse of C/N0 in Hz, so ``b`` is a variance times Hz
-    (``b = 1e5`` m^2 Hz gives 10 m^2 at 40 dB-Hz)."""
+    (``b = 1e5`` m^2 Hz gives 10 m^2 at 40 dB-Hz); ``a=None`` drops the constant."""
 
     def __init__(
         self,
         *,
-        a: float | Sequence[float] = 4.0,
+        a: float | Sequence[float] | None = 4.0,
         b: float | Sequence[float] = 1e5,
         key: str = "cn0",
         dtype: torch.dtype = torch.float64,
@@ -163,12 +167,15 @@ class CN0Variance(SideInformationVariance):
     ) -> None:
         super().__init__(**kwargs)  # type: ignore[arg-type]
         self.key = str(key)
-        self._register("a", a, dtype)
+        self.has_constant = a is not None
+        if a is not None:
+            self._register("a", a, dtype)
         self._register("b", b, dtype)
 
     def forward(self, u: Controls, like: Tensor) -> Tensor:
         cn0 = control(u, self.key).to(like.dtype)
-        return self._per_group(self.a, u, like) + self._per_group(self.b, u, like) * torch.pow(10.0, -cn0 / 10.0)
+        out = self._per_group(self.b, u, like) * torch.pow(10.0, -cn0 / 10.0)
+        return out + self._per_group(self.a, u, like) if self.has_constant else out
 
 
 class MonotoneVariance(SideInformationVariance):

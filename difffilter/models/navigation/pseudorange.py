@@ -73,7 +73,9 @@ class PseudorangeMeasurement(MeasurementModel):
 
     Frames: with ``frame_origin=None`` positions are absolute ECEF.  With an ECEF
     ``frame_origin [3]`` they are relative to it, along ECEF axes (``frame="ecef"``) or local ENU
-    axes (``frame="enu"``); ``u["sat_pos"]`` must be in the same frame.  ``reduced=True``
+    axes (``frame="enu"``); ``u["sat_pos"]`` must be in the same frame.  Per-step inputs
+    ``u["frame_origin"] [..., 3]`` and ``u["frame_rotation"] [..., 3, 3]`` (rows: frame axes in
+    ECEF) override them per trajectory (one batch holding drives with different local frames).  ``reduced=True``
     predicts ``rho_j - ||s_j||`` (range from the frame origin removed; the data must be reduced
     the same way in float64), computed as ``(|p|^2 - 2 s.p) / (|s - p| + |s|)``: float32 then
     keeps millimetres instead of the ~2 m spacing of float32 numbers near 2e7 m.
@@ -190,6 +192,14 @@ class PseudorangeMeasurement(MeasurementModel):
         rng = torch.linalg.vector_norm(diff, dim=-1)
         return p, s, diff, rng
 
+    def _frame(self, u: Controls, like: Tensor) -> tuple[Tensor, Tensor]:
+        """Frame origin ``[..., 3]`` and rotation ``[..., 3, 3]``: per trajectory from
+        ``u["frame_origin"]`` / ``u["frame_rotation"]`` when given (batches pooling drives with
+        their own ENU frames), else the constructor's."""
+        if isinstance(u, dict) and "frame_origin" in u:
+            return u["frame_origin"].to(like.dtype), control(u, "frame_rotation").to(like.dtype)
+        return self.frame_origin, self.frame_rotation
+
     def _isb_flags(self, u: Controls, like: Tensor) -> Tensor:
         return _get(u, "glonass").to(like.dtype)
 
@@ -203,8 +213,9 @@ class PseudorangeMeasurement(MeasurementModel):
         else:
             rho = rng
         if self.sagnac:
-            pe = self.frame_origin + p @ self.frame_rotation
-            se = self.frame_origin + s @ self.frame_rotation
+            origin, rot = self._frame(u, x)
+            pe = origin + (p[..., None, :] @ rot)[..., 0, :]
+            se = origin[..., None, :] + s @ rot
             rho = rho + (geo.EARTH_RATE / geo.SPEED_OF_LIGHT) * (se[..., 0] * pe[..., None, 1] - se[..., 1] * pe[..., None, 0])
         rho = rho + x[..., lay.clock_bias, None]
         if lay.isb is not None:
@@ -228,9 +239,10 @@ class PseudorangeMeasurement(MeasurementModel):
         jac = x.new_zeros(*batch, self.measurement_dim, x.shape[-1])
         dpos = e
         if self.sagnac:
-            se = self.frame_origin + s @ self.frame_rotation
+            origin, rot = self._frame(u, x)
+            se = origin[..., None, :] + s @ rot
             g = (geo.EARTH_RATE / geo.SPEED_OF_LIGHT) * torch.stack([-se[..., 1], se[..., 0], torch.zeros_like(se[..., 0])], -1)
-            dpos = dpos + g @ self.frame_rotation.mT
+            dpos = dpos + g @ rot.mT
         jac[..., :k, list(lay.position)] = dpos
         jac[..., :k, lay.clock_bias] = 1.0
         if lay.isb is not None:

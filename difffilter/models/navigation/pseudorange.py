@@ -16,6 +16,7 @@ away from the receiver and mark them False in the filter's per-component mask ``
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
@@ -26,6 +27,7 @@ from ..._util import control
 from ...params import Positive, register_constrained, register_covariance
 from ..base import Controls, MeasurementModel
 from ..heteroscedastic import RobustGate
+from .antenna import antenna_offset, has_antenna, planar_rotation, register_antenna
 
 __all__ = ["GnssStateLayout", "PseudorangeMeasurement"]
 
@@ -44,6 +46,7 @@ class GnssStateLayout:
     clock_bias: int = 6
     clock_drift: int | None = 7
     isb: int | None = None
+    yaw: int | None = None
 
     @classmethod
     def constant_velocity(cls, *, isb: bool = False) -> GnssStateLayout:
@@ -53,7 +56,7 @@ class GnssStateLayout:
     @classmethod
     def odometry(cls, *, isb: bool = True) -> GnssStateLayout:
         """``[E, N, U, yaw, clock bias, clock drift(, ISB)]`` (smartLoc with odometry)."""
-        return cls(state_dim=7 if isb else 6, velocity=None, clock_bias=4, clock_drift=5, isb=6 if isb else None)
+        return cls(state_dim=7 if isb else 6, velocity=None, clock_bias=4, clock_drift=5, isb=6 if isb else None, yaw=3)
 
 
 def _get(u: Controls, key: str) -> Tensor:
@@ -79,6 +82,11 @@ class PseudorangeMeasurement(MeasurementModel):
     predicts ``rho_j - ||s_j||`` (range from the frame origin removed; the data must be reduced
     the same way in float64), computed as ``(|p|^2 - 2 s.p) / (|s - p| + |s|)``: float32 then
     keeps millimetres instead of the ~2 m spacing of float32 numbers near 2e7 m.
+
+    Antenna (:mod:`~difffilter.models.navigation.antenna`, odometry layouts in an ENU frame):
+    ``lever_arm`` (body forward, left, up; m) and ``latency`` (receiver time offset, s) move the
+    measured position to ``p + C(yaw) l - latency v``, ``v`` the odometry velocity
+    (``u["speed"]`` along the yaw); both are learnable by name when given.
 
     Noise: ``R = sigma^2 I`` registered with ``R_structure`` (default ``"scalar"``: one learnable
     level, since a slot is not tied to one satellite), or, with ``noise_from_data=True``,
@@ -110,6 +118,8 @@ class PseudorangeMeasurement(MeasurementModel):
         gate_softness: float | None = None,
         gate_learnable: bool = False,
         noise_model: nn.Module | None = None,
+        lever_arm: Sequence[float] | None = None,
+        latency: float | None = None,
         dtype: torch.dtype = torch.float64,
     ) -> None:
         super().__init__()
@@ -146,6 +156,11 @@ class PseudorangeMeasurement(MeasurementModel):
             register_constrained(self, "noise_scale", torch.ones((), dtype=dtype), Positive(1e-6))
         else:
             register_covariance(self, "R", torch.diag(var), "fixed" if noise_model is not None else R_structure)
+        if (lever_arm is not None or latency is not None) and (frame != "enu" or layout.yaw is None):
+            raise ValueError("lever_arm and latency need an ENU frame and a yaw state (GnssStateLayout.odometry)")
+        if latency is not None and rates:
+            raise ValueError("latency is not modelled for pseudorange rates")
+        register_antenna(self, lever_arm=lever_arm, latency=latency, dtype=dtype)
         self.robust_gate = None if robust is None else RobustGate(kind=robust, threshold=gate, floor=gate_floor, dtype=dtype)
         self.set_gate_softness(gate_softness)
         if gate_learnable:
@@ -188,9 +203,32 @@ class PseudorangeMeasurement(MeasurementModel):
     def _geometry(self, x: Tensor, u: Controls) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         s = _get(u, "sat_pos")
         p = x[..., list(self.layout.position)]
+        if has_antenna(self):
+            rot, vel = self._attitude_velocity(x, u)
+            p = p + antenna_offset(self, rot, vel)
         diff = p[..., None, :] - s  # [..., K, 3]
         rng = torch.linalg.vector_norm(diff, dim=-1)
         return p, s, diff, rng
+
+    def _attitude_velocity(self, x: Tensor, u: Controls) -> tuple[Tensor, Tensor]:
+        """Body attitude (rotation by the yaw state) and velocity (odometry speed along the yaw)."""
+        yaw = x[..., self.layout.yaw]
+        speed = _get(u, "speed")[..., 0].to(x.dtype) if "latency" in self.antenna_terms else torch.zeros_like(yaw)
+        vel = torch.stack([speed * torch.cos(yaw), speed * torch.sin(yaw), torch.zeros_like(yaw * speed)], -1)
+        return planar_rotation(yaw), vel
+
+    def _antenna_yaw_derivative(self, x: Tensor, u: Controls) -> Tensor:
+        """``d(antenna offset)/d yaw`` ``[..., 3]``."""
+        yaw = x[..., self.layout.yaw]
+        c, sn = torch.cos(yaw), torch.sin(yaw)
+        out = torch.zeros(*yaw.shape, 3, dtype=x.dtype, device=x.device)
+        if "lever_arm" in self.antenna_terms:
+            arm = self.lever_arm.to(x.dtype)
+            out = out + torch.stack([-sn * arm[0] - c * arm[1], c * arm[0] - sn * arm[1], torch.zeros_like(c)], -1)
+        if "latency" in self.antenna_terms:
+            speed = _get(u, "speed")[..., 0].to(x.dtype)
+            out = out - self.latency.to(x.dtype) * torch.stack([-speed * sn, speed * c, torch.zeros_like(c * speed)], -1)
+        return out
 
     def _frame(self, u: Controls, like: Tensor) -> tuple[Tensor, Tensor]:
         """Frame origin ``[..., 3]`` and rotation ``[..., 3, 3]``: per trajectory from
@@ -244,6 +282,9 @@ class PseudorangeMeasurement(MeasurementModel):
             g = (geo.EARTH_RATE / geo.SPEED_OF_LIGHT) * torch.stack([-se[..., 1], se[..., 0], torch.zeros_like(se[..., 0])], -1)
             dpos = dpos + g @ rot.mT
         jac[..., :k, list(lay.position)] = dpos
+        if has_antenna(self):
+            d_yaw = (dpos * self._antenna_yaw_derivative(x, u)[..., None, :]).sum(-1)
+            jac[..., :k, lay.yaw] = jac[..., :k, lay.yaw] + d_yaw
         jac[..., :k, lay.clock_bias] = 1.0
         if lay.isb is not None:
             jac[..., :k, lay.isb] = self._isb_flags(u, x).expand(*batch, k)

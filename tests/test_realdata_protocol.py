@@ -6,6 +6,7 @@ different pseudorange corrections)."""
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -39,6 +40,15 @@ def _reprocessed(lines: list[str]) -> list[str]:
             f[2] = repr(float(f[2]) + (7.0 if f[9] == "4" else -2.0))
         out.append(" ".join(f))
     return out
+
+
+def _hydra(value: object) -> str:
+    """A value in Hydra's override grammar (unquoted keys and strings)."""
+    if isinstance(value, dict):
+        return "{" + ",".join(f"{k}:{_hydra(v)}" for k, v in value.items()) + "}"
+    if isinstance(value, list):
+        return "[" + ",".join(_hydra(v) for v in value) + "]"
+    return str(value)
 
 
 def _config(folder: Path) -> dict:
@@ -79,9 +89,8 @@ def test_the_commands_run_given_only_a_folder(tmp_path) -> None:
     drives, second = tmp_path / "drives", tmp_path / "second"
     write_drive(drives, "Cut", start=100.0, stop=140.0)
     write_drive(second, "Cut", start=100.0, stop=140.0, edit=_reprocessed)
-    small = [f"realdata.{k}={json.dumps(v).replace(' ', '')}" for k, v in SMALL.items()] + [
-        f"realdata.bootstrap.{k}={v}" for k, v in SMALL_BOOT.items()
-    ]
+    small = [f"realdata.{k}={_hydra(v)}" for k, v in SMALL.items()]
+    small += [f"realdata.bootstrap.{k}={v}" for k, v in SMALL_BOOT.items()]
     cmd = [
         sys.executable,
         str(ROOT / "experiments" / "realdata.py"),
@@ -90,9 +99,7 @@ def test_the_commands_run_given_only_a_folder(tmp_path) -> None:
         f"hydra.run.dir={tmp_path / 'run'}",
         *small,
     ]
-    done = subprocess.run(
-        cmd, cwd=ROOT, capture_output=True, text=True, env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"}, check=False
-    )
+    done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(ROOT)}, check=False)
     assert done.returncode == 0, done.stderr[-3000:]
     assert "Fold A: test blocks" in done.stdout
     cmd = [
@@ -102,8 +109,6 @@ def test_the_commands_run_given_only_a_folder(tmp_path) -> None:
         f"folder={second}",
         f"hydra.run.dir={tmp_path / 'tr'}",
     ]
-    done = subprocess.run(
-        cmd, cwd=ROOT, capture_output=True, text=True, env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"}, check=False
-    )
+    done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(ROOT)}, check=False)
     assert done.returncode == 0, done.stderr[-3000:]
     assert "Transfer: filters trained in" in done.stdout and (tmp_path / "tr" / "transfer.json").exists()

@@ -5,6 +5,7 @@ a held-out validation block from several seeds, test with paired block-bootstrap
     python experiments/realdata.py folder=/data/drives               # every <name>_Input.txt + <name>_GT.txt of a folder
     python experiments/realdata.py transfer_from=outputs/realdata/smartloc/<run> folder=/data/other
     python experiments/realdata.py realdata.horizons=[1,2,4]          # stability check (4x the epochs)
+    python experiments/realdata.py evaluate_from=outputs/realdata/smartloc/<run>   # recompute a run's test tables (no training)
 
 The logic is in difffilter.papers.smartloc.protocol / .report; results.md, summary.json, the
 noise-model figures and TensorBoard events go to the Hydra run directory.
@@ -20,19 +21,21 @@ import torch
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
-from difffilter.papers.smartloc.report import resolve_config, run_protocol, run_transfer
+from difffilter.papers.smartloc.report import resolve_config, run_evaluation, run_protocol, run_transfer
 
 log = logging.getLogger(__name__)
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="realdata")
 def main(cfg: DictConfig) -> None:
-    """Run the protocol (or a transfer evaluation) and print the report."""
+    """Run the protocol (or a transfer evaluation, or a re-evaluation of a finished run) and print the report."""
     torch.set_num_threads(int(cfg.threads))
     warnings.filterwarnings("ignore", module="pytorch_lightning")
     out = HydraConfig.get().runtime.output_dir
     spec = resolve_config(OmegaConf.to_container(cfg.realdata, resolve=True), cfg.folder)  # type: ignore[arg-type]
-    if cfg.transfer_from:
+    if cfg.evaluate_from:
+        run_evaluation(cfg.evaluate_from, out)
+    elif cfg.transfer_from:
         run_transfer(cfg.transfer_from, spec, out)
     else:
         run_protocol(spec, out, workers=int(cfg.workers))

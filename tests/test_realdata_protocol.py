@@ -15,7 +15,7 @@ import pytest
 from omegaconf import OmegaConf
 
 from difffilter.papers.smartloc import load_drive
-from difffilter.papers.smartloc.report import resolve_config, run_protocol, run_transfer
+from difffilter.papers.smartloc.report import resolve_config, run_evaluation, run_protocol, run_transfer
 
 from .librsf_fixture import HAVE_DATA, write_drive
 
@@ -75,6 +75,12 @@ def test_protocol_on_a_folder_and_transfer_to_a_second_processing(tmp_path) -> N
     for name in ("results.md", "summary.json", "selected.pt", "noise_model_fold_A.png", "noise_model_fold_B.png"):
         assert (run / name).exists(), name
     assert any((run / "tb").rglob("events.out.tfevents.*"))
+    again = run_evaluation(run, tmp_path / "eval")  # rebuilt from the saved selections: the same test tables
+    for fold, fs in summary["folds"].items():
+        assert again["folds"][fold]["tables"]["hand-tuned"] == fs["test"]
+        ref = again["folds"][fold]["tables"]["ekf-no-gate"]
+        assert [r["filter"] for r in ref] == names and "d_rms" not in ref[2] and "d_rms" in ref[0]
+        assert again["folds"][fold]["validation"]["hand-tuned"] == pytest.approx(fs["hand_val"], rel=1e-12)
     out = tmp_path / "transfer"
     result = run_transfer(run, _config(second), out)
     whole = load_drive(second, input_file="Cut_Input.txt", truth_file="Cut_GT.txt").num_epochs

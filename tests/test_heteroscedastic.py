@@ -13,7 +13,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from difffilter.filters import EKF
+from difffilter.filters import EKF, UKF, IteratedEKF, KalmanFilter, SimplifiedUKF, SquareRootUKF
 from difffilter.models.base import StateSpaceModel
 from difffilter.models.heteroscedastic import (
     CN0Variance,
@@ -220,6 +220,39 @@ def test_heteroscedastic_measurement_matches_a_hand_written_kalman_filter() -> N
             p = (np.eye(2) - k @ h) @ p
             np.testing.assert_allclose(out.mean[b, t].detach().numpy(), m, rtol=1e-9, atol=1e-9)
             np.testing.assert_allclose(out.cov[b, t].detach().numpy(), p, rtol=1e-8, atol=1e-9)
+
+
+@pytest.mark.parametrize("make", [KalmanFilter, UKF, SquareRootUKF, SimplifiedUKF, lambda m: IteratedEKF(m, iterations=1)])
+def test_every_filter_takes_the_heteroscedastic_measurement(make) -> None:
+    """On a linear model with a learnable smooth gate, every Gaussian filter gives the EKF's
+    means, covariances and log-likelihoods (the EKF matches the hand-written filter above), and
+    the gradient of the log-likelihood reaches the scales and the gate's three parameters."""
+    g = torch.Generator().manual_seed(5)
+    steps, bsz = 25, 2
+    variance = ScaledVariance(scale=[2.0, 0.5], key="quality", groups=2, group_key="kind")
+    gate = RobustGate(threshold=3.0, floor=1.0, softness=0.1, learnable=True)
+    meas = HeteroscedasticMeasurement(
+        linear_measurement(R=[1.0], H=[[1.0, 0.0]], dtype="float64"), variance=variance, gate=gate, observed_key="z"
+    )
+    model = StateSpaceModel(ConstantVelocity(axes=1, dt=1.0, q=0.5, dtype=F64), meas)
+    z = torch.cumsum(torch.randn(bsz, steps, 1, generator=g, dtype=F64), 1)
+    z[0, 8] += 40.0
+    u = {
+        "quality": 0.5 + 3.0 * torch.rand(bsz, steps, 1, generator=g, dtype=F64),
+        "kind": torch.randint(0, 2, (bsz, steps, 1), generator=g),
+        "z": z,
+    }
+    m0, p0 = torch.zeros(bsz, 2, dtype=F64), torch.eye(2, dtype=F64).expand(bsz, 2, 2) * 10.0
+    with torch.no_grad():
+        ref = EKF(model)(z, m0, p0, controls=u)
+    out = make(model)(z, m0, p0, controls=u)
+    for a, b in ((out.mean, ref.mean), (out.cov, ref.cov), (out.log_likelihood, ref.log_likelihood)):
+        torch.testing.assert_close(a.detach(), b, rtol=1e-9, atol=1e-9)
+    params = {n: raw[0] for n, raw in named_raw_parameters(meas).items() if not n.startswith("base.")}  # base's own R is unused
+    assert len(params) == 4
+    grads = torch.autograd.grad(out.log_likelihood.sum(), list(params.values()))
+    for name, grad in zip(params, grads, strict=True):
+        assert torch.isfinite(grad).all() and float(grad.abs().sum()) > 0.0, name
 
 
 def test_pseudorange_noise_model_reproduces_the_receiver_variances() -> None:

@@ -392,6 +392,10 @@ class HeteroscedasticMeasurement(MeasurementModel):
     file (``(u, like) -> [..., m]``); ``gate`` (a :class:`RobustGate`) inflates components whose
     residual against the observed values ``u[observed_key] [..., m]`` is too large.  The
     parameters are ``base.*``, ``variance.*`` and ``gate.*`` (``learn: [a, b, gate_softness]``).
+    Every filter takes it: ``R`` is evaluated where the filter evaluates the noise (the prior
+    mean; :class:`~difffilter.filters.IteratedEKF`: each iterate, so its gate follows the
+    iterate), and ``matrix()`` is ``base``'s, so a linear ``base`` also runs in
+    :class:`~difffilter.filters.KalmanFilter`.
     """
 
     def __init__(self, base: MeasurementModel, *, variance: nn.Module, gate: RobustGate | None = None, observed_key: str = "z_obs") -> None:
@@ -407,7 +411,8 @@ class HeteroscedasticMeasurement(MeasurementModel):
         return self.base.jacobian(x, u)
 
     def matrix(self, u: Controls = None) -> Tensor | None:
-        return None if self.gate is not None else self.base.matrix(u)
+        # h is base's whatever R does: a gated linear measurement still runs in KalmanFilter.
+        return self.base.matrix(u)
 
     def residual(self, z: Tensor, z_ref: Tensor) -> Tensor:
         return self.base.residual(z, z_ref)

@@ -5,29 +5,20 @@ moves the per-group scales and the gate's parameters."""
 from __future__ import annotations
 
 import copy
-import re
-from pathlib import Path
 
 import torch
 
 from difffilter.filters import EKF
 
-ROOT = Path(__file__).resolve().parents[1]
+from .readme_snippets import readme_snippets, run_snippet
+
 HEADING = "### Noise from side information, learned gates, antenna states, real drives"
 
 
-def _snippets() -> list[str]:
-    text = (ROOT / "README.md").read_text()
-    start = text.index(HEADING)
-    end = text.index("\n#", start + len(HEADING))
-    return re.findall(r"```python\n(.*?)```", text[start:end], re.S)
-
-
 def test_side_information_snippet() -> None:
-    (code,) = _snippets()
+    (code,) = readme_snippets(HEADING)
     torch.manual_seed(0)
-    ns: dict = {}
-    exec(compile(code, "README.md", "exec"), ns)  # noqa: S102 - our own README
+    ns = run_snippet(code)
     gps, model, res = ns["gps"], ns["model"], ns["res"]
     z, controls, m0, P0, truth = ns["z"], ns["controls"], ns["m0"], ns["P0"], ns["truth"]
     assert torch.isfinite(res.mean).all()

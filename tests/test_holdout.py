@@ -8,7 +8,6 @@ import math
 import pytest
 import pytorch_lightning as pl
 import torch
-from torch.utils.data import DataLoader
 
 from difffilter.filters import KalmanFilter
 from difffilter.learn.data import TrajectorySet, WindowedTrajectories
@@ -95,7 +94,7 @@ def test_epoch_snapshots_record_and_restore_every_epoch() -> None:
     trainer = pl.Trainer(
         max_epochs=4, logger=False, callbacks=[snaps], enable_checkpointing=False, enable_progress_bar=False, limit_val_batches=0
     )
-    trainer.fit(learner, train_dataloaders=DataLoader(WindowedTrajectories(data, batch_size=8), batch_size=None))
+    trainer.fit(learner, train_dataloaders=WindowedTrajectories(data, batch_size=8))
     assert len(snaps.scores) == len(snaps.snapshots) == 5 and set(snaps.extras[0]) == {"median"}
     assert len({float(s["model.dynamics.q"][0]) for s in snaps.snapshots}) == 5  # q moved every epoch
     for e in (0, 2, 4):

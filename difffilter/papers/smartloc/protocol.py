@@ -42,7 +42,6 @@ import pytorch_lightning as pl
 import torch
 from pytorch_lightning.loggers import TensorBoardLogger
 from torch import Tensor
-from torch.utils.data import DataLoader
 
 from ...filters import EKF
 from ...filters.protocol import Filter
@@ -289,7 +288,7 @@ def _train_job(job: Mapping[str, Any]) -> dict[str, Any]:
         devices=1,
     )
     train = sets["train"][0]
-    trainer.fit(learner, train_dataloaders=DataLoader(WindowedTrajectories(train, batch_size=len(train)), batch_size=None))
+    trainer.fit(learner, train_dataloaders=WindowedTrajectories(train, batch_size=len(train)))  # a ready-made loader
     return {
         **{k: job[k] for k in ("fold", "variant", "seed")},
         "scores": snaps.scores,

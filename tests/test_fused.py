@@ -27,7 +27,7 @@ from difffilter.filters import (
     SquareRootUKF,
     fuse,
 )
-from difffilter.filters.fused import _chol
+from difffilter.filters.fused.step import cholesky_lower as _chol
 from difffilter.learn.builders import tracking_model
 from difffilter.models.base import DynamicsModel, MeasurementModel, StateSpaceModel, wrap_angle
 from difffilter.models.motion import Singer
@@ -156,7 +156,7 @@ def test_output_buffers_are_reused_only_when_no_result_holds_them() -> None:
             assert torch.equal(getattr(fourth, name), kept[name]), name
         fresh = FusedFilter(filt, compile=False, reuse_buffers=False)
         fresh(z, m0, p0, controls=u)
-        assert fresh._kept_outputs == []
+        assert fresh._inductor._kept_outputs == []
         _assert_same(fresh(z, m0, p0, controls=u), ref)
 
 
@@ -227,15 +227,21 @@ def test_branch_free_cholesky_clamps_only_the_bad_element() -> None:
 
 
 def test_unsupported_filters_and_bad_inputs_are_rejected() -> None:
+    """The batch-last (inductor and eager) engines refuse filters whose equations they do not
+    implement; the generated engine accepts any filter (it traces the filter's own step)."""
     model, z, u, m0, p0 = _range_bearing_data()
-    with pytest.raises(TypeError, match="FusedFilter supports"):
-        FusedFilter(SquareRootUKF(model))
-    with pytest.raises(TypeError, match="FusedFilter supports"):
-        FusedFilter(RCUKF(model))
-    with pytest.raises(TypeError, match="FusedFilter supports"):
+    for engine in ("inductor", "eager"):
+        with pytest.raises(TypeError, match="engine supports UKF"):
+            FusedFilter(SquareRootUKF(model), engine=engine)
+        with pytest.raises(TypeError, match="engine supports UKF"):
+            FusedFilter(RCUKF(model), engine=engine)
+        with pytest.raises(TypeError, match="engine supports UKF"):
+            FusedFilter(UKF(model, noise="augmented"), engine=engine)
+    with pytest.raises(TypeError, match="GaussianFilter"):
         FusedFilter(torch.nn.Linear(2, 2))  # type: ignore[arg-type]
-    with pytest.raises(ValueError, match="noise='additive'"):
-        FusedFilter(UKF(model, noise="augmented"))
+    with pytest.raises(ValueError, match="engine must be one of"):
+        FusedFilter(UKF(model), engine="fast")
+    assert FusedFilter(RCUKF(model)).engine == "auto"
     fused = fuse(UKF(model), compile=False)
     with pytest.raises(ValueError, match=r"measurements must have shape \[B, T, 2\]"):
         fused(z[..., :1], m0, p0, controls=u)
@@ -322,8 +328,8 @@ def test_learner_trains_through_the_fused_step() -> None:
         torch.testing.assert_close(gb, ga, rtol=1e-9, atol=1e-12)
     with pytest.raises(ValueError, match="fused must be"):
         FilterLearner(UKF(model), "nll", fused="yes")
-    with pytest.raises(TypeError, match="FusedFilter supports"):
-        FilterLearner(SquareRootUKF(model), "nll", fused=True)
+    with pytest.raises(TypeError, match="engine supports UKF"):
+        FilterLearner(SquareRootUKF(model), "nll", fused="eager")
 
 
 def test_nan_under_the_mask_reaches_no_gradient() -> None:

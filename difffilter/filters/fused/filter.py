@@ -1,0 +1,188 @@
+"""FusedFilter: run a filter's recursion on a fast engine, with the filter's own interface."""
+
+from __future__ import annotations
+
+import warnings
+from typing import Any
+
+from torch import Tensor, nn
+
+from ...models.base import Controls
+from ..base import Belief, FilterResult, GaussianFilter
+from .build import CompileError
+from .generated import GeneratedEngine
+from .graph import UnsupportedOp
+from .inductor import InductorEngine
+from .step import filter_kind
+
+__all__ = ["ENGINES", "FusedFilter", "fuse"]
+
+ENGINES = ("auto", "generated", "inductor", "eager")
+
+
+class FusedFilter(nn.Module):
+    """A filter run by a fast engine: same arguments, validation and :class:`FilterResult`.
+
+    ``FusedFilter(filt)(measurements, initial_mean, initial_cov, mask=None, controls=None,
+    belief=None)`` returns what ``filt(...)`` returns (same mask, log-likelihood and belief
+    conventions); the wrapped filter's model and parameters are shared, not copied, so training
+    through it trains ``filt``.
+
+    Engines:
+
+    * ``"generated"`` (CPU): the filter's own ``predict``/``update`` is traced once (batch size
+      one, fake tensors), written out as scalar arithmetic and compiled to C++ that runs the
+      whole sequence, one SIMD vector of trajectories at a time, with the belief in registers.
+      Its backward is a generated reverse sweep that recomputes each step from the stored
+      beliefs.  Works for any filter or mixer whose step has no Python decision on data values
+      (KF, EKF, UKF in every variant, SimplifiedUKF, IMM of any bank...).  Cholesky factors are
+      branch-free: a non-positive pivot is clamped to ``n * eps * max|diag| + tiny`` where the
+      reference retries with jitter (equal on positive-definite inputs).  Kernels are cached on
+      disk (:func:`~difffilter.filters.fused.build.cache_dir`); the first build of a kernel takes
+      seconds to a minute, later processes load it.
+    * ``"inductor"``: a batch-last, branch-free twin of the UKF/SimplifiedUKF/EKF/KalmanFilter
+      step, compiled by ``torch.compile`` per step (any device inductor supports); per-step
+      clamped pivots in ``extras["cholesky_clamps"]``.
+    * ``"eager"``: the same batch-last step uncompiled (for debugging and tests).
+    * ``"auto"`` (default): ``"generated"`` on CPU, else ``"inductor"``; if the generated engine
+      cannot run the filter (a warning says why), ``"inductor"`` when it supports the filter,
+      else the filter itself.  ``compile=False`` selects ``"eager"``.
+
+    Args:
+        filt: the filter (any :class:`GaussianFilter`; the inductor and eager engines need a
+            ``UKF`` with ``noise="additive"``, a ``SimplifiedUKF``, an ``EKF`` or a
+            ``KalmanFilter``, not a subclass with its own equations).
+        engine: one of :data:`ENGINES`.
+        compile: False selects the eager engine (when ``engine="auto"``).
+        compile_options: extra keyword arguments for ``torch.compile`` (inductor engine).
+        threads: generated engine: threads over groups of trajectories (``None``:
+            ``torch.get_num_threads()``); inductor engine: inductor's ``cpp.threads`` (``None``:
+            torch's default).  Default 1.
+        cpp_wrapper: inductor's C++ wrapper (inductor engine).
+        reuse_buffers: reuse the output buffers of the previous no-grad call when nothing
+            references them (inductor and eager engines).
+    """
+
+    def __init__(
+        self,
+        filt: GaussianFilter,
+        *,
+        engine: str = "auto",
+        compile: bool = True,  # noqa: A002
+        compile_options: dict[str, Any] | None = None,
+        threads: int | None = 1,
+        cpp_wrapper: bool = True,
+        reuse_buffers: bool = True,
+    ) -> None:
+        super().__init__()
+        if not isinstance(filt, GaussianFilter):
+            raise TypeError(f"FusedFilter needs a difffilter filter (a GaussianFilter), got {type(filt).__name__}")
+        if engine not in ENGINES:
+            raise ValueError(f"engine must be one of {list(ENGINES)}, got {engine!r}")
+        if threads is not None and (not isinstance(threads, int) or threads < 1):
+            raise ValueError(f"threads must be a positive int or None, got {threads!r}")
+        if engine == "auto" and not compile:
+            engine = "eager"
+        self.kind = filter_kind(filt)
+        if engine in ("inductor", "eager") and self.kind is None:
+            raise TypeError(
+                f"FusedFilter's {engine} engine supports UKF (noise='additive'), SimplifiedUKF, EKF and KalmanFilter "
+                f"(not subclasses with their own predict/update), got {type(filt).__name__}; use engine='generated'"
+            )
+        self.engine = engine
+        self.filter = filt
+        self.threads = threads
+        self.compile_options = dict(compile_options or {})
+        if "mode" not in self.compile_options:  # torch.compile accepts either a mode or options
+            opts = dict(self.compile_options.get("options") or {})
+            if threads is not None:
+                opts.setdefault("cpp.threads", threads)
+            opts.setdefault("cpp_wrapper", bool(cpp_wrapper))
+            self.compile_options["options"] = opts
+        self.reuse_buffers = bool(reuse_buffers)
+        self._generated: GeneratedEngine | None = None
+        self._generated_failed: str | None = None
+        self._inductor: InductorEngine | None = None
+        if self.kind is not None:
+            self._inductor = InductorEngine(
+                filt, self.kind, compile=engine != "eager", compile_options=self.compile_options, reuse_buffers=self.reuse_buffers
+            )
+
+    @property
+    def model(self) -> nn.Module:
+        return self.filter.model
+
+    @property
+    def _compile_failed(self) -> bool:
+        return self._inductor is not None and self._inductor.compile_failed
+
+    def generated_engine(self) -> GeneratedEngine:
+        """The generated-kernel engine of this filter (created on first use)."""
+        if self._generated is None:
+            self._generated = GeneratedEngine(self.filter, threads=self.threads)
+        return self._generated
+
+    def _fallback(self, reason: str) -> None:
+        self._generated_failed = reason
+        nxt = "the inductor engine" if self._inductor is not None else "the filter itself"
+        warnings.warn(f"FusedFilter: the generated engine cannot run {type(self.filter).__name__} ({reason}); using {nxt}", stacklevel=3)
+
+    def forward(
+        self,
+        measurements: Tensor,
+        initial_mean: Tensor | None = None,
+        initial_cov: Tensor | None = None,
+        mask: Tensor | None = None,
+        controls: Controls = None,
+        *,
+        belief: Belief | None = None,
+    ) -> FilterResult:
+        """Same arguments and result as :meth:`GaussianFilter.forward` of the wrapped filter."""
+        filt = self.filter
+        z, mask3, mean0, cov0 = filt.check_inputs(measurements, initial_mean, initial_cov, mask, controls)
+        if belief is None:
+            if mean0 is None or cov0 is None:
+                raise ValueError("initial_mean and initial_cov are required unless belief= is given")
+            belief = filt.init_belief(mean0, cov0)
+        bsz, n = z.shape[0], filt.state_dim
+        if belief["mean"].shape != (bsz, n) or belief["cov"].shape != (bsz, n, n):
+            raise ValueError(f"belief must hold mean [B, n] = [{bsz}, {n}] and cov [B, n, n], got {tuple(belief['mean'].shape)}")
+        engine = self.engine
+        if engine in ("auto", "generated") and z.device.type != "cpu":
+            if engine == "generated":
+                raise ValueError(f"the generated engine runs on CPU tensors, got {z.device}")
+            engine = "inductor"
+        if engine in ("auto", "generated") and self._generated_failed is None:
+            try:
+                return self.generated_engine()(z, mask3, belief, controls)
+            except (UnsupportedOp, CompileError) as exc:
+                if engine == "generated":
+                    raise
+                self._fallback(str(exc))
+        if self._inductor is not None:
+            return self._inductor(z, mask3, {"mean": belief["mean"], "cov": belief["cov"]}, controls)
+        return filt(z, mask=mask3, controls=controls, belief=belief)
+
+
+def fuse(
+    filt: GaussianFilter,
+    *,
+    engine: str = "auto",
+    compile: bool = True,  # noqa: A002
+    threads: int | None = 1,
+    cpp_wrapper: bool = True,
+    reuse_buffers: bool = True,
+    **compile_options: Any,
+) -> FusedFilter:
+    """``FusedFilter(filt, engine=..., compile=..., threads=..., cpp_wrapper=..., reuse_buffers=...,
+    compile_options=compile_options)``."""
+    return FusedFilter(
+        filt,
+        engine=engine,
+        compile=compile,
+        compile_options=compile_options,
+        threads=threads,
+        cpp_wrapper=cpp_wrapper,
+        reuse_buffers=reuse_buffers,
+    )
+

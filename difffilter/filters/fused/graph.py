@@ -350,3 +350,48 @@ _BINARY_PARTIALS: dict[str, Callable[[ScalarGraph, int, int, int], tuple[int, in
     "min": lambda g, a, b, y: _minmax_partials(g, a, b, y, "min"),
     "fmod": lambda g, a, b, y: (_c(g, 1.0), g.unary("neg", g.unary("floor", g.binary("div", a, b)))),
 }
+
+
+def evaluate(g: ScalarGraph, nodes: Sequence[int], inputs: dict[int, float | bool]) -> list[float | bool]:
+    """Values of ``nodes`` given values of the input nodes they depend on (Python floats:
+    a reference interpreter for tests of the lowering)."""
+    memo: dict[int, float | bool] = dict(inputs)
+
+    def value(n: int) -> float | bool:
+        stack = [n]
+        while stack:
+            x = stack[-1]
+            if x in memo:
+                stack.pop()
+                continue
+            op, args = g.op[x], g.args[x]
+            if op == "const":
+                memo[x] = g.value[x]  # type: ignore[assignment]
+                stack.pop()
+                continue
+            if op == "input":
+                raise KeyError(f"no value for input node {x} {g.inputs[x]}")
+            todo = [a for a in args if a not in memo]
+            if todo:
+                stack.extend(todo)
+                continue
+            vals = [memo[a] for a in args]
+            if op in UNARY:
+                memo[x] = UNARY[op](vals[0])  # type: ignore[arg-type]
+            elif op in BINARY:
+                memo[x] = BINARY[op](vals[0], vals[1])  # type: ignore[arg-type]
+            elif op in CMP_OPS:
+                memo[x] = CMP_OPS[op](vals[0], vals[1])  # type: ignore[arg-type]
+            elif op in BOOL_OPS:
+                memo[x] = BOOL_OPS[op](*vals)
+            elif op == "where":
+                memo[x] = vals[1] if vals[0] else vals[2]
+            else:
+                raise UnsupportedOp(op)
+            stack.pop()
+        return memo[n]
+
+    return [value(n) for n in nodes]
+
+
+__all__ += ["evaluate"]

@@ -175,6 +175,57 @@ class Lowering:
         return out
 
 
+def _householder_qr(L: Lowering, a: Arr, want_q: bool) -> tuple[Arr, Arr]:
+    """QR of every ``[m, k]`` matrix in ``a`` by Householder reflections, LAPACK's sign
+    convention (``R_jj = -sign(a_jj) * norm``); reduced ``Q [..., m, min(m, k)]``."""
+    g = L.g
+    m, k = a.shape[-2:]
+    p = min(m, k)
+    lead = a.shape[:-2]
+    q_out = np.empty(lead + (m, p), dtype=object)
+    r_out = np.empty(lead + (p, k), dtype=object)
+    zero, one = g.const(0.0), g.const(1.0)
+    for idx in np.ndindex(*lead):
+        w = [[a[idx][i, j] for j in range(k)] for i in range(m)]
+        reflectors = []
+        for j in range(p):
+            alpha = w[j][j]
+            xnorm2 = zero
+            for i in range(j + 1, m):
+                xnorm2 = g.binary("add", xnorm2, g.binary("mul", w[i][j], w[i][j]))
+            norm = g.unary("sqrt", g.binary("add", g.binary("mul", alpha, alpha), xnorm2))
+            neg = g.compare("lt", alpha, zero)
+            beta = g.where(neg, norm, g.unary("neg", norm))
+            trivial = g.compare("eq", xnorm2, zero)  # nothing below the diagonal: H = I
+            safe = g.where(trivial, one, g.binary("sub", alpha, beta))
+            tau = g.where(trivial, zero, g.binary("div", g.binary("sub", beta, alpha), g.where(trivial, one, beta)))
+            v = [one] + [g.binary("div", w[i][j], safe) for i in range(j + 1, m)]
+            w[j][j] = g.where(trivial, alpha, beta)
+            for i in range(j + 1, m):
+                w[i][j] = zero
+            for c in range(j + 1, k):  # w[j:, c] -= tau v (v^T w[j:, c])
+                dot = w[j][c]
+                for i in range(j + 1, m):
+                    dot = g.binary("add", dot, g.binary("mul", v[i - j], w[i][c]))
+                s = g.binary("mul", tau, dot)
+                for i in range(j, m):
+                    w[i][c] = g.binary("sub", w[i][c], g.binary("mul", s, v[i - j]))
+            reflectors.append((j, v, tau))
+        r_out[idx] = np.array([[w[i][j] if j >= i else zero for j in range(k)] for i in range(p)], dtype=object)
+        if want_q:
+            qm = [[one if i == c else zero for c in range(p)] for i in range(m)]
+            for j, v, tau in reversed(reflectors):
+                for c in range(p):
+                    dot = zero
+                    for i in range(j, m):
+                        dot = g.binary("add", dot, g.binary("mul", v[i - j], qm[i][c]))
+                    s = g.binary("mul", tau, dot)
+                    for i in range(j, m):
+                        qm[i][c] = g.binary("sub", qm[i][c], g.binary("mul", s, v[i - j]))
+            q_out[idx] = np.array(qm, dtype=object)
+    return q_out, r_out
+
+
 _UNARY_ATEN = {
     "neg": "neg",
     "sqrt": "sqrt",
@@ -273,6 +324,14 @@ def _lower_op(L: Lowering, name: str, args: tuple, kw: dict[str, Any], node: fx.
         return L.cmp("lt", L.unary("abs", a0), math.inf)
     if name == "where":
         return L.where(L.bo(a0), L.arr(args[1]), L.arr(args[2]))
+    if name == "logaddexp":
+        hi, lo = L.binary("max", a0, args[1]), L.binary("min", a0, args[1])
+        out = L.binary("add", hi, L.unary("log1p", L.unary("exp", L.binary("sub", lo, hi))))
+        return L.where(L.cmp("eq", hi, -math.inf), hi, out)
+    if name in ("_has_same_storage_numel", "_assert_tensor_metadata", "_assert_scalar", "sym_constrain_range_for_size"):
+        return True  # metadata checks of the trace, already true for the traced shapes
+    if name == "is_same_size":
+        return L.arr(a0).shape == L.arr(args[1]).shape
     if name in ("masked_fill",):
         return L.where(L.bo(args[1]), L.arr(args[2]) if not isinstance(args[2], np.ndarray) else args[2], L.arr(a0))
     if name in ("_to_copy", "to", "clone", "lift_fresh_copy", "alias", "detach", "contiguous", "_conj", "resolve_conj", "resolve_neg"):
@@ -452,6 +511,12 @@ def _lower_op(L: Lowering, name: str, args: tuple, kw: dict[str, Any], node: fx.
         beta, alpha = kw.get("beta", 1), kw.get("alpha", 1)
         prod = L.matmul(L.arr(args[1]), L.arr(args[2]))
         return L.binary("add", L.binary("mul", a0, beta), L.binary("mul", prod, alpha))
+    if name == "linalg_qr":
+        mode = args[1] if len(args) > 1 else kw.get("mode", "reduced")
+        if mode not in ("reduced", "r"):
+            raise UnsupportedOp(f"linalg.qr mode={mode!r}")
+        q, r = _householder_qr(L, L.fl(a0), mode == "reduced")
+        return (q if mode == "reduced" else np.empty((0,), dtype=object)), r
     if name == "linalg_cholesky_ex":
         if (args[1] if len(args) > 1 else kw.get("upper", False)):
             raise UnsupportedOp("upper Cholesky")
@@ -476,6 +541,8 @@ def _lower_op(L: Lowering, name: str, args: tuple, kw: dict[str, Any], node: fx.
             low = np.swapaxes(low, -1, -2)
         y = L.solve_triangular(low, L.fl(a0), upper=False, left=True, unit=False)
         return L.solve_triangular(np.swapaxes(low, -1, -2), y, upper=True, left=True, unit=False)
+    if name == "_efficientzerotensor":
+        return _filled(L, a0, 0.0, kw.get("dtype"))
     if name in ("zeros", "ones", "full", "empty", "new_zeros", "new_ones", "new_full", "new_empty", "scalar_tensor"):
         if name == "scalar_tensor":
             return L.fl(a0) if kw.get("dtype") != torch.bool else L.bo(a0)
@@ -544,17 +611,27 @@ def lower(gm: fx.GraphModule, graph: ScalarGraph, dtype: torch.dtype, inputs: li
         elif node.op == "call_function":
             args, kw = load(node.args), load(node.kwargs)
             if node.target is operator.getitem:
-                env[node] = args[0][args[1]]
+                env[node] = _as_arrays(args[0][args[1]], node.meta.get("val"))
                 continue
             if node.target in _PY_OPS:
                 env[node] = _PY_OPS[node.target](*args)
                 continue
-            env[node] = _lower_op(L, _op_name(node.target), tuple(args), dict(kw), node)
+            env[node] = _as_arrays(_lower_op(L, _op_name(node.target), tuple(args), dict(kw), node), node.meta.get("val"))
         elif node.op == "output":
             return load(node.args[0])
         else:
             raise UnsupportedOp(f"FX node {node.op}")
     raise UnsupportedOp("graph without output")
+
+
+def _as_arrays(value: Any, meta: Any) -> Any:
+    """Tensors are always object arrays: indexing one element out of an array returns a bare node
+    id, which must not be mistaken for a Python number later."""
+    if isinstance(meta, torch.Tensor):
+        return np.asarray(value, dtype=object) if not isinstance(value, np.ndarray) else value
+    if isinstance(meta, (list, tuple)) and isinstance(value, (list, tuple)):
+        return type(value)(_as_arrays(v, m) for v, m in zip(value, meta, strict=False))
+    return value
 
 
 _PY_OPS: dict[Callable[..., Any], Callable[..., Any]] = {

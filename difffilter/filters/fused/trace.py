@@ -181,7 +181,8 @@ def trace_step(filt: GaussianFilter, layout: StepLayout, example_belief: dict[st
         # fill lazily built caches (sigma-point weights) with real tensors before tracing
         step(*examples)
         try:
-            gm = make_fx(step, tracing_mode="fake", _allow_non_fake_inputs=True)(*examples)
+            # functionalized: in-place writes (e.g. into slices of a block-diagonal matrix) become scatters
+            gm = make_fx(torch.func.functionalize(step), tracing_mode="fake", _allow_non_fake_inputs=True)(*examples)
         except UnsupportedOp:
             raise
         except Exception as exc:  # noqa: BLE001 - any tracing failure means "not supported by this engine"

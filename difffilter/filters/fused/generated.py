@@ -63,7 +63,7 @@ class GeneratedEngine:
         keys = sorted(belief)
         ctrl_layout, ctrl = _controls_layout(controls, dtype)
         layout = StepLayout(
-            belief=tuple((k, tuple(belief[k].shape[1:])) for k in keys),
+            belief=tuple((k, tuple(belief[k].shape[1:]), belief[k].dtype) for k in keys),
             measurement_dim=mdim,
             has_mask=mask is not None,
             controls=ctrl_layout,
@@ -85,7 +85,9 @@ class GeneratedEngine:
 
         def field(name: str) -> Tensor:
             gi, shape = prog.traced.fields[name]
-            return outs[gi][:, :, :bsz].reshape(steps, *shape, bsz).movedim(-1, 0)
+            out = outs[gi][:, :, :bsz].reshape(steps, *shape, bsz).movedim(-1, 0)
+            kind = prog.traced.dtypes.get(name, dtype)
+            return out if kind == dtype else out.to(kind)
 
         extras = {k: field(k) for k in prog.traced.record_keys}
         return FilterResult(
@@ -96,6 +98,6 @@ class GeneratedEngine:
             log_likelihood=field("log_likelihood"),
             nis=field("nis"),
             num_observed=field("num_observed"),
-            final_belief={k: field(k)[:, -1] for k in keys},
+            final_belief={k: field(k)[:, -1] for k in prog.traced.belief_keys},
             extras=extras,
         )

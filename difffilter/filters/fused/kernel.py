@@ -18,7 +18,8 @@ from torch import Tensor
 from torch.autograd.function import once_differentiable
 
 from .build import compile_library
-from .codegen import VECTOR_BYTES, BackwardSpec, backward_source, forward_source
+from .codegen import BackwardSpec, backward_source, forward_source
+from .emit import VECTOR_BYTES
 from .trace import TracedStep
 
 __all__ = ["SequenceProgram", "lanes", "run_sequence"]
@@ -53,7 +54,7 @@ class SequenceProgram:
         self.traced = traced
         spec = traced.spec
         self.lanes = lanes(spec.dtype)
-        self.group_sizes = [len(g) for g in spec.groups]
+        self.group_sizes = spec.group_sizes
         lib = compile_library(forward_source(spec), tag="forward")
         self._forward = lib.forward
         self._forward.argtypes = [_I64, _I64, _I64, _I64, _P, _P, _P, _P]

@@ -21,7 +21,7 @@ import sys
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -32,7 +32,7 @@ from torch.nn.utils.stateless import _reparametrize_module
 
 from ... import linalg
 from ..base import GaussianFilter
-from .codegen import SequenceSpec
+from .codegen import SequenceSpec, StepBody
 from .graph import LANE, UNIFORM, ScalarGraph, UnsupportedOp
 from .lower import lower
 
@@ -46,7 +46,7 @@ _RESULT_KEYS = ("prior_mean", "prior_cov", "log_likelihood", "nis", "num_observe
 class StepLayout:
     """Names and per-trajectory shapes of the belief, the step inputs and the controls."""
 
-    belief: tuple[tuple[str, tuple[int, ...]], ...]
+    belief: tuple[tuple[str, tuple[int, ...], torch.dtype], ...]  # (key, per-trajectory shape, dtype)
     measurement_dim: int
     has_mask: bool
     controls: tuple[tuple[str, tuple[int, ...], torch.dtype], ...] | None  # None: no controls; key "" for a bare tensor
@@ -54,7 +54,7 @@ class StepLayout:
 
     @property
     def state_size(self) -> int:
-        return sum(math.prod(s) for _, s in self.belief)
+        return sum(math.prod(s) for _, s, _ in self.belief)
 
     @property
     def step_size(self) -> int:
@@ -68,7 +68,7 @@ class TracedStep:
 
     ``fields[name] = (group, shape)``: the output group holding field ``name`` (``mean``,
     ``cov``, ``prior_mean``, ..., every belief key and every recorded key) and its
-    per-trajectory shape.
+    per-trajectory shape.  ``layout.belief`` is the belief before the first step.
     """
 
     spec: SequenceSpec
@@ -76,6 +76,8 @@ class TracedStep:
     params: list[tuple[str, Tensor]]
     fields: dict[str, tuple[int, tuple[int, ...]]]
     record_keys: tuple[str, ...]
+    belief_keys: tuple[str, ...]  # entries of the belief after a step (``final_belief``)
+    dtypes: dict[str, torch.dtype]  # of the belief entries and recorded values (others: the kernel's)
 
 
 def _plain_state(obj: Any, depth: int = 0) -> list[Any]:
@@ -138,20 +140,15 @@ def _unflatten_controls(layout: StepLayout, flat: list[Tensor]) -> Any:
     return {k: v for (k, _, _), v in zip(layout.controls, vals, strict=True)}
 
 
-def trace_step(filt: GaussianFilter, layout: StepLayout, example_belief: dict[str, Tensor]) -> TracedStep:
-    """Trace ``filt``'s step for ``layout`` and lower it (raises :class:`UnsupportedOp`)."""
-    dtype = layout.dtype
-    trained = [(n, p) for n, p in filt.named_parameters() if p.requires_grad]
-    keys = [k for k, _ in layout.belief]
+def _step_function(filt: GaussianFilter, layout: StepLayout, keys: list[str], trained: list[tuple[str, Tensor]], seen: dict[str, Any]) -> Any:
+    """The loop body of ``GaussianFilter.forward`` on flat inputs; records the keys it produces in ``seen``."""
     nb = len(keys)
     nc = len(layout.controls) if layout.controls else 0
-    record_keys: list[str] = []
 
     def step(*flat: Tensor) -> list[Tensor]:
         belief = dict(zip(keys, flat[:nb], strict=True))
-        i = nb
-        z = flat[i]
-        i += 1
+        i = nb + 1
+        z = flat[nb]
         mask = None
         if layout.has_mask:
             mask = flat[i] > 0.5
@@ -163,56 +160,118 @@ def trace_step(filt: GaussianFilter, layout: StepLayout, example_belief: dict[st
             post, info = filt.update(prior, z, mask, u)
             post = filt.finalize_belief(post)
             rec = filt.record(post)
-        if sorted(post) != sorted(keys):
-            raise UnsupportedOp(f"the belief's entries change during a step ({sorted(keys)} -> {sorted(post)})")
-        record_keys[:] = list(rec)
-        return [post[k] for k in keys] + [prior["mean"], prior["cov"], info.log_likelihood, info.nis, info.num_observed] + list(rec.values())
+        seen["post"] = {k: post[k] for k in sorted(post)}
+        seen["records"] = list(rec)
+        seen["record_values"] = dict(rec)
+        out = [seen["post"][k] for k in seen["post"]]
+        return out + [prior["mean"], prior["cov"], info.log_likelihood, info.nis, info.num_observed] + list(rec.values())
 
-    def fake_input(shape: tuple[int, ...]) -> Tensor:
-        return torch.zeros((1, *shape), dtype=dtype)
+    return step
 
-    examples = [example_belief[k].to(dtype) for k in keys]
-    examples.append(fake_input((layout.measurement_dim,)))
+
+def _trace(filt: GaussianFilter, layout: StepLayout, belief: dict[str, Tensor], trained: list[tuple[str, Tensor]]) -> tuple[Any, dict[str, Any]]:
+    """``(graph module, {"post": eager post-step belief, "records": keys})`` of one step from ``belief``."""
+    keys = sorted(belief)
+    seen: dict[str, Any] = {}
+    step = _step_function(filt, layout, keys, trained, seen)
+    examples = [belief[k].detach().to(layout.dtype) if belief[k].is_floating_point() else belief[k].detach() for k in keys]
+    examples.append(torch.zeros((1, layout.measurement_dim), dtype=layout.dtype))
     if layout.has_mask:
-        examples.append(torch.ones((1, layout.measurement_dim), dtype=dtype))
-    examples += [fake_input(s) for _, s, _ in layout.controls or ()]
+        examples.append(torch.ones((1, layout.measurement_dim), dtype=layout.dtype))
+    examples += [torch.zeros((1, *s), dtype=layout.dtype) for _, s, _ in layout.controls or ()]
     examples += [p.detach() for _, p in trained]
-    with _TRACE_LOCK, _branch_free_cholesky(), torch.no_grad():
-        # fill lazily built caches (sigma-point weights) with real tensors before tracing
-        step(*examples)
-        try:
-            # functionalized: in-place writes (e.g. into slices of a block-diagonal matrix) become scatters
-            gm = make_fx(torch.func.functionalize(step), tracing_mode="fake", _allow_non_fake_inputs=True)(*examples)
-        except UnsupportedOp:
-            raise
-        except Exception as exc:  # noqa: BLE001 - any tracing failure means "not supported by this engine"
-            raise UnsupportedOp(f"the step cannot be traced: {type(exc).__name__}: {str(exc)[:300]}") from exc
+    # an eager step first: fills lazily built caches (sigma-point weights) with real tensors and
+    # gives the belief after a step (the example for a steady step)
+    step(*examples)
+    eager = dict(seen)
+    try:
+        # functionalized: in-place writes (e.g. into slices of a block-diagonal matrix) become scatters
+        gm = make_fx(torch.func.functionalize(step), tracing_mode="fake", _allow_non_fake_inputs=True)(*examples)
+    except UnsupportedOp:
+        raise
+    except Exception as exc:  # noqa: BLE001 - any tracing failure means "not supported by this engine"
+        raise UnsupportedOp(f"the step cannot be traced: {type(exc).__name__}: {str(exc)[:300]}") from exc
     for node in gm.graph.nodes:
         if node.op == "get_attr":
             val = getattr(gm, node.target)
             if isinstance(val, Tensor) and val.requires_grad:
                 raise UnsupportedOp(f"the step uses a tensor that requires grad but is not a parameter of the filter ({node.target})")
-    return _lower_traced(gm, layout, trained, record_keys)
+    return gm, eager
 
 
-def _lower_traced(gm: Any, layout: StepLayout, trained: list[tuple[str, Tensor]], record_keys: list[str]) -> TracedStep:
+def trace_step(filt: GaussianFilter, layout: StepLayout, example_belief: dict[str, Tensor]) -> TracedStep:
+    """Trace ``filt``'s step for ``layout`` (the belief before the first step) and lower it.
+
+    If the first step adds belief entries (a filter's memory of the previous step), a second
+    step is traced from the belief after the first one, and that *steady* step must keep its
+    entries.  Raises :class:`UnsupportedOp` when the engine cannot run the filter.
+    """
+    trained = [(n, p) for n, p in filt.named_parameters() if p.requires_grad]
+    with _TRACE_LOCK, _branch_free_cholesky(), torch.no_grad():
+        gm0, eager0 = _trace(filt, layout, example_belief, trained)
+        post = list(eager0["post"])
+        if post == [k for k, _, _ in layout.belief]:
+            steady, first = (gm0, layout), None
+        else:
+            steady_layout = replace(layout, belief=tuple((k, tuple(v.shape[1:]), v.dtype) for k, v in eager0["post"].items()))
+            gm1, eager1 = _trace(filt, steady_layout, eager0["post"], trained)
+            if list(eager1["post"]) != post:
+                raise UnsupportedOp(f"the belief's entries keep changing ({post} -> {list(eager1['post'])})")
+            steady, first = (gm1, steady_layout), (gm0, layout)
+    dtypes = {k: v.dtype for k, v in eager0["post"].items()} | {k: v.dtype for k, v in eager0["record_values"].items()}
+    return _lower_traced(steady, first, trained, eager0["records"], layout, dtypes)
+
+
+def _lower_traced(
+    steady: Any, first: Any, trained: list[tuple[str, Tensor]], record_keys: list[str], layout: StepLayout, dtypes: dict[str, torch.dtype]
+) -> TracedStep:
+    """Lower the steady step (whose belief layout is also the first step's output layout) and
+    the optional first step into one graph with shared parameter inputs."""
     g = ScalarGraph()
     counters: dict[str, int] = {}
 
-    def inputs(group: str, shape: tuple[int, ...], level: int = LANE) -> np.ndarray:
+    def inputs(group: str, shape: tuple[int, ...], level: int = LANE, kind: str = "f") -> np.ndarray:
         start = counters.get(group, 0)
         cnt = math.prod(shape)
         counters[group] = start + cnt
-        return np.array([g.input(group, start + i, level=level) for i in range(cnt)], dtype=object).reshape(shape)
+        return np.array([g.input(group, start + i, level=level, kind=kind) for i in range(cnt)], dtype=object).reshape(shape)
 
-    state = [inputs("state", (1, *s)) for _, s in layout.belief]
-    step_in = [inputs("step", (1, layout.measurement_dim))]
-    if layout.has_mask:
-        step_in.append(inputs("step", (1, layout.measurement_dim)))
-    step_in += [inputs("step", (1, *s)) for _, s, _ in layout.controls or ()]
+    def flat(arrs: list[np.ndarray]) -> list[int]:
+        return [int(x) for a in arrs for x in a.reshape(-1)]
+
     params = [inputs("param", tuple(p.shape), UNIFORM) for _, p in trained]
-    outs = lower(gm, g, layout.dtype, state + step_in + params)
-    names = [k for k, _ in layout.belief] + list(_RESULT_KEYS) + record_keys
+    keys = tuple(k for k, _, _ in steady[1].belief)
+    names = list(keys) + list(_RESULT_KEYS) + record_keys
+
+    def lowered(gm: Any, lay: StepLayout) -> tuple[list[int], list[int], list[Any]]:
+        state = [inputs("state", (1, *s), kind="b" if dt == torch.bool else "f") for _, s, dt in lay.belief]
+        step_in = [inputs("step", (1, lay.measurement_dim))]
+        if lay.has_mask:
+            step_in.append(inputs("step", (1, lay.measurement_dim)))
+        step_in += [inputs("step", (1, *s)) for _, s, _ in lay.controls or ()]
+        return flat(state), flat(step_in), lower(gm, g, lay.dtype, state + step_in + params)
+
+    state, step_in, outs = lowered(*steady)
+    groups, fields = _groups(names, outs)
+    slots = [(fields[k][0], i) for k in keys for i in range(len(groups[fields[k][0]]))]
+    body = StepBody(state, step_in, groups, slots)
+    first_body = None
+    if first is not None:
+        state0, step_in0, outs0 = lowered(*first)
+        by_name = {name: [int(x) for x in np.asarray(o, dtype=object).reshape(-1)] for name, o in zip(names, outs0, strict=True)}
+        groups0: list[list[int] | None] = [None] * len(groups)
+        for name, (gi, _) in fields.items():
+            nodes = by_name[name]
+            if len(nodes) != len(groups[gi]) or groups0[gi] not in (None, nodes):
+                raise UnsupportedOp("the first step's outputs differ in layout from the later steps'")
+            groups0[gi] = nodes
+        first_body = StepBody(state0, step_in0, groups0, slots)  # type: ignore[arg-type]
+    spec = SequenceSpec(g, layout.dtype, flat(params), body, first_body)
+    return TracedStep(spec, layout, trained, fields, tuple(record_keys), keys, dtypes)
+
+
+def _groups(names: list[str], outs: list[Any]) -> tuple[list[list[int]], dict[str, tuple[int, tuple[int, ...]]]]:
+    """Output groups (equal outputs share one) and ``fields[name] = (group, shape)``."""
     groups: list[list[int]] = []
     fields: dict[str, tuple[int, tuple[int, ...]]] = {}
     seen: dict[tuple[int, ...], int] = {}
@@ -229,7 +288,4 @@ def _lower_traced(gm: Any, layout: StepLayout, trained: list[tuple[str, Tensor]]
             groups.append(list(nodes))
             seen[nodes] = gi
         fields[name] = (gi, tuple(arr.shape[1:]))
-    state_slot = [(fields[k][0], i) for k, s in layout.belief for i in range(math.prod(s))]
-    flat = lambda arrs: [int(x) for a in arrs for x in a.reshape(-1)]  # noqa: E731
-    spec = SequenceSpec(g, layout.dtype, flat(state), flat(step_in), flat(params), groups, state_slot)
-    return TracedStep(spec, layout, trained, fields, tuple(record_keys))
+    return groups, fields

@@ -19,7 +19,7 @@ from pathlib import Path
 
 __all__ = ["cache_dir", "compile_library", "compiler_available", "CompileError"]
 
-_FLAGS = ["-O2", "-march=native", "-fno-math-errno", "-fno-trapping-math", "-shared", "-fPIC", "-std=c++17", "-w"]
+_FLAGS = ["-march=native", "-fno-math-errno", "-fno-trapping-math", "-shared", "-fPIC", "-std=c++17", "-w"]
 _lock = threading.Lock()
 _loaded: dict[str, ctypes.CDLL] = {}
 
@@ -54,12 +54,13 @@ def _cpu_flags() -> str:
         return ""
 
 
-def compile_library(source: str, *, tag: str = "kernel") -> ctypes.CDLL:
-    """Compile ``source`` (or find it in the cache) and load it."""
+def compile_library(source: str, *, tag: str = "kernel", opt: str = "-O2") -> ctypes.CDLL:
+    """Compile ``source`` with optimisation level ``opt`` (or find it in the cache) and load it."""
     cxx = _compiler()
     if cxx is None:
         raise CompileError(compiler_available())
-    key = hashlib.sha256("\0".join([source, cxx, *_FLAGS, _cpu_flags()]).encode()).hexdigest()[:32]
+    flags = [opt, *_FLAGS]
+    key = hashlib.sha256("\0".join([source, cxx, *flags, _cpu_flags()]).encode()).hexdigest()[:32]
     with _lock:
         lib = _loaded.get(key)
         if lib is not None:
@@ -72,7 +73,7 @@ def compile_library(source: str, *, tag: str = "kernel") -> ctypes.CDLL:
                 src = Path(tmp) / "kernel.cpp"
                 src.write_text(source)
                 out = Path(tmp) / "kernel.so"
-                proc = subprocess.run([cxx, *_FLAGS, str(src), "-o", str(out)], capture_output=True, text=True)
+                proc = subprocess.run([cxx, *flags, str(src), "-o", str(out)], capture_output=True, text=True)
                 if proc.returncode != 0:
                     raise CompileError(f"{cxx} failed ({proc.returncode}): {proc.stderr[-3000:]}")
                 os.replace(out, target)

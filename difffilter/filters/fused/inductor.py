@@ -18,20 +18,12 @@ from torch.nn.utils import parametrize
 
 from ...models.base import Controls, DynamicsModel, MeasurementModel
 from ..base import Belief, FilterResult, GaussianFilter, slice_controls
+from .kernel import unreferenced
 from .step import SmallMatmulAsSum, batch_last_step, to_batch_last, transpose01
 
 __all__ = ["InductorEngine"]
 
 _MIN_RECOMPILE_LIMIT = 64
-
-
-def _unreferenced(buf: Tensor) -> bool:
-    """True if no tensor other than ``buf`` itself (no view, no returned result, no NumPy
-    array) shares ``buf``'s memory; False when that cannot be told."""
-    try:
-        return torch._C._storage_Use_Count(buf.untyped_storage()._cdata) <= 2  # buf + the storage object asked
-    except Exception:  # noqa: BLE001 - a private helper; without it, never reuse
-        return False
 
 
 def _overridden(obj: nn.Module, base: type, name: str) -> bool:
@@ -81,7 +73,7 @@ class InductorEngine:
         if (
             self.reuse_buffers
             and [tuple(b.shape) for b in old] == shapes
-            and all(b.dtype == like.dtype and b.device == like.device and _unreferenced(b) for b in old)
+            and all(b.dtype == like.dtype and b.device == like.device and unreferenced(b) for b in old)
         ):
             bufs = old
         else:

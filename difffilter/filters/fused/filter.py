@@ -116,6 +116,25 @@ class FusedFilter(nn.Module):
     def _compile_failed(self) -> bool:
         return self._inductor is not None and self._inductor.compile_failed
 
+    @property
+    def state_dim(self) -> int:
+        return self.filter.state_dim
+
+    @property
+    def measurement_dim(self) -> int:
+        return self.filter.measurement_dim
+
+    def initial_belief(self, initial_mean: Tensor, initial_cov: Tensor, batch_size: int | None = None) -> Belief:
+        """The wrapped filter's :meth:`~GaussianFilter.initial_belief`."""
+        return self.filter.initial_belief(initial_mean, initial_cov, batch_size)
+
+    def step(
+        self, belief: Belief, measurement: Tensor, mask: Tensor | None = None, controls: Controls = None
+    ) -> tuple[Belief, Belief, Any]:
+        """One online step: the wrapped filter's own :meth:`~GaussianFilter.step` (engines run
+        whole sequences)."""
+        return self.filter.step(belief, measurement, mask, controls)
+
     def generated_engine(self) -> GeneratedEngine:
         """The generated-kernel engine of this filter (created on first use)."""
         if self._generated is None:

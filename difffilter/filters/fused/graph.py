@@ -181,6 +181,8 @@ class ScalarGraph:
                 return b
             if cb and self.value[b] == 0.0:
                 return a
+            if a == b:
+                return self.binary("mul", self.const(2.0), a)
             if a > b:  # commutative: one node for a + b and b + a
                 a, b = b, a
         elif op == "sub":
@@ -199,6 +201,10 @@ class ScalarGraph:
                         return y
                     if self.value[x] == -1.0:
                         return self.unary("neg", y)
+                    if self.op[y] == "mul":  # c1 * (c2 * z) = (c1 c2) * z
+                        for c, z in (self.args[y], self.args[y][::-1]):
+                            if self.level[c] == CONST:
+                                return self.binary("mul", self.const(self.value[x] * self.value[c]), z)
             if a > b:
                 a, b = b, a
         elif op == "div":

@@ -123,8 +123,14 @@ class Lowering:
         out = np.empty(a.shape, dtype=object)
         info = np.empty(lead, dtype=object)
         zero = g.const(0.0)
+        half = g.const(0.5)
         for idx in np.ndindex(*lead):
-            m = a[idx]
+            # read the symmetric part, as torch's Cholesky gradient does (its gradient is
+            # symmetric); equal to the lower triangle for a symmetric input
+            m = np.array(
+                [[a[idx][i, j] if i == j else g.binary("mul", half, g.binary("add", a[idx][i, j], a[idx][j, i])) for j in range(n)] for i in range(n)],
+                dtype=object,
+            )
             big = g.unary("abs", m[0, 0])
             for j in range(1, n):
                 big = g.binary("max", big, g.unary("abs", m[j, j]))

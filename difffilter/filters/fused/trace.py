@@ -105,7 +105,7 @@ def fingerprint(filt: nn.Module) -> str:
     for name, mod in filt.named_modules():
         h.update(f"{name}:{type(mod).__module__}.{type(mod).__qualname__}:{_plain_state(mod)!r}".encode())
     for name, t in list(filt.named_parameters()) + list(filt.named_buffers()):
-        trains = isinstance(t, nn.Parameter) and t.requires_grad
+        trains = t.requires_grad
         h.update(f"{name}:{tuple(t.shape)}:{t.dtype}:{trains}".encode())
         if not trains:
             h.update(t.detach().cpu().contiguous().numpy().tobytes() if t.dtype != torch.bfloat16 else t.float().numpy().tobytes())

@@ -1,7 +1,8 @@
 """difffilter: batched, differentiable Kalman-family filters in PyTorch."""
 
 from . import linalg, mixers, params
-from .filters import EKF, RCUKF, UKF, ColoredNoiseUKF, GaussianFilter, KalmanFilter, SimplifiedUKF, SquareRootUKF
+from ._util import as_dtype
+from .filters import EKF, RCUKF, UKF, ColoredNoiseUKF, Filter, GaussianFilter, KalmanFilter, RecursiveFilter, SimplifiedUKF, SquareRootUKF
 from .mixers import IMM, Blend
 from .models import FunctionalModel, LinearModel, StateSpaceModel
 
@@ -12,13 +13,16 @@ __all__ = [
     "UKF",
     "Blend",
     "ColoredNoiseUKF",
+    "Filter",
     "FunctionalModel",
     "GaussianFilter",
     "KalmanFilter",
     "LinearModel",
+    "RecursiveFilter",
     "SimplifiedUKF",
     "SquareRootUKF",
     "StateSpaceModel",
+    "as_dtype",
     "linalg",
     "mixers",
     "params",

@@ -15,17 +15,12 @@ optional (``pip install difffilter[bench]``); a missing one is skipped with a me
 from __future__ import annotations
 
 import logging
-import sys
-from pathlib import Path
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-# Runs from a source checkout without installation.
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from difffilter.bench.suite import run_suite  # noqa: E402
+from difffilter.bench.suite import run_suite
 
 log = logging.getLogger(__name__)
 

@@ -2,28 +2,17 @@
 
     python experiments/p003_paired.py outputs/p003_full_v3
 
-Rebuilds the run's test set (its data module, test seed) and the hand-tuned, learned (best
-checkpoint, in the learner's layout: ``learner.q_groups``) and oracle IMMs, runs them on every
-test run, and prints per filter the position RMSE of each run and of all runs, the NLL per step,
-and for each pair the mean relative difference of the per-run RMSE with its standard error
-(the runs are independent; the steps of one run are not) and how many runs are lower.
+The logic is :func:`difffilter.papers.p003.paired.paired_report` (see its module docstring).
 """
 
 from __future__ import annotations
 
 import argparse
-import math
-import sys
 from pathlib import Path
 
 import torch
-from hydra.utils import instantiate
-from omegaconf import OmegaConf
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from difffilter.learn.experiment import build_filter  # noqa: E402
-from difffilter.learn.support_p003 import ModeSwitchReport  # noqa: E402
+from difffilter.papers.p003.paired import paired_report
 
 
 def main() -> None:
@@ -31,36 +20,7 @@ def main() -> None:
     parser.add_argument("run_dir", type=Path)
     args = parser.parse_args()
     torch.set_num_threads(1)
-    cfg = OmegaConf.load(args.run_dir / ".hydra" / "config.yaml")
-    ckpts = sorted((args.run_dir / "checkpoints").glob("*.ckpt"))
-    if not ckpts:
-        raise FileNotFoundError(f"no checkpoint under {args.run_dir / 'checkpoints'}")
-    test = instantiate(cfg.data, _convert_="all").dataset("test")
-    batch = test.batch(torch.arange(len(test)))
-    plain = lambda node: OmegaConf.to_container(node, resolve=True) if node is not None else None  # noqa: E731
-    exp = cfg.experiment
-    hand = build_filter(cfg.filter, dtype=torch.float64, params=plain(exp.hand_tuned))
-    state = torch.load(ckpts[-1], map_location="cpu", weights_only=False)["state_dict"]
-    filters = {"hand-tuned": hand, "learned": ModeSwitchReport._learned_from_state(hand, state, cfg.learner.get("q_groups"))}
-    if exp.get("oracle") is not None and exp.oracle.get("filter") is not None:
-        filters["oracle"] = build_filter(exp.oracle.filter, dtype=torch.float64, params=plain(exp.oracle.get("params")))
-    idx = [int(i) for i in exp.position_index]
-    tidx = idx if exp.get("truth_position_index") is None else [int(i) for i in exp.truth_position_index]
-    rmse: dict[str, torch.Tensor] = {}
-    print(f"{args.run_dir}: {len(test)} test runs, checkpoint {ckpts[-1].name}")
-    for name, filt in filters.items():
-        with torch.no_grad():
-            res = filt(batch["measurements"], batch["initial_mean"], batch["initial_cov"], mask=batch["mask"], controls=batch["controls"])
-        err = res.mean[..., idx] - batch["truth"][..., tidx]
-        rmse[name] = err.pow(2).sum(-1).mean(-1).sqrt()
-        total = math.sqrt(float(rmse[name].pow(2).mean()))
-        runs = " ".join(f"{v:.4f}" for v in rmse[name].tolist())
-        print(f"{name:10s} rmse_pos {total:.4f} m  NLL {float(-res.log_likelihood.mean()):.4f}/step  per run: {runs}")
-    for a, b in (("learned", "hand-tuned"), ("learned", "oracle"), ("hand-tuned", "oracle")):
-        if a in rmse and b in rmse:
-            d = (rmse[a] / rmse[b] - 1.0) * 100.0
-            se = float(d.std()) / math.sqrt(d.numel())
-            print(f"{a} - {b}: rmse_pos {float(d.mean()):+.3f} % (s.e. {se:.3f} %), lower in {int((d < 0).sum())}/{d.numel()} runs")
+    print("\n".join(paired_report(args.run_dir)))
 
 
 if __name__ == "__main__":

@@ -4,93 +4,19 @@ intervals: is a difference on one held-out segment of one real drive more than n
     python experiments/smartloc_paired.py outputs/smartloc_A_v2 outputs/smartloc_B_v2
     python experiments/smartloc_paired.py outputs/smartloc_*        # every run, one line each
 
-For each run directory (an ``experiment=smartloc_real`` run: ``.hydra/config.yaml`` and the
-best checkpoint under ``checkpoints/``) the script rebuilds the run's test segment and filter,
-evaluates the hand-tuned values and the checkpoint's learned values on it, and prints the
-horizontal median and RMS error of both, their differences (learned - hand-tuned) and a 95 %
-interval for each difference from a paired circular moving-block bootstrap over epochs (blocks
-of ``--block`` epochs, 10 s by default: the errors of a filter are strongly correlated in time,
-so resampling single epochs would make the interval far too narrow).
+The logic is :func:`difffilter.papers.smartloc.paired.compare` (see its module docstring).
 """
 
 from __future__ import annotations
 
 import argparse
-import copy
-import sys
 from pathlib import Path
 
 import torch
-from hydra.utils import instantiate
-from omegaconf import OmegaConf
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from difffilter.papers.smartloc.paired import MARKDOWN_HEADER, block_bootstrap, compare, markdown_row
 
-from difffilter.learn.selection import assign_parameters  # noqa: E402
-
-
-def _best_checkpoint(run_dir: Path) -> Path:
-    ckpts = sorted((run_dir / "checkpoints").glob("*.ckpt"), key=lambda p: p.stat().st_mtime)
-    if not ckpts:
-        raise FileNotFoundError(f"no checkpoint under {run_dir / 'checkpoints'}")
-    return ckpts[-1]  # save_top_k = 1: the newest file is the run's best
-
-
-def _errors(filt: torch.nn.Module, data: object) -> torch.Tensor:
-    with torch.no_grad():
-        res = filt(data.measurements, data.initial_mean, data.initial_cov, mask=data.mask, controls=data.controls)
-    return (res.mean[..., :2] - data.truth[..., :2]).norm(dim=-1).reshape(-1)
-
-
-def block_bootstrap(a: torch.Tensor, b: torch.Tensor, *, block: int, draws: int, seed: int = 0) -> dict[str, tuple[float, float]]:
-    """95 % intervals of ``median(a) - median(b)`` and ``rms(a) - rms(b)`` for paired series
-    ``a``, ``b`` ``[T]`` by a circular moving-block bootstrap (the same resampled epochs for both)."""
-    if a.shape != b.shape or a.dim() != 1:
-        raise ValueError(f"a and b must be paired 1-D series, got {tuple(a.shape)} and {tuple(b.shape)}")
-    n = a.shape[0]
-    if not 1 <= block <= n:
-        raise ValueError(f"block must lie in [1, {n}], got {block}")
-    gen = torch.Generator().manual_seed(seed)
-    per = -(-n // block)
-    starts = torch.randint(0, n, (draws, per), generator=gen)
-    idx = ((starts[..., None] + torch.arange(block)) % n).reshape(draws, -1)[:, :n]
-    ra, rb = a[idx], b[idx]
-    med = ra.median(1).values - rb.median(1).values
-    rms = ra.pow(2).mean(1).sqrt() - rb.pow(2).mean(1).sqrt()
-    q = torch.tensor([0.025, 0.975], dtype=a.dtype)
-    return {"median": tuple(torch.quantile(med, q).tolist()), "rms": tuple(torch.quantile(rms, q).tolist())}
-
-
-def compare(run_dir: Path, *, block: int, draws: int) -> dict[str, float]:
-    cfg = OmegaConf.load(run_dir / ".hydra" / "config.yaml")
-    simulator = instantiate(cfg.scenario)
-    data = simulator(batch_size=int(cfg.data.test_size), seed=int(cfg.data.seeds.test), dtype=str(cfg.dtype))
-    hand = instantiate(cfg.filter)
-    assign_parameters(hand, OmegaConf.to_container(cfg.experiment.hand_tuned, resolve=True))
-    learned = copy.deepcopy(hand)
-    softness = cfg.learner.get("gate_softness")
-    if softness is not None:
-        learned.model.measurement.set_gate_softness(float(softness))
-    ckpt = _best_checkpoint(run_dir)
-    state = torch.load(ckpt, map_location="cpu", weights_only=False)["state_dict"]
-    learned.load_state_dict({k.removeprefix("filter."): v for k, v in state.items() if k.startswith("filter.")})
-    eh, el = _errors(hand, data), _errors(learned, data)
-    ci = block_bootstrap(el, eh, block=block, draws=draws)
-    rms = lambda e: float(e.pow(2).mean().sqrt())  # noqa: E731
-    return {
-        "hand_median": float(eh.median()),
-        "learned_median": float(el.median()),
-        "d_median": float(el.median() - eh.median()),
-        "d_median_lo": ci["median"][0],
-        "d_median_hi": ci["median"][1],
-        "hand_rms": rms(eh),
-        "learned_rms": rms(el),
-        "d_rms": rms(el) - rms(eh),
-        "d_rms_lo": ci["rms"][0],
-        "d_rms_hi": ci["rms"][1],
-        "epochs": float(eh.numel()),
-        "checkpoint": ckpt.name,  # type: ignore[dict-item]
-    }
+__all__ = ["block_bootstrap", "compare", "main"]
 
 
 def main() -> None:
@@ -100,15 +26,9 @@ def main() -> None:
     parser.add_argument("--draws", type=int, default=4000, help="bootstrap resamples (default 4000)")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    print("| run | epochs | median hand / learned (m) | learned - hand, 95 % CI | RMS hand / learned (m) | learned - hand, 95 % CI |")
-    print("|---|---|---|---|---|---|")
+    print(MARKDOWN_HEADER)
     for run in args.run_dirs:
-        r = compare(run, block=args.block, draws=args.draws)
-        print(
-            f"| {run.name} ({r['checkpoint']}) | {int(r['epochs'])} | {r['hand_median']:.2f} / {r['learned_median']:.2f} | "
-            f"{r['d_median']:+.2f} [{r['d_median_lo']:+.2f}, {r['d_median_hi']:+.2f}] | {r['hand_rms']:.2f} / {r['learned_rms']:.2f} | "
-            f"{r['d_rms']:+.2f} [{r['d_rms_lo']:+.2f}, {r['d_rms_hi']:+.2f}] |"
-        )
+        print(markdown_row(run.name, compare(run, block=args.block, draws=args.draws)))
 
 
 if __name__ == "__main__":

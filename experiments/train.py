@@ -15,16 +15,11 @@ Hydra sweeper such as Optuna minimises).  The logic lives in difffilter.learn.ex
 from __future__ import annotations
 
 import logging
-import sys
-from pathlib import Path
 
 import hydra
 from omegaconf import DictConfig
 
-# Runs from a source checkout without installation.
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from difffilter.learn.experiment import run_experiment  # noqa: E402
+from difffilter.learn.experiment import run_experiment
 
 log = logging.getLogger(__name__)
 

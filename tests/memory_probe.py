@@ -81,9 +81,9 @@ def measure(window: int, batch: int = 8, steps: int = 5000) -> tuple[int, int]:
     from difffilter.filters import KalmanFilter
     from difffilter.filters.base import detach_belief
     from difffilter.learn import NLLLoss
-    from difffilter.learn.builders import tracking_model
+    from difffilter.models import tracking_model
     from difffilter.models.motion import ConstantVelocity
-    from difffilter.sim.sampling import sample_trajectories
+    from difffilter.sim import sample_trajectories
 
     torch.set_num_threads(1)
     f64 = torch.float64

@@ -8,8 +8,9 @@ import pytest
 import torch
 
 from difffilter.filters import EKF, UKF, MerweScaled, SquareRootUKF
-from difffilter.mixers import Blend, switching_statistics
+from difffilter.mixers import Blend
 from difffilter.models import FunctionalModel
+from difffilter.papers.p004 import switching_statistics
 
 from .filter_contract import FilterContract
 

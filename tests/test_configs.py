@@ -15,12 +15,12 @@ from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from difffilter.filters.base import GaussianFilter
+from difffilter._util import as_dtype
+from difffilter.filters import Filter
 from difffilter.learn.data import TrajectoryDataModule
 from difffilter.learn.experiment import build_filter, run_experiment
 from difffilter.learn.learner import FilterLearner
 from difffilter.models.base import StateSpaceModel
-from difffilter.sim.sampling import as_dtype
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
 # Groups of train.yaml (hydra/ is Hydra's own; a directory named like another primary config,
@@ -57,7 +57,7 @@ def _check_node(group: str, node, dtype: torch.dtype) -> None:
     if group == "model":
         assert isinstance(instantiate(node, _convert_="all"), StateSpaceModel)
     elif group == "filter":
-        assert isinstance(build_filter(node, dtype=dtype), GaussianFilter)
+        assert isinstance(build_filter(node, dtype=dtype), Filter)
     elif group == "scenario":
         sim = instantiate(node, _convert_="all")
         kw = {"num_steps": 3} if "num_steps" in inspect.signature(sim).parameters else {}
@@ -123,7 +123,7 @@ def test_experiment_overlay_builds_and_filters(tmp_path, experiment):
     loss = learner.loss_fn(res, batch)
     assert loss.shape == (2,) and bool(torch.isfinite(loss).all())
     for spec in (OmegaConf.to_container(cfg.experiment.baselines, resolve=True) or {}).values():
-        assert isinstance(build_filter(spec.get("filter") or cfg.filter, dtype=dtype, params=spec.get("params")), GaussianFilter)
+        assert isinstance(build_filter(spec.get("filter") or cfg.filter, dtype=dtype, params=spec.get("params")), Filter)
 
 
 def test_debug_and_hydra_launcher_configs_compose(tmp_path):

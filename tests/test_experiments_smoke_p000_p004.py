@@ -10,10 +10,10 @@ import pytest
 import torch
 
 from difffilter.filters import EKF, UKF
-from difffilter.learn.selection import parameter_owners
-from difffilter.learn.support_p000 import p000_simulator
-from difffilter.learn.support_p004 import ImuSwitchingStatistics, blend_filter, p004_simulator
-from difffilter.models.gnss_imu import GNSS_IMU_PAPER, GnssImuModel
+from difffilter.models.navigation.gnss_imu import GNSS_IMU_PAPER, GnssImuModel
+from difffilter.papers.p000 import p000_simulator
+from difffilter.papers.p004 import ImuSwitchingStatistics, blend_filter, p004_simulator
+from difffilter.selection import parameter_owners
 from tests.smoke_helpers import run_train_smoke
 
 ROOT = Path(__file__).resolve().parents[1]

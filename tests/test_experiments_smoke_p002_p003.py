@@ -10,10 +10,16 @@ import numpy as np
 import pytest
 import torch
 
-from difffilter.learn.support_p002 import EstimatorBaseline, gps_only_estimate, pdr_model, pdr_only_estimate
-from difffilter.learn.support_p003 import empirical_transition, model_options, p003_imm, p003_mode_model
-from difffilter.sim.p002_pdr import gps_only_positions, pdr_only_positions, simulate_p002
-from difffilter.sim.p003_flight import PAPER_PHASES
+from difffilter.papers.p002 import (
+    EstimatorBaseline,
+    gps_only_estimate,
+    gps_only_positions,
+    pdr_model,
+    pdr_only_estimate,
+    pdr_only_positions,
+    simulate_p002,
+)
+from difffilter.papers.p003 import PAPER_PHASES, empirical_transition, model_options, p003_imm, p003_mode_model
 from tests.smoke_helpers import read_rows, run_train_smoke
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -98,7 +104,7 @@ def test_model_options_from_a_template_or_a_mapping():
 
 
 def test_group_scaled_covariance():
-    from difffilter.learn.support_p003 import GroupScaledCovariance
+    from difffilter.params import GroupScaledCovariance
 
     base = torch.tensor([[4.0, 1.0, 0.0], [1.0, 2.0, 0.0], [0.0, 0.0, 3.0]], dtype=f64)
     groups = torch.tensor([[1.0, 1.0, 0.0], [0.0, 0.0, 1.0]], dtype=f64)
@@ -122,7 +128,7 @@ def test_group_scaled_covariance():
 def test_p003_learner_splits_q_of_the_learned_copy_only():
     import copy
 
-    from difffilter.learn.support_p003 import ModeSwitchReport, p003_learner
+    from difffilter.papers.p003 import ModeSwitchReport, p003_learner
 
     hand = p003_imm(model={"num_satellites": 4})
     q_hand = [f.model.dynamics.Q.detach().clone() for f in hand.filters]

@@ -28,7 +28,7 @@ from difffilter.filters import (
     fuse,
 )
 from difffilter.filters.fused.step import cholesky_lower as _chol
-from difffilter.learn.builders import tracking_model
+from difffilter.models import tracking_model
 from difffilter.models.base import DynamicsModel, MeasurementModel, StateSpaceModel, wrap_angle
 from difffilter.models.motion import Singer
 from difffilter.params import register_covariance
@@ -237,7 +237,7 @@ def test_unsupported_filters_and_bad_inputs_are_rejected() -> None:
             FusedFilter(RCUKF(model), engine=engine)
         with pytest.raises(TypeError, match="engine supports UKF"):
             FusedFilter(UKF(model, noise="augmented"), engine=engine)
-    with pytest.raises(TypeError, match="GaussianFilter"):
+    with pytest.raises(TypeError, match="RecursiveFilter"):
         FusedFilter(torch.nn.Linear(2, 2))  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="engine must be one of"):
         FusedFilter(UKF(model), engine="fast")

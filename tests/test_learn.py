@@ -27,13 +27,12 @@ from difffilter.learn import (
     match_parameters,
     select_parameters,
 )
-from difffilter.learn.builders import TimeInvariantDynamics, linear_measurement, tracking_model
 from difffilter.learn.data import TrajectorySet, WindowedTrajectories
 from difffilter.learn.learner import parameter_scalars
-from difffilter.models import LinearModel
+from difffilter.models import LinearModel, TimeInvariantDynamics, linear_measurement, tracking_model
 from difffilter.models.base import DynamicsModel, StateSpaceModel
 from difffilter.models.motion import ConstantVelocity, Singer
-from difffilter.sim.sampling import ModelSimulator, sample_trajectories
+from difffilter.sim import ModelSimulator, sample_trajectories
 from tests import memory_probe
 
 f64 = torch.float64

@@ -15,7 +15,7 @@ from difffilter.filters import KalmanFilter
 from difffilter.filters.base import FilterResult
 from difffilter.learn import metrics as M  # noqa: N812 - short alias in formulas
 from difffilter.models import LinearModel
-from difffilter.sim.sampling import sample_trajectories
+from difffilter.sim import sample_trajectories
 
 f64 = torch.float64
 

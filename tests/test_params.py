@@ -174,7 +174,7 @@ def test_reregistering_on_a_deep_copy_leaves_the_original_working() -> None:
 def test_switching_the_soft_gate_off_on_a_copy_keeps_the_original_soft_gate() -> None:
     import copy
 
-    from difffilter.models.pseudorange import GnssStateLayout, PseudorangeMeasurement
+    from difffilter.models.navigation.pseudorange import GnssStateLayout, PseudorangeMeasurement
 
     layout = GnssStateLayout.odometry(isb=True)
     meas = PseudorangeMeasurement(num_satellites=4, layout=layout, noise_from_data=True, robust="reject", gate_softness=0.2)

@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from difffilter.filters import EKF, UKF, MerweScaled
-from difffilter.models.pdr import PDRMeasurement, PDRModel, PDRStepDynamics, wrap_angle, wrap_measurement
-from difffilter.sim.p002_pdr import (
+from difffilter.models.navigation.pdr import PDRMeasurement, PDRModel, PDRStepDynamics, wrap_angle, wrap_measurement
+from difffilter.papers.p002 import (
     BLOCKAGE_PROBS,
     gps_only_positions,
     pdr_only_positions,
@@ -17,7 +17,7 @@ from difffilter.sim.p002_pdr import (
     simulate_p002,
     simulate_p002_random,
 )
-from difffilter.sim.tracks import p002_track
+from difffilter.papers.p002.track import p002_track
 
 F64 = torch.float64
 

@@ -1,4 +1,4 @@
-"""Tests for difffilter.models.pseudorange (pseudorange measurement, CV-clock and odometry dynamics)."""
+"""Tests for difffilter.models.navigation.pseudorange (pseudorange measurement, CV-clock and odometry dynamics)."""
 
 from __future__ import annotations
 
@@ -11,16 +11,11 @@ import torch
 from torch.func import jacfwd, vmap
 
 from difffilter.filters import EKF, UKF
+from difffilter.geometry import EARTH_RATE, SPEED_OF_LIGHT, enu_rotation, geodetic_to_ecef
 from difffilter.models.base import StateSpaceModel
-from difffilter.models.pseudorange import (
-    ConstantVelocityClock,
-    GnssStateLayout,
-    OdometryClockDynamics,
-    PseudorangeMeasurement,
-    clock_process_noise,
-)
-from difffilter.sim.geometry import EARTH_RATE, SPEED_OF_LIGHT, enu_rotation, geodetic_to_ecef
-from difffilter.sim.p001_static import make_p001_model, simulate_p001
+from difffilter.models.navigation.clock import ConstantVelocityClock, OdometryClockDynamics, clock_process_noise
+from difffilter.models.navigation.pseudorange import GnssStateLayout, PseudorangeMeasurement
+from difffilter.papers.p001 import make_p001_model, simulate_p001
 
 F64 = torch.float64
 ORIGIN = geodetic_to_ecef(torch.tensor([math.radians(52.5), math.radians(13.37), 76.0], dtype=F64))

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import torch
 
-from difffilter.sim import geometry as geo
-from difffilter.sim.p001_static import P001_CONFIG, make_p001_model, simulate_p001
-from difffilter.sim.p003_flight import PAPER_PHASES, flight_profile, make_p003_model, manoeuvre_flags, simulate_p003
+from difffilter import geometry as geo
+from difffilter.papers.p001 import P001_CONFIG, make_p001_model, simulate_p001
+from difffilter.papers.p003 import PAPER_PHASES, flight_profile, make_p003_model, manoeuvre_flags, simulate_p003
 
 F64 = torch.float64
 

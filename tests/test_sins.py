@@ -1,4 +1,4 @@
-"""Tests for difffilter.models.sins (p003 20-state GPS/SINS error model)."""
+"""Tests for difffilter.models.navigation.sins (p003 20-state GPS/SINS error model)."""
 
 from __future__ import annotations
 
@@ -11,9 +11,10 @@ import torch
 from torch.func import jacfwd, vmap
 
 from difffilter.filters import EKF, SimplifiedUKF
-from difffilter.models.sins import SinsErrorDynamics, SinsPseudorangeMeasurement, sins_error_matrix
-from difffilter.sim.geometry import CircularOrbitConstellation, normal_gravity
-from difffilter.sim.p003_flight import make_p003_model, simulate_p003
+from difffilter.geometry import CircularOrbitConstellation, normal_gravity
+from difffilter.models.navigation.sins import SinsErrorDynamics, sins_error_matrix
+from difffilter.models.navigation.sins_measurement import SinsPseudorangeMeasurement
+from difffilter.papers.p003 import make_p003_model, simulate_p003
 
 F64 = torch.float64
 
@@ -129,7 +130,7 @@ def test_batched_matrix_equals_loop_and_metre_units_are_similar() -> None:
 
 
 def test_linear_prediction_builds_F_once_and_matches_the_separate_calls(monkeypatch: pytest.MonkeyPatch) -> None:
-    import difffilter.models.sins as sins
+    import difffilter.models.navigation.sins as sins
 
     u = _nav_inputs()
     u["feedback"] = _state(3, True, scale=0.01, seed=4)
@@ -149,7 +150,7 @@ def test_linear_prediction_builds_F_once_and_matches_the_separate_calls(monkeypa
 
 
 def test_simplified_ukf_builds_F_once_per_predict_with_unchanged_results(monkeypatch: pytest.MonkeyPatch) -> None:
-    import difffilter.models.sins as sins
+    import difffilter.models.navigation.sins as sins
     from difffilter.filters.ukf import symmetrize
     from difffilter.mixers import IMM
 

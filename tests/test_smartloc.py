@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from difffilter.filters import EKF, UKF
-from difffilter.sim.geometry import ecef_to_geodetic
-from difffilter.sim.smartloc import (
+from difffilter.geometry import ecef_to_geodetic
+from difffilter.papers.smartloc import (
     default_smartloc_path,
     load_smartloc,
     make_smartloc_model,

@@ -19,10 +19,10 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 
 from difffilter.filters import KalmanFilter
 from difffilter.learn import FilterLearner, TrajectoryDataModule
-from difffilter.learn.builders import tracking_model
 from difffilter.learn.experiment import _oracle, build_filter, run_experiment
+from difffilter.models import tracking_model
 from difffilter.models.motion import ConstantVelocity
-from difffilter.sim.sampling import ModelSimulator
+from difffilter.sim import ModelSimulator
 from tests.smoke_helpers import read_rows
 
 ROOT = Path(__file__).resolve().parents[1]

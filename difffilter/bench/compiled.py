@@ -1,6 +1,6 @@
 """Eager vs ``torch.compile`` of one filter step (predict + update), driven by a Python time loop.
 
-Compiling ``GaussianFilter.forward`` itself would unroll the whole ``T``-step loop into one
+Compiling ``RecursiveFilter.forward`` itself would unroll the whole ``T``-step loop into one
 graph (compile time grows with ``T``), so the experiment compiles the *step*: the same
 ``predict``/``update`` the filter's loop calls, on a belief dict, for a fixed batch size.  Both
 variants run inside ``parametrize.cached()`` like ``forward`` does.  Graph breaks (e.g. the
@@ -14,16 +14,17 @@ import traceback
 from typing import Any
 
 import torch
+import torch._dynamo as dynamo
 from torch.nn.utils import parametrize
 
-from ..filters.base import GaussianFilter
+from ..filters.base import RecursiveFilter
 from .gpsdr import simulate_gpsdr
 from .runner import DTYPES, BenchSettings, _inputs, make_difffilter
 
 __all__ = ["compile_experiment"]
 
 
-def _step_fn(filt: GaussianFilter):  # type: ignore[no-untyped-def]
+def _step_fn(filt: RecursiveFilter):  # type: ignore[no-untyped-def]
     def step(belief: dict[str, torch.Tensor], z: torch.Tensor) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
         prior = filt.predict(belief, None)
         post, info = filt.update(prior, z, None, None)
@@ -97,8 +98,6 @@ def compile_experiment(
         min(timed(lambda: _loop(filt, eager, z, m0, p0, True, params)) for _ in range(2)),
     )
     try:
-        import torch._dynamo as dynamo
-
         dynamo.reset()
         breaks = ""
         try:

@@ -17,8 +17,9 @@ which keeps the covariance conditioning within reach of float32.  ``Q`` and ``R`
 learnable (full log-Cholesky) so that forward+backward timings differentiate w.r.t. ``Q``/``R``.
 
 Also here: a linear constant-velocity model (the KF case) and the scripted-truth simulator.
-The numpy/JAX twins of ``f``/``h`` used by the peers live in :mod:`difffilter.bench.peers`
-and read :func:`gpsdr_constants`, so every library sees the same numbers.
+The numpy/JAX twins of ``f``/``h`` used by the peers live in :mod:`difffilter.bench.filterpy_peer`
+and :mod:`difffilter.bench.dynamax_peer` and read :func:`gpsdr_constants`, so every library sees
+the same numbers.
 """
 
 from __future__ import annotations

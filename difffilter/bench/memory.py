@@ -25,6 +25,13 @@ import time
 from pathlib import Path
 from typing import Any
 
+import torch
+
+from ..filters.base import detach_belief
+from .gpsdr import simulate_gpsdr
+from .runner import DTYPES, BenchSettings, _inputs, make_difffilter
+from .timing import MemoryProbe, read_status_mb
+
 __all__ = ["measure_training_memory", "training_step_memory"]
 
 
@@ -32,13 +39,6 @@ def training_step_memory(
     *, kind: str, dtype: str, steps: int, batch: int, window: int, threads: int = 2, max_windows: int | None = None, seed: int = 0
 ) -> dict[str, Any]:
     """Run one TBPTT training step in this process; return timings and memory (MiB)."""
-    import torch
-
-    from ..filters.base import detach_belief
-    from .gpsdr import simulate_gpsdr
-    from .runner import DTYPES, BenchSettings, _inputs, make_difffilter
-    from .timing import MemoryProbe, read_status_mb
-
     torch.set_num_threads(threads)
     dt = DTYPES[dtype]
     data = simulate_gpsdr(batch_size=batch, steps=steps, seed=seed, dtype=dt)

@@ -6,6 +6,7 @@ import csv
 import math
 import os
 import platform
+from importlib.metadata import version
 from pathlib import Path
 from typing import Any
 
@@ -99,8 +100,6 @@ def environment_lines() -> list[str]:
         pass
     for mod in ("dynamax", "filterpy"):
         try:
-            from importlib.metadata import version
-
             lines.append(f"- {mod} {version(mod)}")
         except Exception:  # noqa: BLE001 - any metadata failure just omits the line
             pass

@@ -21,7 +21,8 @@ import numpy as np
 import torch
 
 from ..filters import EKF, UKF, FusedFilter, KalmanFilter, MerweScaled
-from ..filters.base import GaussianFilter
+from ..filters.base import RecursiveFilter
+from ..mixers import IMM
 from .dynamax_peer import dynamax_available, prepare_dynamax
 from .filterpy_peer import filterpy_available, run_filterpy
 from .gpsdr import BenchData, make_cv_model, make_gpsdr_model, simulate_gpsdr
@@ -102,7 +103,7 @@ class BenchReport:
     extra_tables: dict[str, list[dict[str, Any]]] = field(default_factory=dict)
 
 
-def make_difffilter(kind: str, dtype: torch.dtype, s: BenchSettings) -> GaussianFilter:
+def make_difffilter(kind: str, dtype: torch.dtype, s: BenchSettings) -> RecursiveFilter:
     """The difffilter filter of case ``kind`` (``kf``, ``ekf``, ``ukf``, ``imm``)."""
     pts = MerweScaled(alpha=s.ukf_alpha, beta=s.ukf_beta, kappa=s.ukf_kappa)
     if kind == "kf":
@@ -111,8 +112,6 @@ def make_difffilter(kind: str, dtype: torch.dtype, s: BenchSettings) -> Gaussian
         return EKF(make_gpsdr_model(dtype=dtype, analytic_jacobian=s.ekf_analytic_jacobian))
     if kind == "ukf":
         return UKF(make_gpsdr_model(dtype=dtype), sigma_points=pts, redraw_after_predict=True)
-    from ..mixers import IMM  # another engineer's module: import lazily so its absence only skips IMM
-
     k = len(s.imm_q_scales)
     off = (1.0 - s.imm_stay_prob) / max(k - 1, 1)
     trans = torch.full((k, k), off, dtype=dtype) + torch.eye(k, dtype=dtype) * (s.imm_stay_prob - off)
@@ -126,7 +125,7 @@ def _inputs(kind: str, data: BenchData) -> tuple[torch.Tensor, torch.Tensor, tor
     return data.measurements, data.initial_mean, data.initial_cov
 
 
-def _torch_run(filt: GaussianFilter, z: torch.Tensor, m0: torch.Tensor, p0: torch.Tensor, mode: str) -> Callable[[], np.ndarray]:
+def _torch_run(filt: RecursiveFilter, z: torch.Tensor, m0: torch.Tensor, p0: torch.Tensor, mode: str) -> Callable[[], np.ndarray]:
     params = [p for p in filt.parameters() if p.requires_grad]
 
     def forward() -> np.ndarray:

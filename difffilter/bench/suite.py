@@ -8,6 +8,10 @@ import os
 from collections.abc import Callable, Mapping
 from typing import Any
 
+from omegaconf import OmegaConf
+
+from .compiled import compile_experiment
+from .memory import measure_training_memory
 from .report import write_report
 from .runner import BenchSettings, run_benchmark
 
@@ -15,13 +19,8 @@ __all__ = ["run_suite", "settings_from_config"]
 
 
 def _plain(cfg: Any) -> Any:
-    try:
-        from omegaconf import OmegaConf
-
-        if OmegaConf.is_config(cfg):
-            return OmegaConf.to_container(cfg, resolve=True)
-    except ImportError:
-        pass
+    if OmegaConf.is_config(cfg):
+        return OmegaConf.to_container(cfg, resolve=True)
     return cfg
 
 
@@ -42,8 +41,6 @@ def run_suite(cfg: Mapping[str, Any], outdir: str | os.PathLike[str], *, command
     report = run_benchmark(settings, log=log)
     comp = cfg.get("compile") or {}
     if comp.get("enabled"):
-        from .compiled import compile_experiment
-
         rows: list[dict[str, Any]] = []
         for kind in comp.get("filters", ["ekf", "ukf"]):
             log(f"torch.compile experiment: {kind}")
@@ -54,8 +51,6 @@ def run_suite(cfg: Mapping[str, Any], outdir: str | os.PathLike[str], *, command
         report.extra_tables["compile"] = rows
     mem = cfg.get("memory") or {}
     if mem.get("enabled"):
-        from .memory import measure_training_memory
-
         rows = []
         for c in mem.get("configs", []):
             log(f"TBPTT memory: {c}")

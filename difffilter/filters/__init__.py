@@ -1,11 +1,12 @@
-"""Kalman-family filters sharing one time loop."""
+"""Kalman-family filters: the :class:`Filter` contract and the recursive filters sharing one time loop."""
 
 from .adaptive import RCUKF
-from .base import Belief, FilterResult, GaussianFilter, StepInfo
+from .base import Belief, FilterResult, GaussianFilter, RecursiveFilter, StepInfo
 from .colored import ColoredNoiseUKF
 from .ekf import EKF
 from .fused import FusedFilter, fuse
 from .kalman import KalmanFilter
+from .protocol import Filter
 from .sigma_points import Cubature, Julier, MerweScaled, SigmaPoints
 from .square_root import SquareRootUKF
 from .ukf import UKF, SimplifiedUKF
@@ -17,12 +18,14 @@ __all__ = [
     "ColoredNoiseUKF",
     "Belief",
     "Cubature",
+    "Filter",
     "FilterResult",
     "FusedFilter",
     "GaussianFilter",
     "Julier",
     "KalmanFilter",
     "MerweScaled",
+    "RecursiveFilter",
     "SigmaPoints",
     "SimplifiedUKF",
     "SquareRootUKF",

@@ -8,9 +8,10 @@ from torch import Tensor
 from ..linalg import symmetrize
 from ..models.base import Controls, StateSpaceModel
 from ..params import Bounded, Positive, register_constrained
+from ._common import expand_controls
 from .base import Belief, StepInfo
 from .sigma_points import SigmaPoints
-from .ukf import UKF, expand_controls, weighted_mean
+from .ukf import UKF, weighted_mean
 
 __all__ = ["RCUKF"]
 

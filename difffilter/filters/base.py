@@ -1,11 +1,11 @@
-"""The one time loop shared by every filter and mixer, and the shared Gaussian update.
+"""The one time loop shared by every recursive filter and mixer.
 
-Subclasses of :class:`GaussianFilter` implement :meth:`~GaussianFilter.predict` and
-:meth:`~GaussianFilter.update` on a *belief*: a ``dict`` of tensors with at least ``"mean"``
+Subclasses of :class:`RecursiveFilter` implement :meth:`~RecursiveFilter.predict` and
+:meth:`~RecursiveFilter.update` on a *belief*: a ``dict`` of tensors with at least ``"mean"``
 ``[B, n]`` and ``"cov"`` ``[B, n, n]`` plus whatever the filter carries between steps (square-root
 factors, residual statistics, previous measurements, mode probabilities...).  The loop here does
-input validation, mask handling, per-step bookkeeping and result assembly, so every filter
-shares the same semantics:
+input validation (:meth:`~difffilter.filters.protocol.Filter.check_inputs`), mask handling,
+per-step bookkeeping and result assembly, so every filter shares the same semantics:
 
 * ``(initial_mean, initial_cov)`` is the belief *before* the first measurement; every step
   predicts, then updates.
@@ -14,194 +14,48 @@ shares the same semantics:
   zeroed and the diagonal set to one, which is the update on the observed subset); a fully
   missing step is predict-only with log-likelihood 0.  Values under a False mask (NaN allowed)
   are replaced by zeros before any arithmetic, so they reach neither outputs nor gradients.
+
+``GaussianFilter`` is the former name of :class:`RecursiveFilter`, kept as an alias.  The shared
+vocabulary (:class:`~difffilter.filters.protocol.FilterResult`, ``Belief``, :class:`StepInfo`,
+:func:`gaussian_update`...) is re-exported here for the filters built on the loop.
 """
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass, field
 from typing import Any
 
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 from torch.nn.utils import parametrize
 
-from ..linalg import joseph_update, safe_cholesky, symmetrize
-from ..models.base import Controls, StateSpaceModel
+from ..models.base import Controls
+from ._common import StepInfo, detach_belief, gaussian_update, mask_measurement_system, slice_controls
+from .protocol import Belief, Filter, FilterResult
 
 __all__ = [
     "Belief",
     "FilterResult",
     "GaussianFilter",
+    "RecursiveFilter",
     "StepInfo",
+    "detach_belief",
     "gaussian_update",
     "mask_measurement_system",
     "slice_controls",
-    "detach_belief",
 ]
 
-Belief = dict[str, Tensor]
-_LOG_2PI = math.log(2.0 * math.pi)
 
+class RecursiveFilter(Filter):
+    """One time loop; subclasses implement :meth:`predict` and :meth:`update` (and, when their
+    belief carries more than ``mean``/``cov``, :meth:`init_belief`).
 
-@dataclass
-class StepInfo:
-    """Per-step update statistics ``[B]``: log-likelihood ``log N(e; 0, S)`` of the observed
-    components, normalised innovation squared ``e^T S^{-1} e`` and number of observed components."""
-
-    log_likelihood: Tensor
-    nis: Tensor
-    num_observed: Tensor
-    innovation: Tensor | None = None
-    innovation_cov: Tensor | None = None
-
-
-@dataclass
-class FilterResult:
-    """Outputs of a filter run over ``T`` steps (batch-first).
-
-    Attributes:
-        mean, cov: posterior after the update at every step, ``[B, T, n]``, ``[B, T, n, n]``.
-        prior_mean, prior_cov: prior after the prediction at every step.
-        log_likelihood: ``[B, T]`` innovation log-likelihood per step (0 for a missing step).
-        nis: ``[B, T]`` normalised innovation squared; ``num_observed [B, T]`` its degrees of
-            freedom (observed measurement components).
-        final_belief: the full belief after the last step, to continue filtering (TBPTT).
-        extras: filter-specific per-step outputs (IMM: ``mode_probs [B, T, M]``...), also
-            reachable as attributes (``result.mode_probs``).
-    """
-
-    mean: Tensor
-    cov: Tensor
-    prior_mean: Tensor
-    prior_cov: Tensor
-    log_likelihood: Tensor
-    nis: Tensor
-    num_observed: Tensor
-    final_belief: Belief
-    extras: dict[str, Tensor] = field(default_factory=dict)
-
-    def __getattr__(self, name: str) -> Tensor:
-        extras = self.__dict__.get("extras", {})
-        if name in extras:
-            return extras[name]
-        raise AttributeError(name)
-
-    @property
-    def total_log_likelihood(self) -> Tensor:
-        """``[B]`` sum of the per-step log-likelihoods."""
-        return self.log_likelihood.sum(-1)
-
-
-def slice_controls(controls: Controls, t: int) -> Controls:
-    """Step ``t`` of per-step inputs ``[B, T, ...]`` (tensor or dict of tensors)."""
-    if controls is None:
-        return None
-    if isinstance(controls, Tensor):
-        return controls[:, t]
-    return {k: v[:, t] for k, v in controls.items()}
-
-
-def detach_belief(belief: Belief) -> Belief:
-    """Detach every tensor of a belief (truncated back-propagation boundaries)."""
-    return {k: v.detach() for k, v in belief.items()}
-
-
-def mask_measurement_system(
-    innovation: Tensor, cov: Tensor, deviations: Tensor, mask: Tensor | None
-) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Remove unobserved measurement components exactly from an update.
-
-    ``innovation [B, m]``, ``cov [B, m, m]`` (innovation or noise covariance), ``deviations
-    [..., m]`` (anything indexed by measurement component last: ``P_xz``, sigma-point
-    deviations); ``mask [B, m]`` True = observed.  Missing components get a zero innovation
-    (``where``, so NaN never propagates), zero deviations, zero covariance rows/columns and a unit
-    diagonal: the padded system's update equals the update on the observed subset, and each
-    missing component adds exactly ``log N(0; 0, 1)`` to the log-density.  Returns the masked
-    ``(innovation, cov, deviations, num_observed [B])``.
-    """
-    m = innovation.shape[-1]
-    if mask is None:
-        num_obs = torch.full(innovation.shape[:-1], float(m), dtype=innovation.dtype, device=innovation.device)
-        return innovation, cov, deviations, num_obs
-    mo = mask.to(innovation.dtype)
-    innovation = torch.where(mask, innovation, torch.zeros_like(innovation))
-    cov = cov * (mo[..., :, None] * mo[..., None, :]) + torch.diag_embed(1.0 - mo)
-    return innovation, cov, deviations * mo[..., None, :], mo.sum(-1)
-
-
-def gaussian_update(
-    mean: Tensor,
-    cov: Tensor,
-    innovation: Tensor,
-    innovation_cov: Tensor,
-    cross_cov: Tensor,
-    mask: Tensor | None,
-    *,
-    joseph: tuple[Tensor, Tensor] | None = None,
-) -> tuple[Tensor, Tensor, StepInfo]:
-    """Linear-Gaussian measurement update shared by every Kalman-family filter.
-
-    Args:
-        mean, cov: prior ``[B, n]``, ``[B, n, n]``.
-        innovation: ``e = z - z_hat`` ``[B, m]``.
-        innovation_cov: ``S [B, m, m]`` (measurement noise included).
-        cross_cov: ``P_xz [B, n, m]``.
-        mask: ``[B, m]`` bool, True = observed (``None``: all observed).
-        joseph: ``(H [B, m, n], R [B, m, m])`` to use the Joseph form (KF/EKF) instead of
-            ``P - K S K^T``.
-
-    Returns the posterior mean and covariance and the :class:`StepInfo`.  The gain is never
-    formed through an inverse: with ``S = L L^T``, ``W = L^{-1} P_xz^T`` gives
-    ``K e = W^T L^{-1} e`` and ``K S K^T = W^T W``.
-    """
-    innovation, innovation_cov, cross_cov, num_obs = mask_measurement_system(innovation, innovation_cov, cross_cov, mask)
-    chol = safe_cholesky(innovation_cov).factor
-    rhs = torch.cat([cross_cov.mT, innovation[..., None]], -1)  # [B, m, n+1]
-    sol = torch.linalg.solve_triangular(chol, rhs, upper=False)
-    w, v = sol[..., :-1], sol[..., -1]  # W [B, m, n], v = L^{-1} e [B, m]
-    new_mean = mean + (w.mT @ v[..., None])[..., 0]
-    if joseph is None:
-        new_cov = symmetrize(cov - w.mT @ w)
-    else:
-        h, r = joseph
-        gain = torch.linalg.solve_triangular(chol.mT, w, upper=True).mT  # K = W^T L^{-1}
-        if mask is not None:
-            mo = mask.to(h.dtype)
-            h = h * mo[..., :, None]
-            r = r * (mo[..., :, None] * mo[..., None, :])
-        new_cov = joseph_update(cov, gain, h, r)
-    maha = (v * v).sum(-1)
-    logdet = 2.0 * torch.log(torch.diagonal(chol, dim1=-2, dim2=-1)).sum(-1)
-    loglik = -0.5 * (maha + logdet + num_obs * _LOG_2PI)
-    info = StepInfo(loglik, maha, num_obs, innovation, innovation_cov)
-    return new_mean, new_cov, info
-
-
-class GaussianFilter(nn.Module):
-    """Base class: one time loop, subclasses implement :meth:`predict` and :meth:`update`.
-
-    Filters hold parameters (through their model), never beliefs: :meth:`forward` is a pure
-    function of its inputs.
+    Constructed like every :class:`~difffilter.filters.protocol.Filter`: on a state-space
+    ``model``, or on none for filters that combine others (the IMM).  Filters hold parameters
+    (through their model), never beliefs: :meth:`forward` is a pure function of its inputs.
     """
 
     #: Belief entries that :meth:`step` / ``forward`` record per step besides mean/cov.
     record_keys: tuple[str, ...] = ()
-
-    def __init__(self, model: StateSpaceModel) -> None:
-        super().__init__()
-        if not isinstance(model, StateSpaceModel):
-            raise TypeError(f"model must be a difffilter StateSpaceModel, got {type(model).__name__}")
-        self.model = model
-
-    # -- dimensions -------------------------------------------------------------------------
-    @property
-    def state_dim(self) -> int:
-        return self.model.state_dim
-
-    @property
-    def measurement_dim(self) -> int:
-        return self.model.measurement_dim
 
     # -- to implement -----------------------------------------------------------------------
     def init_belief(self, mean: Tensor, cov: Tensor) -> Belief:
@@ -221,107 +75,6 @@ class GaussianFilter(nn.Module):
     def finalize_belief(self, belief: Belief) -> Belief:
         """Hook after each update (e.g. to drop predict-only entries)."""
         return belief
-
-    # -- validation -------------------------------------------------------------------------
-    def _param_dtype(self) -> torch.dtype | None:
-        for p in self.parameters():
-            if p.is_floating_point():
-                return p.dtype
-        for b in self.buffers():
-            if b.is_floating_point():
-                return b.dtype
-        return None
-
-    def check_inputs(
-        self, measurements: Tensor, initial_mean: Tensor | None, initial_cov: Tensor | None, mask: Tensor | None, controls: Controls
-    ) -> tuple[Tensor, Tensor | None, Tensor | None, Tensor | None]:
-        """Validate shapes, dtypes and values; return ``(z, mask [B,T,m] or None, mean, cov)``."""
-        n, m = self.state_dim, self.measurement_dim
-        if not isinstance(measurements, Tensor):
-            raise TypeError(f"measurements must be a torch.Tensor [B, T, {m}], got {type(measurements).__name__}")
-        if not measurements.is_floating_point():
-            raise TypeError(f"measurements must be floating point, got {measurements.dtype}")
-        if measurements.ndim != 3 or measurements.shape[-1] != m:
-            raise ValueError(f"measurements must have shape [B, T, {m}], got {tuple(measurements.shape)}")
-        bsz, steps = measurements.shape[:2]
-        dtype = measurements.dtype
-        pdt = self._param_dtype()
-        if pdt is not None and pdt != dtype:
-            raise TypeError(f"measurements dtype {dtype} differs from the filter's parameter dtype {pdt}; convert one with .to()")
-        if mask is not None:
-            if not isinstance(mask, Tensor):
-                raise TypeError("mask must be a bool tensor [B, T] or [B, T, m]")
-            if mask.shape == (bsz, steps):
-                mask = mask[..., None].expand(bsz, steps, m)
-            elif mask.shape != (bsz, steps, m):
-                raise ValueError(
-                    f"mask must have shape [B, T] = [{bsz}, {steps}] or [B, T, m] = [{bsz}, {steps}, {m}], got {tuple(mask.shape)}"
-                )
-            if mask.dtype != torch.bool:
-                if mask.is_floating_point() and not bool(((mask == 0) | (mask == 1)).all()):
-                    raise ValueError("mask must be boolean (True = observed)")
-                mask = mask.to(torch.bool)
-        finite = torch.isfinite(measurements)
-        bad = ~finite if mask is None else (~finite & mask)
-        if bool(bad.any()):
-            idx = tuple(int(i) for i in bad.nonzero()[0])
-            raise ValueError(
-                f"measurements contain a non-finite value at [b, t, i] = {list(idx)} that is not masked; "
-                "pass mask=False there to mark it missing"
-            )
-        if mask is not None:
-            measurements = torch.where(mask, measurements, torch.zeros((), dtype=dtype, device=measurements.device))
-        if initial_mean is not None:
-            initial_mean = self._check_mean(initial_mean, bsz, n, dtype)
-        if initial_cov is not None:
-            initial_cov = self._check_cov(initial_cov, bsz, n, dtype)
-        self._check_controls(controls, bsz, steps)
-        return measurements, mask, initial_mean, initial_cov
-
-    @staticmethod
-    def _check_mean(mean: Tensor, bsz: int, n: int, dtype: torch.dtype) -> Tensor:
-        if not isinstance(mean, Tensor):
-            raise TypeError(f"initial_mean must be a torch.Tensor [{n}] or [B, {n}]")
-        if mean.dtype != dtype:
-            raise TypeError(f"initial_mean dtype {mean.dtype} differs from measurements dtype {dtype}")
-        if mean.shape == (n,):
-            mean = mean.expand(bsz, n)
-        elif mean.shape != (bsz, n):
-            raise ValueError(f"initial_mean must have shape [{n}] or [B, {n}] = [{bsz}, {n}], got {tuple(mean.shape)}")
-        if not bool(torch.isfinite(mean).all()):
-            raise ValueError("initial_mean contains non-finite values")
-        return mean
-
-    @staticmethod
-    def _check_cov(cov: Tensor, bsz: int, n: int, dtype: torch.dtype) -> Tensor:
-        if not isinstance(cov, Tensor):
-            raise TypeError(f"initial_cov must be a torch.Tensor [{n}, {n}] or [B, {n}, {n}]")
-        if cov.dtype != dtype:
-            raise TypeError(f"initial_cov dtype {cov.dtype} differs from measurements dtype {dtype}")
-        if cov.shape == (n, n):
-            cov = cov.expand(bsz, n, n)
-        elif cov.shape != (bsz, n, n):
-            raise ValueError(f"initial_cov must have shape [{n}, {n}] or [B, {n}, {n}] = [{bsz}, {n}, {n}], got {tuple(cov.shape)}")
-        if not bool(torch.isfinite(cov).all()):
-            raise ValueError("initial_cov contains non-finite values")
-        scale = cov.abs().flatten(-2).amax(-1).clamp_min(torch.finfo(dtype).tiny)[..., None, None]
-        if not bool(((cov - cov.mT).abs() <= 1e-6 * scale).all()):
-            raise ValueError("initial_cov must be symmetric")
-        info = torch.linalg.cholesky_ex(symmetrize(cov))[1]
-        if bool((info != 0).any()):
-            raise ValueError(f"initial_cov must be positive definite (fails for batch elements {info.nonzero().flatten().tolist()[:10]})")
-        return cov
-
-    @staticmethod
-    def _check_controls(controls: Controls, bsz: int, steps: int) -> None:
-        if controls is None:
-            return
-        items = [("controls", controls)] if isinstance(controls, Tensor) else [(f"controls[{k!r}]", v) for k, v in dict(controls).items()]
-        for name, v in items:
-            if not isinstance(v, Tensor):
-                raise TypeError(f"{name} must be a tensor [B, T, ...]")
-            if v.ndim < 2 or v.shape[0] != bsz or v.shape[1] != steps:
-                raise ValueError(f"{name} must have shape [B, T, ...] = [{bsz}, {steps}, ...], got {tuple(v.shape)}")
 
     # -- running ----------------------------------------------------------------------------
     def step(
@@ -409,3 +162,7 @@ class GaussianFilter(nn.Module):
             final_belief=belief,
             extras={k: stack(v) for k, v in extras.items()},
         )
+
+
+#: The former name of :class:`RecursiveFilter` (kept for existing code and configs).
+GaussianFilter = RecursiveFilter

@@ -8,9 +8,10 @@ from torch import Tensor
 from ..linalg import safe_cholesky, symmetrize
 from ..models.base import Controls, StateSpaceModel
 from ..params import Bounded, register_constrained
+from ._common import expand_controls
 from .base import Belief, StepInfo, gaussian_update
 from .sigma_points import SigmaPoints
-from .ukf import UKF, expand_controls, weighted_mean, weighted_moments
+from .ukf import UKF, weighted_mean, weighted_moments
 
 __all__ = ["ColoredNoiseUKF"]
 

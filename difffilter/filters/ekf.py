@@ -10,8 +10,8 @@ from torch.func import jacrev, jvp, vmap
 
 from ..linalg import symmetrize
 from ..models.base import Controls, StateSpaceModel
-from .base import Belief, GaussianFilter, StepInfo, gaussian_update
-from .ukf import expand_controls
+from ._common import expand_controls
+from .base import Belief, RecursiveFilter, StepInfo, gaussian_update
 
 __all__ = ["EKF", "autodiff_jacobian"]
 
@@ -41,7 +41,7 @@ def autodiff_jacobian(fn: Callable[[Tensor, Controls], Tensor], x: Tensor, u: Co
     return out.to(x.dtype)
 
 
-class EKF(GaussianFilter):
+class EKF(RecursiveFilter):
     """Extended Kalman filter.
 
     Predict: ``x- = f(x, u)``, ``P- = F P F^T + Q`` with ``F = df/dx`` at the posterior mean.

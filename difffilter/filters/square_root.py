@@ -7,9 +7,10 @@ from torch import Tensor
 
 from ..linalg import chol_rank1_update, gaussian_log_density, safe_cholesky, tria
 from ..models.base import Controls, StateSpaceModel
+from ._common import expand_controls
 from .base import Belief, StepInfo, mask_measurement_system
 from .sigma_points import SigmaPoints
-from .ukf import UKF, expand_controls, weighted_mean
+from .ukf import UKF, weighted_mean
 
 __all__ = ["SquareRootUKF"]
 

@@ -7,19 +7,11 @@ from torch import Tensor
 
 from ..linalg import block_diag, safe_cholesky, symmetrize
 from ..models.base import Controls, DynamicsModel, StateSpaceModel
-from .base import Belief, GaussianFilter, StepInfo, gaussian_update
+from ._common import expand_controls
+from .base import Belief, RecursiveFilter, StepInfo, gaussian_update
 from .sigma_points import MerweScaled, SigmaPoints
 
-__all__ = ["UKF", "SimplifiedUKF", "expand_controls", "weighted_mean", "weighted_moments"]
-
-
-def expand_controls(u: Controls, dim: int = 1) -> Controls:
-    """Insert a singleton sigma-point dimension so ``u [B, ...]`` broadcasts with ``x [B, S, n]``."""
-    if u is None:
-        return None
-    if isinstance(u, Tensor):
-        return u.unsqueeze(dim)
-    return {k: v.unsqueeze(dim) for k, v in u.items()}
+__all__ = ["UKF", "SimplifiedUKF", "weighted_mean", "weighted_moments"]
 
 
 def weighted_mean(points: Tensor, wm: Tensor) -> Tensor:
@@ -38,7 +30,7 @@ def weighted_moments(points: Tensor, wm: Tensor, wc: Tensor) -> tuple[Tensor, Te
     return mean, dev, cov
 
 
-class UKF(GaussianFilter):
+class UKF(RecursiveFilter):
     """Unscented Kalman filter with a choice of sigma points, noise handling and point reuse.
 
     Predict (additive noise): points ``chi_i`` of ``N(x, P)``, ``x- = sum wm_i f(chi_i)``,
@@ -181,7 +173,7 @@ class SimplifiedUKF(UKF):
     parameters.
 
     When the dynamics offer ``linear_prediction(x, u) -> (f(x, u), F, Q)`` (e.g.
-    :class:`~difffilter.models.sins.SinsErrorDynamics`), the prediction takes all three from that
+    :class:`~difffilter.models.navigation.sins.SinsErrorDynamics`), the prediction takes all three from that
     one call, so a model whose ``F`` is expensive (matrix exponential) builds it once per step
     instead of once each in ``matrix``, ``process_noise`` and ``f``.
     """

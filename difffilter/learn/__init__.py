@@ -1,16 +1,12 @@
-"""Learning filter parameters by back-propagation through the filter.
+"""Learning filter parameters by back-propagation through the filter: the Lightning learner, the
+trajectory data module (TBPTT windows), losses, metrics, figures and the experiment protocol
+(``run_experiment``: hand-tuned vs learned vs oracle).  Generic only: the papers' set-ups live in
+:mod:`difffilter.papers`."""
 
-Light modules (losses, metrics, parameter selection, builders) import eagerly; the ones that
-need PyTorch Lightning (:class:`FilterLearner`, :class:`TrajectoryDataModule`,
-:func:`run_experiment`) are imported on first access, so that ``difffilter.sim`` and
-``difffilter.learn.metrics`` stay cheap to import.
-"""
-
-from __future__ import annotations
-
-import importlib
-from typing import Any
-
+from ..selection import assign_parameters, learnable_values, match_parameters, select_parameters
+from .data import TrajectoryDataModule, TrajectorySet, WindowedTrajectories
+from .experiment import evaluate_filter, run_experiment
+from .learner import FilterLearner
 from .losses import CompositeLoss, HuberLoss, LogNormalPrior, MSELoss, NEESLoss, NLLLoss, NormalPrior
 from .metrics import (
     anees,
@@ -24,7 +20,6 @@ from .metrics import (
     nll_per_step,
     rmse,
 )
-from .selection import assign_parameters, learnable_values, match_parameters, select_parameters
 
 __all__ = [
     "CompositeLoss",
@@ -55,18 +50,3 @@ __all__ = [
     "run_experiment",
     "select_parameters",
 ]
-
-_LAZY = {
-    "FilterLearner": ".learner",
-    "TrajectoryDataModule": ".data",
-    "TrajectorySet": ".data",
-    "WindowedTrajectories": ".data",
-    "evaluate_filter": ".experiment",
-    "run_experiment": ".experiment",
-}
-
-
-def __getattr__(name: str) -> Any:
-    if name in _LAZY:
-        return getattr(importlib.import_module(_LAZY[name], __name__), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -5,7 +5,7 @@ object with ``truth [B, T, n_t]``, ``measurements [B, T, m]``, ``mask`` (``[B, T
 ``[B, T, m]`` or ``None``) and ``controls`` (tensor or dict of ``[B, T, ...]``, or ``None``), and
 optionally ``initial_mean [B, n]|[n]`` / ``initial_cov [n, n]|[B, n, n]`` (the belief before the
 first measurement), ``true_params`` and ``make_model()`` (for oracles).  Every difffilter
-simulator follows this (``difffilter.sim.sampling.ModelSimulator``, the per-paper simulators).
+simulator follows this (``difffilter.sim.ModelSimulator``, the papers' simulators).
 
 Batches are plain dicts (which Lightning moves between devices as they are)::
 
@@ -33,8 +33,8 @@ import torch
 from torch import Tensor
 from torch.utils.data import DataLoader, IterableDataset
 
+from .._util import as_dtype
 from ..models.base import Controls
-from ..sim.sampling import as_dtype
 
 __all__ = ["SimulatedTrajectories", "TrajectoryDataModule", "TrajectorySet", "WindowedTrajectories"]
 

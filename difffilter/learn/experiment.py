@@ -32,8 +32,13 @@ The ``experiment`` config node (per-paper overlays set it)::
       error_quantiles: null       # e.g. [0.5, 0.95]: extra columns pos_err_p50, pos_err_p95 =
                                   # quantiles of the position error norm over all test steps
 
-Names in ``hand_tuned``/``params`` follow :func:`difffilter.learn.selection.assign_parameters`
+Names in ``hand_tuned``/``params`` follow :func:`difffilter.selection.assign_parameters`
 (a vector sets a covariance's diagonal; a scalar sets ``s I`` or a ScaledMatrix's scale).
+
+What the config leaves open comes from the model's
+:class:`~difffilter.models.layout.ModelDefaults` (:func:`apply_model_defaults`): ``learn: null``
+trains the model's default learnable set, ``experiment.position_index: null`` takes the
+positions of its state layout.
 """
 
 from __future__ import annotations
@@ -46,18 +51,20 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+import pytorch_lightning as pl
 import torch
 from hydra.utils import instantiate
-from omegaconf import DictConfig, ListConfig, OmegaConf
+from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 
-from ..filters.base import GaussianFilter
-from ..sim.sampling import as_dtype
+from .._util import as_dtype
+from ..filters.protocol import Filter
+from ..models.layout import model_defaults
+from ..selection import assign_parameters, match_parameters, parameter_owners
 from .data import TrajectorySet
 from .metrics import component_error, finalize_metrics, metric_sums
-from .selection import assign_parameters, match_parameters, parameter_owners
 from .stability import bounded_jitter
 
-__all__ = ["build_filter", "evaluate_filter", "format_results", "run_experiment", "write_results"]
+__all__ = ["apply_model_defaults", "build_filter", "evaluate_filter", "format_results", "run_experiment", "write_results"]
 
 COLUMNS = ("filter", "rmse_pos", "rmse_state", "anees", "anees_lo", "anees_hi", "nis", "nis_lo", "nis_hi", "nll", "time_per_step_ms")
 
@@ -66,12 +73,12 @@ def _plain(node: Any) -> Any:
     return OmegaConf.to_container(node, resolve=True) if isinstance(node, DictConfig | ListConfig) else node
 
 
-def build_filter(filter_cfg: Any, *, dtype: torch.dtype, params: Mapping[str, Any] | None = None, **overrides: Any) -> GaussianFilter:
+def build_filter(filter_cfg: Any, *, dtype: torch.dtype, params: Mapping[str, Any] | None = None, **overrides: Any) -> Filter:
     """Instantiate a filter config (``overrides`` replace config entries, e.g. ``model=``), convert
     it to ``dtype`` and set ``params`` (constrained values by name)."""
     filt = instantiate(filter_cfg, _convert_="all", **overrides)
-    if not isinstance(filt, GaussianFilter):
-        raise TypeError(f"the filter config must build a GaussianFilter, got {type(filt).__name__}")
+    if not isinstance(filt, Filter):
+        raise TypeError(f"the filter config must build a difffilter Filter, got {type(filt).__name__}")
     filt = filt.to(dtype)
     if params:
         assign_parameters(filt, dict(_plain(params)))
@@ -80,7 +87,7 @@ def build_filter(filter_cfg: Any, *, dtype: torch.dtype, params: Mapping[str, An
 
 @torch.no_grad()
 def evaluate_filter(
-    filt: GaussianFilter,
+    filt: Filter,
     data: TrajectorySet,
     *,
     initial_mean: torch.Tensor | None = None,
@@ -137,7 +144,7 @@ def evaluate_filter(
     return out
 
 
-def _parameter_summary(filt: GaussianFilter, names: list[str]) -> str:
+def _parameter_summary(filt: Filter, names: list[str]) -> str:
     owners = parameter_owners(filt)
     parts = []
     for pattern, hits in match_parameters(filt, names).items():
@@ -176,7 +183,7 @@ def write_results(rows: list[dict[str, Any]], output_dir: str | Path, *, title: 
     return csv_path, md_path
 
 
-def _oracle(cfg: DictConfig, hand: GaussianFilter, test: TrajectorySet, dtype: torch.dtype) -> GaussianFilter | None:
+def _oracle(cfg: DictConfig, hand: Filter, test: TrajectorySet, dtype: torch.dtype) -> Filter | None:
     spec = cfg.experiment.get("oracle")
     if spec is None:
         return None
@@ -198,10 +205,23 @@ def _oracle(cfg: DictConfig, hand: GaussianFilter, test: TrajectorySet, dtype: t
     return filt
 
 
+def apply_model_defaults(cfg: DictConfig, filt: Filter) -> None:
+    """Fill ``cfg.learn`` and ``cfg.experiment.position_index`` where they are null from the
+    :class:`~difffilter.models.layout.ModelDefaults` of ``filt``'s model (in place, so the
+    config's interpolations, e.g. ``learner.learn: ${learn}``, see the values).  Nothing changes
+    for a model without defaults."""
+    defaults = model_defaults(filt)
+    if defaults is None:
+        return
+    with open_dict(cfg):
+        if cfg.get("learn") is None:
+            cfg.learn = list(defaults.learn)
+        if cfg.experiment.get("position_index") is None:
+            cfg.experiment.position_index = list(defaults.layout.position)
+
+
 def run_experiment(cfg: DictConfig) -> dict[str, Any]:
     """Train and evaluate as configured; returns ``{"metric": value, "rows": [...], ...}``."""
-    import pytorch_lightning as pl
-
     if cfg.get("threads"):
         torch.set_num_threads(int(cfg.threads))
     pl.seed_everything(int(cfg.seed), workers=True)
@@ -209,6 +229,7 @@ def run_experiment(cfg: DictConfig) -> dict[str, Any]:
     exp = cfg.experiment
     datamodule = instantiate(cfg.data, _convert_="all")
     hand = build_filter(cfg.filter, dtype=dtype, params=exp.get("hand_tuned"))
+    apply_model_defaults(cfg, hand)
     learner = instantiate(cfg.learner, _convert_="all", filter=copy.deepcopy(hand), loss=instantiate(cfg.loss, _convert_="all"))
     loggers = [instantiate(v, _convert_="all") for v in (cfg.get("logger") or {}).values() if v is not None]
     callbacks = [instantiate(v, _convert_="all") for v in (cfg.get("callbacks") or {}).values() if v is not None]
@@ -220,7 +241,7 @@ def run_experiment(cfg: DictConfig) -> dict[str, Any]:
         return {}
 
     test = datamodule.dataset("test")
-    filters: dict[str, GaussianFilter] = {"hand-tuned": hand, "learned": learner.filter}
+    filters: dict[str, Filter] = {"hand-tuned": hand, "learned": learner.filter}
     oracle = _oracle(cfg, hand, test, dtype)
     if oracle is not None:
         filters["oracle"] = oracle

@@ -1,7 +1,7 @@
 """Lightning module that learns a filter's parameters by back-propagation through the filter.
 
 :class:`FilterLearner` wraps any difffilter filter or mixer (a
-:class:`~difffilter.filters.base.GaussianFilter`): the filter's constrained parameters named in
+:class:`~difffilter.filters.protocol.Filter`): the filter's constrained parameters named in
 ``learn`` train (``requires_grad_``), everything else stays fixed.  Training batches are
 truncated-BPTT windows (:mod:`difffilter.learn.data`): window ``k > 0`` of a batch continues
 from the detached final belief of window ``k - 1``, so a trajectory of any length trains in
@@ -35,12 +35,14 @@ import torch
 from torch import Tensor, nn
 
 from .. import linalg
-from ..filters.base import Belief, FilterResult, GaussianFilter, detach_belief
+from .._util import as_dtype
+from ..filters.base import detach_belief
 from ..filters.fused import FusedFilter
-from ..sim.sampling import as_dtype
+from ..filters.protocol import Belief, Filter, FilterResult
+from ..selection import learnable_values, match_parameters, parameter_owners, select_parameters
 from .losses import FilterLoss, MSELoss, NEESLoss, NLLLoss, Prior
 from .metrics import finalize_metrics, metric_sums
-from .selection import learnable_values, match_parameters, parameter_owners, select_parameters
+from .plots import plot_errors, plot_mode_probs, plot_trajectory
 from .stability import OnceWarner, bounded_jitter
 
 __all__ = ["FilterLearner", "make_loss", "parameter_scalars"]
@@ -88,11 +90,11 @@ class FilterLearner(pl.LightningModule):
     """Learn a filter's parameters from trajectories.
 
     Args:
-        filter: the filter or mixer to train (any :class:`GaussianFilter`).
+        filter: the filter or mixer to train (any :class:`~difffilter.filters.protocol.Filter`).
         loss: ``"mse"``, ``"nll"``, ``"nees"`` or a callable ``(result, batch) -> [B]`` (see
             :mod:`difffilter.learn.losses`).
         learn: names of the parameters to train (``["R", "Q", "tau", "transition"]``; matched as
-            in :mod:`difffilter.learn.selection`); ``None`` trains every parameter.
+            in :mod:`difffilter.selection`); ``None`` trains every parameter.
         optimizer: ``params -> torch.optim.Optimizer`` (a Hydra ``_partial_``); default Adam(lr=0.01).
         scheduler: optional ``optimizer -> LR scheduler`` (a Hydra ``_partial_``).
         scheduler_interval: ``"epoch"`` or ``"step"``.
@@ -118,7 +120,7 @@ class FilterLearner(pl.LightningModule):
 
     def __init__(
         self,
-        filter: GaussianFilter,  # noqa: A002 - the field's word
+        filter: Filter,  # noqa: A002 - the field's word
         loss: FilterLoss | str = "nll",
         *,
         learn: Sequence[str] | None = None,
@@ -141,8 +143,11 @@ class FilterLearner(pl.LightningModule):
         fused: bool | str = False,
     ) -> None:
         super().__init__()
-        if not isinstance(filter, GaussianFilter):
-            raise TypeError(f"filter must be a difffilter GaussianFilter, got {type(filter).__name__}")
+        if not isinstance(filter, Filter):
+            raise TypeError(
+                "filter must be a difffilter Filter (a RecursiveFilter, formerly GaussianFilter; a mixer; a baseline), "
+                f"got {type(filter).__name__}"
+            )
         if scheduler_interval not in ("epoch", "step"):
             raise ValueError(f"scheduler_interval must be 'epoch' or 'step', got {scheduler_interval!r}")
         self.save_hyperparameters(ignore=["filter", "loss", "optimizer", "scheduler", "log_prior"])
@@ -337,8 +342,6 @@ class FilterLearner(pl.LightningModule):
         data = self._figure_data
         if data is None or not self.trainer.is_global_zero:
             return
-        from .plots import plot_errors, plot_mode_probs, plot_trajectory  # matplotlib only when drawing
-
         writers = [lg.experiment for lg in self.loggers if hasattr(lg.experiment, "add_figure")]
         if not writers:
             return

@@ -2,61 +2,24 @@
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 
 import torch
 from torch import Tensor
 
-from ..filters.base import Belief, GaussianFilter, StepInfo
+from ..filters.base import Belief, RecursiveFilter, StepInfo
 from ..filters.ekf import EKF
 from ..filters.ukf import UKF
 from ..linalg import symmetrize
 from ..models.base import Controls, StateSpaceModel
 from ..params import Bounded, Positive, register_constrained
 
-__all__ = ["Blend", "switching_statistics"]
+__all__ = ["Blend", "Statistics"]
 
 Statistics = Callable[[Controls], tuple[Tensor, Tensor]]
 
 
-def switching_statistics(
-    accel: Tensor,
-    gyro: Tensor,
-    *,
-    sigma_accel: float | Tensor,
-    sigma_gyro: float | Tensor,
-    sigma_gnss: float | Tensor,
-    sigma_imu: float | Tensor,
-    gravity: float = 9.8,
-) -> tuple[Tensor, Tensor]:
-    """The p004 switching statistics, eqs. (1) and (2).
-
-    ``gamma = max(sigma_alpha, sigma_beta) / max(sigma_GNSS, sigma_IMU)`` and
-    ``mu = sqrt(alpha^2 / g^2 + beta^2 / pi^2)``.
-
-    Args:
-        accel: accelerometer output magnitude ``alpha`` (m/s^2), ``[...]`` (pass
-            ``a.norm(dim=-1)`` for three-axis readings).
-        gyro: angular-rate magnitude ``beta`` (rad/s), ``[...]``.
-        sigma_accel, sigma_gyro: noise of the IMU-derived acceleration and rate.
-        sigma_gnss, sigma_imu: observation noise levels (floats or tensors broadcasting against
-            ``[...]``).
-        gravity: ``g`` in eq. (2).
-
-    Returns:
-        ``(gamma, mu)``, both ``[...]``.
-    """
-
-    def as_t(v: float | Tensor) -> Tensor:
-        return torch.as_tensor(v, dtype=accel.dtype, device=accel.device)
-
-    gamma = torch.maximum(as_t(sigma_accel), as_t(sigma_gyro)) / torch.maximum(as_t(sigma_gnss), as_t(sigma_imu))
-    mu = torch.sqrt(accel**2 / gravity**2 + gyro**2 / math.pi**2)
-    return torch.broadcast_to(gamma, mu.shape), mu
-
-
-class Blend(GaussianFilter):
+class Blend(RecursiveFilter):
     """Blend of an EKF and a UKF prediction followed by the UKF update (p004).
 
     From the same posterior ``(x, P)`` both filters predict, and
@@ -83,8 +46,9 @@ class Blend(GaussianFilter):
       to the switch as the temperatures go to zero.
 
     ``(gamma, mu) = statistics(u_k)`` come from the step's controls, e.g. eqs. (1), (2) of p004
-    through :func:`switching_statistics` (``gamma`` compares the IMU motion noise with the
-    observation noise, ``mu`` the IMU's own accelerations and rates with gravity and pi).
+    (:class:`difffilter.papers.p004.ImuSwitchingStatistics`: ``gamma`` compares the IMU motion
+    noise with the observation noise, ``mu`` the IMU's own accelerations and rates with gravity
+    and pi).
 
     Args:
         ekf: an :class:`~difffilter.filters.EKF` (or a model, to build one).

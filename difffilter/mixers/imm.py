@@ -8,7 +8,7 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import Tensor, nn
 
-from ..filters.base import Belief, GaussianFilter, StepInfo
+from ..filters.base import Belief, RecursiveFilter, StepInfo
 from ..linalg import symmetrize
 from ..models.base import Controls
 from ..params import RowStochastic, register_constrained
@@ -75,7 +75,7 @@ class SubspaceEmbedding:
         return mean[..., idx], cov[..., idx, :][..., :, idx]
 
 
-class IMM(GaussianFilter):
+class IMM(RecursiveFilter):
     """Batched interacting multiple-model estimator, computed in log space.
 
     For modes ``j = 1..M`` (each any difffilter filter: KalmanFilter, EKF, UKF, SimplifiedUKF,
@@ -136,7 +136,7 @@ class IMM(GaussianFilter):
 
     def __init__(
         self,
-        filters: Sequence[GaussianFilter],
+        filters: Sequence[RecursiveFilter],
         transition: Tensor,
         initial_probs: Tensor,
         *,
@@ -144,10 +144,10 @@ class IMM(GaussianFilter):
         project: Sequence[MomentMap | None] | None = None,
         prob_floor: float = 1e-6,
     ) -> None:
-        nn.Module.__init__(self)
+        super().__init__()  # no single model: the modes hold theirs
         filters = list(filters)
-        if not filters or not all(isinstance(f, GaussianFilter) for f in filters):
-            raise TypeError("filters must be a non-empty sequence of difffilter filters (GaussianFilter)")
+        if not filters or not all(isinstance(f, RecursiveFilter) for f in filters):
+            raise TypeError("filters must be a non-empty sequence of difffilter recursive filters (RecursiveFilter)")
         num = len(filters)
         mdims = {f.measurement_dim for f in filters}
         if len(mdims) != 1:

@@ -1,9 +1,12 @@
-"""State-space models: interfaces, motion models and navigation models."""
+"""State-space models: interfaces, motion models, navigation models of the papers, factories for
+configs and the state layout every model carries."""
 
 from .base import Controls, DynamicsModel, FunctionalModel, LinearModel, MeasurementModel, StateSpaceModel
+from .layout import ModelDefaults, StateLayout, describe, model_defaults
 from .motion import ConstantAcceleration, ConstantVelocity, CurrentStatistical, Singer, singer_process_noise, singer_transition
 from .navigation import *  # noqa: F403
 from .navigation import __all__ as _navigation_all
+from .tracking import TimeInvariantDynamics, linear_measurement, tracking_model
 
 __all__ = [
     "ConstantAcceleration",
@@ -14,9 +17,16 @@ __all__ = [
     "FunctionalModel",
     "LinearModel",
     "MeasurementModel",
+    "ModelDefaults",
     "Singer",
+    "StateLayout",
     "StateSpaceModel",
+    "TimeInvariantDynamics",
+    "describe",
+    "linear_measurement",
+    "model_defaults",
     "singer_process_noise",
     "singer_transition",
+    "tracking_model",
     *_navigation_all,
 ]

@@ -19,7 +19,7 @@ float64 one rounded, and a seed gives the same trajectories on every machine.
 
 Such data is "in-family": the filter's model class contains the truth, which is what parameter
 recovery tests and oracle comparisons need.  Paper scenarios with scripted manoeuvres live in
-the per-paper simulators of :mod:`difffilter.sim`.
+the per-paper simulators of :mod:`difffilter.papers`.
 """
 
 from __future__ import annotations
@@ -33,32 +33,15 @@ import torch
 from torch import Tensor
 from torch.nn.utils import parametrize
 
+from .._util import as_dtype, generator
 from ..filters.base import slice_controls
 from ..linalg import safe_cholesky
 from ..models.base import Controls, StateSpaceModel
+from ..models.layout import model_defaults
 from ..params import constrained_values
+from ..selection import assign_parameters
 
-__all__ = ["ModelSimulator", "SampledTrajectories", "as_dtype", "sample_trajectories"]
-
-
-def as_dtype(dtype: torch.dtype | str | None, default: torch.dtype = torch.float64) -> torch.dtype:
-    """``torch.float64``, ``"float64"``, ``"torch.float32"``, ``"64"`` or ``None`` -> a torch dtype."""
-    if dtype is None:
-        return default
-    if isinstance(dtype, torch.dtype):
-        return dtype
-    name = str(dtype).removeprefix("torch.")
-    aliases = {"64": "float64", "32": "float32", "double": "float64", "float": "float32", "16": "float16"}
-    out = getattr(torch, aliases.get(name, name), None)
-    if not isinstance(out, torch.dtype) or not out.is_floating_point:
-        raise ValueError(f"dtype must name a floating-point torch dtype (e.g. 'float64'), got {dtype!r}")
-    return out
-
-
-def _generator(seed: int | torch.Generator) -> torch.Generator:
-    if isinstance(seed, torch.Generator):
-        return seed
-    return torch.Generator().manual_seed(int(seed))
+__all__ = ["ModelSimulator", "SampledTrajectories", "sample_trajectories"]
 
 
 def _cast_controls(controls: Controls, dtype: torch.dtype) -> Controls:
@@ -151,7 +134,7 @@ def sample_trajectories(
         raise ValueError(f"missing_prob must lie in [0, 1), got {missing_prob}")
     out_dtype = as_dtype(dtype)
     f64 = torch.float64
-    gen = _generator(seed)
+    gen = generator(seed)
     sim = copy.deepcopy(model).to(f64)
     n, m = sim.state_dim, sim.measurement_dim
     mean0 = torch.as_tensor(initial_mean, dtype=f64)
@@ -205,17 +188,24 @@ class ModelSimulator:
     The convention every difffilter simulator follows, so that
     :class:`~difffilter.learn.data.TrajectoryDataModule` can draw train/val/test sets from
     different seeds.  ``true_params`` sets constrained values on (a copy of) ``model`` first,
-    using the name matching of :func:`difffilter.learn.selection.assign_parameters`
+    using the name matching of :func:`difffilter.selection.assign_parameters`
     (``{"Q": ..., "R": [4.0, 4.0]}``), so one model config can serve as both the filter and the
     truth with different values.
+
+    What the arguments leave open comes from the model's
+    :class:`~difffilter.models.layout.ModelDefaults` (``model.defaults``): ``true_params=None``
+    takes its ``reference`` values, ``initial_mean=None``/``initial_cov=None`` its default
+    belief, ``controls=None`` its input sampler (if it has one).
 
     Args:
         model: the truth model.
         num_steps: trajectory length ``T``.
-        initial_mean, initial_cov: prior ``N(m_0, P_0)`` (``initial_cov`` ``[n, n]`` or its diagonal).
-        true_params: optional constrained values to set on the copy of ``model``.
-        controls: optional ``(batch_size, num_steps, generator, dtype) -> controls`` callable or
-            a fixed ``[1, T, ...]`` tensor broadcast over the batch.
+        initial_mean, initial_cov: prior ``N(m_0, P_0)`` (``initial_cov`` ``[n, n]`` or its
+            diagonal); ``None``: the model's default belief.
+        true_params: constrained values to set on the copy of ``model`` (``{}``: none;
+            ``None``: the model's reference values).
+        controls: ``(batch_size, num_steps, generator, dtype) -> controls`` callable or a fixed
+            ``[1, T, ...]`` tensor broadcast over the batch; ``None``: the model's sampler.
         missing_prob: probability of a missing measurement step.
         dt: sampling period recorded in the result.
     """
@@ -225,17 +215,25 @@ class ModelSimulator:
         *,
         model: StateSpaceModel,
         num_steps: int,
-        initial_mean: Tensor | Sequence[float],
-        initial_cov: Tensor | Sequence[float] | Sequence[Sequence[float]],
+        initial_mean: Tensor | Sequence[float] | None = None,
+        initial_cov: Tensor | Sequence[float] | Sequence[Sequence[float]] | None = None,
         true_params: Mapping[str, Any] | None = None,
         controls: Callable[..., Controls] | Tensor | None = None,
         missing_prob: float = 0.0,
         dt: float | None = None,
     ) -> None:
+        defaults = model_defaults(model)
+        if true_params is None and defaults is not None:
+            true_params = defaults.reference
+        if initial_mean is None or initial_cov is None:
+            if defaults is None or defaults.initial_mean is None or defaults.initial_var is None:
+                raise ValueError("initial_mean and initial_cov are required: the model has no default belief (model.defaults)")
+            initial_mean = defaults.initial_mean if initial_mean is None else initial_mean
+            initial_cov = defaults.initial_var if initial_cov is None else initial_cov
+        if controls is None and defaults is not None:
+            controls = defaults.controls
         self.model = copy.deepcopy(model).to(torch.float64)
         if true_params:
-            from ..learn.selection import assign_parameters  # local: keeps sim free of learn at import
-
             assign_parameters(self.model, dict(true_params))
         self.num_steps = int(num_steps)
         self.initial_mean = torch.as_tensor(initial_mean, dtype=torch.float64)
@@ -252,7 +250,7 @@ class ModelSimulator:
         num_steps: int | None = None,
     ) -> SampledTrajectories:
         """Draw ``batch_size`` trajectories (``num_steps`` overrides the constructor's length)."""
-        gen = _generator(seed)
+        gen = generator(seed)
         steps = self.num_steps if num_steps is None else int(num_steps)
         controls: Controls
         if callable(self.controls) and not isinstance(self.controls, Tensor):

@@ -8,7 +8,7 @@ from typing import Any
 from torch import Tensor, nn
 
 from ...models.base import Controls
-from ..base import Belief, FilterResult, GaussianFilter
+from ..base import Belief, FilterResult, RecursiveFilter
 from .build import CompileError
 from .generated import GeneratedEngine
 from .graph import UnsupportedOp
@@ -49,7 +49,7 @@ class FusedFilter(nn.Module):
       else the filter itself.  ``compile=False`` selects ``"eager"``.
 
     Args:
-        filt: the filter (any :class:`GaussianFilter`; the inductor and eager engines need a
+        filt: the filter (any :class:`RecursiveFilter`; the inductor and eager engines need a
             ``UKF`` with ``noise="additive"``, a ``SimplifiedUKF``, an ``EKF`` or a
             ``KalmanFilter``, not a subclass with its own equations).
         engine: one of :data:`ENGINES`.
@@ -65,7 +65,7 @@ class FusedFilter(nn.Module):
 
     def __init__(
         self,
-        filt: GaussianFilter,
+        filt: RecursiveFilter,
         *,
         engine: str = "auto",
         compile: bool = True,  # noqa: A002
@@ -75,8 +75,8 @@ class FusedFilter(nn.Module):
         reuse_buffers: bool = True,
     ) -> None:
         super().__init__()
-        if not isinstance(filt, GaussianFilter):
-            raise TypeError(f"FusedFilter needs a difffilter filter (a GaussianFilter), got {type(filt).__name__}")
+        if not isinstance(filt, RecursiveFilter):
+            raise TypeError(f"FusedFilter needs a difffilter filter (a RecursiveFilter), got {type(filt).__name__}")
         if engine not in ENGINES:
             raise ValueError(f"engine must be one of {list(ENGINES)}, got {engine!r}")
         if threads is not None and (not isinstance(threads, int) or threads < 1):
@@ -125,13 +125,13 @@ class FusedFilter(nn.Module):
         return self.filter.measurement_dim
 
     def initial_belief(self, initial_mean: Tensor, initial_cov: Tensor, batch_size: int | None = None) -> Belief:
-        """The wrapped filter's :meth:`~GaussianFilter.initial_belief`."""
+        """The wrapped filter's :meth:`~RecursiveFilter.initial_belief`."""
         return self.filter.initial_belief(initial_mean, initial_cov, batch_size)
 
     def step(
         self, belief: Belief, measurement: Tensor, mask: Tensor | None = None, controls: Controls = None
     ) -> tuple[Belief, Belief, Any]:
-        """One online step: the wrapped filter's own :meth:`~GaussianFilter.step` (engines run
+        """One online step: the wrapped filter's own :meth:`~RecursiveFilter.step` (engines run
         whole sequences)."""
         return self.filter.step(belief, measurement, mask, controls)
 
@@ -156,7 +156,7 @@ class FusedFilter(nn.Module):
         *,
         belief: Belief | None = None,
     ) -> FilterResult:
-        """Same arguments and result as :meth:`GaussianFilter.forward` of the wrapped filter."""
+        """Same arguments and result as :meth:`RecursiveFilter.forward` of the wrapped filter."""
         filt = self.filter
         z, mask3, mean0, cov0 = filt.check_inputs(measurements, initial_mean, initial_cov, mask, controls)
         if belief is None:
@@ -184,7 +184,7 @@ class FusedFilter(nn.Module):
 
 
 def fuse(
-    filt: GaussianFilter,
+    filt: RecursiveFilter,
     *,
     engine: str = "auto",
     compile: bool = True,  # noqa: A002

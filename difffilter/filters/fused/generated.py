@@ -15,7 +15,7 @@ import torch
 from torch import Tensor
 
 from ...models.base import Controls
-from ..base import Belief, FilterResult, GaussianFilter
+from ..base import Belief, FilterResult, RecursiveFilter
 from .kernel import SequenceProgram, lanes, run_sequence
 from .trace import StepLayout, fingerprint, trace_step
 
@@ -41,7 +41,7 @@ def _controls_layout(controls: Controls, dtype: torch.dtype) -> tuple[tuple[tupl
 class GeneratedEngine:
     """Runs ``filt`` through generated kernels (CPU, float32/float64)."""
 
-    def __init__(self, filt: GaussianFilter, *, threads: int | None = None) -> None:
+    def __init__(self, filt: RecursiveFilter, *, threads: int | None = None) -> None:
         self.filter = filt
         self.threads = threads
         self._programs: dict[Any, SequenceProgram] = {}

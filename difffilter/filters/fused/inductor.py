@@ -17,7 +17,7 @@ from torch import Tensor, nn
 from torch.nn.utils import parametrize
 
 from ...models.base import Controls, DynamicsModel, MeasurementModel
-from ..base import Belief, FilterResult, GaussianFilter, slice_controls
+from ..base import Belief, FilterResult, RecursiveFilter, slice_controls
 from .kernel import unreferenced
 from .step import SmallMatmulAsSum, batch_last_step, to_batch_last, transpose01
 
@@ -33,7 +33,7 @@ def _overridden(obj: nn.Module, base: type, name: str) -> bool:
 class InductorEngine:
     """Runs ``filt`` (of step kind ``kind``) with the batch-last step, compiled or eager."""
 
-    def __init__(self, filt: GaussianFilter, kind: str, *, compile: bool, compile_options: dict[str, Any], reuse_buffers: bool) -> None:  # noqa: A002
+    def __init__(self, filt: RecursiveFilter, kind: str, *, compile: bool, compile_options: dict[str, Any], reuse_buffers: bool) -> None:  # noqa: A002
         self.filter = filt
         self.kind = kind
         self.use_compile = compile

@@ -20,7 +20,7 @@ import torch
 from torch import Tensor
 
 from ...models.base import Controls
-from ..base import GaussianFilter
+from ..base import RecursiveFilter
 from ..ekf import EKF
 from ..ukf import UKF, SimplifiedUKF
 
@@ -30,7 +30,7 @@ _LOG_2PI = math.log(2.0 * math.pi)
 _MAX_CONTRACTION = 32
 
 
-def filter_kind(filt: GaussianFilter) -> str | None:
+def filter_kind(filt: RecursiveFilter) -> str | None:
     """``"sukf"``, ``"ukf"`` or ``"ekf"`` (EKF and KalmanFilter) if this step implements ``filt``'s
     equations (not a subclass with its own ``predict``/``update``, additive noise), else None."""
     kinds = ((SimplifiedUKF, "sukf"), (UKF, "ukf"), (EKF, "ekf"))
@@ -183,7 +183,7 @@ def _noise(static: Tensor | None, fn: Callable[[Tensor, Controls], Tensor], mean
 
 
 def batch_last_step(
-    filt: GaussianFilter,
+    filt: RecursiveFilter,
     kind: str,
     mean: Tensor,
     cov: Tensor,

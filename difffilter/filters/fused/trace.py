@@ -1,6 +1,6 @@
 """Trace one step of a filter (its own ``predict``/``update``) and lower it to a scalar graph.
 
-The step traced is exactly the body of :meth:`GaussianFilter.forward`'s loop: ``predict``,
+The step traced is exactly the body of :meth:`RecursiveFilter.forward`'s loop: ``predict``,
 ``update``, ``finalize_belief`` and ``record``, on a belief of batch size one.  It is traced with
 fake tensors (``make_fx``), so any Python decision on the *values* of the belief or the data
 fails the trace (and the caller falls back to another engine) instead of being frozen into the
@@ -31,7 +31,7 @@ from torch.fx.experimental.proxy_tensor import make_fx
 from torch.nn.utils.stateless import _reparametrize_module
 
 from ... import linalg
-from ..base import GaussianFilter
+from ..base import RecursiveFilter
 from .codegen import SequenceSpec, StepBody
 from .graph import LANE, UNIFORM, ScalarGraph, UnsupportedOp
 from .lower import lower
@@ -140,8 +140,8 @@ def _unflatten_controls(layout: StepLayout, flat: list[Tensor]) -> Any:
     return {k: v for (k, _, _), v in zip(layout.controls, vals, strict=True)}
 
 
-def _step_function(filt: GaussianFilter, layout: StepLayout, keys: list[str], trained: list[tuple[str, Tensor]], seen: dict[str, Any]) -> Any:
-    """The loop body of ``GaussianFilter.forward`` on flat inputs; records the keys it produces in ``seen``."""
+def _step_function(filt: RecursiveFilter, layout: StepLayout, keys: list[str], trained: list[tuple[str, Tensor]], seen: dict[str, Any]) -> Any:
+    """The loop body of ``RecursiveFilter.forward`` on flat inputs; records the keys it produces in ``seen``."""
     nb = len(keys)
     nc = len(layout.controls) if layout.controls else 0
 
@@ -169,7 +169,7 @@ def _step_function(filt: GaussianFilter, layout: StepLayout, keys: list[str], tr
     return step
 
 
-def _trace(filt: GaussianFilter, layout: StepLayout, belief: dict[str, Tensor], trained: list[tuple[str, Tensor]]) -> tuple[Any, dict[str, Any]]:
+def _trace(filt: RecursiveFilter, layout: StepLayout, belief: dict[str, Tensor], trained: list[tuple[str, Tensor]]) -> tuple[Any, dict[str, Any]]:
     """``(graph module, {"post": eager post-step belief, "records": keys})`` of one step from ``belief``."""
     keys = sorted(belief)
     seen: dict[str, Any] = {}
@@ -199,7 +199,7 @@ def _trace(filt: GaussianFilter, layout: StepLayout, belief: dict[str, Tensor], 
     return gm, eager
 
 
-def trace_step(filt: GaussianFilter, layout: StepLayout, example_belief: dict[str, Tensor]) -> TracedStep:
+def trace_step(filt: RecursiveFilter, layout: StepLayout, example_belief: dict[str, Tensor]) -> TracedStep:
     """Trace ``filt``'s step for ``layout`` (the belief before the first step) and lower it.
 
     If the first step adds belief entries (a filter's memory of the previous step), a second

@@ -1,0 +1,218 @@
+"""The contract every difffilter estimator satisfies: :class:`Filter` and its :class:`FilterResult`.
+
+A :class:`Filter` is an ``nn.Module`` whose ``forward`` maps measurements ``[B, T, m]`` and the
+belief before the first measurement to a :class:`FilterResult` (posterior and prior moments per
+step, innovation log-likelihoods, the final belief).  Recursive filters
+(:class:`~difffilter.filters.base.RecursiveFilter`: KF, EKF, UKF...), mixers (IMM, Blend) and
+whole-trajectory baselines of the papers all implement it, so the learning stack
+(:class:`~difffilter.learn.learner.FilterLearner`, ``run_experiment``) accepts any of them.
+
+Belief carry-over: ``result.final_belief`` is a ``dict`` of tensors that
+``forward(next_measurements, belief=result.final_belief)`` continues from (truncated
+back-propagation, online use).  Estimators without a recursion set ``carries_belief = False``
+and reject ``belief=``.
+
+Shared input rules (:meth:`Filter.check_inputs`): ``initial_mean [n]|[B, n]`` and
+``initial_cov [n, n]|[B, n, n]`` broadcast over the batch; ``mask [B, T]|[B, T, m]`` False marks
+a missing value, which may be NaN and is replaced by zero before any arithmetic; bad input
+raises ``TypeError``/``ValueError`` naming the argument and the expected shape.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import ClassVar
+
+import torch
+from torch import Tensor, nn
+
+from ..linalg import symmetrize
+from ..models.base import Controls, StateSpaceModel
+
+__all__ = ["Belief", "Filter", "FilterResult"]
+
+Belief = dict[str, Tensor]
+
+
+@dataclass
+class FilterResult:
+    """Outputs of a filter run over ``T`` steps (batch-first).
+
+    Attributes:
+        mean, cov: posterior after the update at every step, ``[B, T, n]``, ``[B, T, n, n]``.
+        prior_mean, prior_cov: prior after the prediction at every step.
+        log_likelihood: ``[B, T]`` innovation log-likelihood per step (0 for a missing step).
+        nis: ``[B, T]`` normalised innovation squared; ``num_observed [B, T]`` its degrees of
+            freedom (observed measurement components).
+        final_belief: the full belief after the last step, to continue filtering (TBPTT).
+        extras: filter-specific per-step outputs (IMM: ``mode_probs [B, T, M]``...), also
+            reachable as attributes (``result.mode_probs``).
+    """
+
+    mean: Tensor
+    cov: Tensor
+    prior_mean: Tensor
+    prior_cov: Tensor
+    log_likelihood: Tensor
+    nis: Tensor
+    num_observed: Tensor
+    final_belief: Belief
+    extras: dict[str, Tensor] = field(default_factory=dict)
+
+    def __getattr__(self, name: str) -> Tensor:
+        extras = self.__dict__.get("extras", {})
+        if name in extras:
+            return extras[name]
+        raise AttributeError(name)
+
+    @property
+    def total_log_likelihood(self) -> Tensor:
+        """``[B]`` sum of the per-step log-likelihoods."""
+        return self.log_likelihood.sum(-1)
+
+
+class Filter(nn.Module):
+    """Base of every estimator: ``forward(measurements, initial_mean, initial_cov, mask=None,
+    controls=None, *, belief=None) -> FilterResult`` (see the module docstring).
+
+    Subclasses implement :meth:`forward`; they hold parameters, never beliefs, so ``forward`` is a
+    pure function of its inputs.
+
+    Args:
+        model: the state-space model a single-model filter works on (registered as ``model``;
+            its dimensions are the filter's).  Filters that combine other filters (the IMM)
+            pass none and define ``state_dim`` and ``measurement_dim`` themselves.
+    """
+
+    #: False for estimators that work on whole trajectories and cannot continue from a belief.
+    carries_belief: ClassVar[bool] = True
+
+    def __init__(self, model: StateSpaceModel | None = None) -> None:
+        super().__init__()
+        if model is None:
+            return
+        if not isinstance(model, StateSpaceModel):
+            raise TypeError(f"model must be a difffilter StateSpaceModel, got {type(model).__name__}")
+        self.model = model
+
+    @property
+    def state_dim(self) -> int:
+        return self.model.state_dim
+
+    @property
+    def measurement_dim(self) -> int:
+        return self.model.measurement_dim
+
+    def forward(
+        self,
+        measurements: Tensor,
+        initial_mean: Tensor | None = None,
+        initial_cov: Tensor | None = None,
+        mask: Tensor | None = None,
+        controls: Controls = None,
+        *,
+        belief: Belief | None = None,
+    ) -> FilterResult:  # pragma: no cover - abstract
+        """Filter ``measurements [B, T, m]`` from ``(initial_mean, initial_cov)`` or ``belief``."""
+        raise NotImplementedError
+
+    # -- validation shared by every filter --------------------------------------------------
+    def _param_dtype(self) -> torch.dtype | None:
+        for p in self.parameters():
+            if p.is_floating_point():
+                return p.dtype
+        for b in self.buffers():
+            if b.is_floating_point():
+                return b.dtype
+        return None
+
+    def check_inputs(
+        self, measurements: Tensor, initial_mean: Tensor | None, initial_cov: Tensor | None, mask: Tensor | None, controls: Controls
+    ) -> tuple[Tensor, Tensor | None, Tensor | None, Tensor | None]:
+        """Validate shapes, dtypes and values; return ``(z, mask [B,T,m] or None, mean, cov)``."""
+        n, m = self.state_dim, self.measurement_dim
+        if not isinstance(measurements, Tensor):
+            raise TypeError(f"measurements must be a torch.Tensor [B, T, {m}], got {type(measurements).__name__}")
+        if not measurements.is_floating_point():
+            raise TypeError(f"measurements must be floating point, got {measurements.dtype}")
+        if measurements.ndim != 3 or measurements.shape[-1] != m:
+            raise ValueError(f"measurements must have shape [B, T, {m}], got {tuple(measurements.shape)}")
+        bsz, steps = measurements.shape[:2]
+        dtype = measurements.dtype
+        pdt = self._param_dtype()
+        if pdt is not None and pdt != dtype:
+            raise TypeError(f"measurements dtype {dtype} differs from the filter's parameter dtype {pdt}; convert one with .to()")
+        if mask is not None:
+            if not isinstance(mask, Tensor):
+                raise TypeError("mask must be a bool tensor [B, T] or [B, T, m]")
+            if mask.shape == (bsz, steps):
+                mask = mask[..., None].expand(bsz, steps, m)
+            elif mask.shape != (bsz, steps, m):
+                raise ValueError(
+                    f"mask must have shape [B, T] = [{bsz}, {steps}] or [B, T, m] = [{bsz}, {steps}, {m}], got {tuple(mask.shape)}"
+                )
+            if mask.dtype != torch.bool:
+                if mask.is_floating_point() and not bool(((mask == 0) | (mask == 1)).all()):
+                    raise ValueError("mask must be boolean (True = observed)")
+                mask = mask.to(torch.bool)
+        finite = torch.isfinite(measurements)
+        bad = ~finite if mask is None else (~finite & mask)
+        if bool(bad.any()):
+            idx = tuple(int(i) for i in bad.nonzero()[0])
+            raise ValueError(
+                f"measurements contain a non-finite value at [b, t, i] = {list(idx)} that is not masked; "
+                "pass mask=False there to mark it missing"
+            )
+        if mask is not None:
+            measurements = torch.where(mask, measurements, torch.zeros((), dtype=dtype, device=measurements.device))
+        if initial_mean is not None:
+            initial_mean = self._check_mean(initial_mean, bsz, n, dtype)
+        if initial_cov is not None:
+            initial_cov = self._check_cov(initial_cov, bsz, n, dtype)
+        self._check_controls(controls, bsz, steps)
+        return measurements, mask, initial_mean, initial_cov
+
+    @staticmethod
+    def _check_mean(mean: Tensor, bsz: int, n: int, dtype: torch.dtype) -> Tensor:
+        if not isinstance(mean, Tensor):
+            raise TypeError(f"initial_mean must be a torch.Tensor [{n}] or [B, {n}]")
+        if mean.dtype != dtype:
+            raise TypeError(f"initial_mean dtype {mean.dtype} differs from measurements dtype {dtype}")
+        if mean.shape == (n,):
+            mean = mean.expand(bsz, n)
+        elif mean.shape != (bsz, n):
+            raise ValueError(f"initial_mean must have shape [{n}] or [B, {n}] = [{bsz}, {n}], got {tuple(mean.shape)}")
+        if not bool(torch.isfinite(mean).all()):
+            raise ValueError("initial_mean contains non-finite values")
+        return mean
+
+    @staticmethod
+    def _check_cov(cov: Tensor, bsz: int, n: int, dtype: torch.dtype) -> Tensor:
+        if not isinstance(cov, Tensor):
+            raise TypeError(f"initial_cov must be a torch.Tensor [{n}, {n}] or [B, {n}, {n}]")
+        if cov.dtype != dtype:
+            raise TypeError(f"initial_cov dtype {cov.dtype} differs from measurements dtype {dtype}")
+        if cov.shape == (n, n):
+            cov = cov.expand(bsz, n, n)
+        elif cov.shape != (bsz, n, n):
+            raise ValueError(f"initial_cov must have shape [{n}, {n}] or [B, {n}, {n}] = [{bsz}, {n}, {n}], got {tuple(cov.shape)}")
+        if not bool(torch.isfinite(cov).all()):
+            raise ValueError("initial_cov contains non-finite values")
+        scale = cov.abs().flatten(-2).amax(-1).clamp_min(torch.finfo(dtype).tiny)[..., None, None]
+        if not bool(((cov - cov.mT).abs() <= 1e-6 * scale).all()):
+            raise ValueError("initial_cov must be symmetric")
+        info = torch.linalg.cholesky_ex(symmetrize(cov))[1]
+        if bool((info != 0).any()):
+            raise ValueError(f"initial_cov must be positive definite (fails for batch elements {info.nonzero().flatten().tolist()[:10]})")
+        return cov
+
+    @staticmethod
+    def _check_controls(controls: Controls, bsz: int, steps: int) -> None:
+        if controls is None:
+            return
+        items = [("controls", controls)] if isinstance(controls, Tensor) else [(f"controls[{k!r}]", v) for k, v in dict(controls).items()]
+        for name, v in items:
+            if not isinstance(v, Tensor):
+                raise TypeError(f"{name} must be a tensor [B, T, ...]")
+            if v.ndim < 2 or v.shape[0] != bsz or v.shape[1] != steps:
+                raise ValueError(f"{name} must have shape [B, T, ...] = [{bsz}, {steps}, ...], got {tuple(v.shape)}")

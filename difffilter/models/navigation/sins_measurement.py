@@ -1,0 +1,141 @@
+"""The measurement half of p003's GPS/SINS ultra-tight model: pseudorange and pseudorange-rate
+differences INS - GPS (state layout and inputs: :mod:`difffilter.models.navigation.sins`)."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from ... import geometry as geo
+from ...params import register_covariance
+from ..base import Controls, MeasurementModel
+from .sins import _get, _position_scale
+
+__all__ = ["SinsPseudorangeMeasurement"]
+
+
+class SinsPseudorangeMeasurement(MeasurementModel):
+    """Pseudorange and pseudorange-rate differences INS - GPS for ``K`` satellites (p003).
+
+    Nonlinear form (default): with ``p_I = ecef(llh_I)``, ``d = ecef(llh_I) - ecef(llh_I - dllh)``
+    (exact, :func:`~difffilter.geometry.ecef_displacement`), ``a_j = p_I - s_j``,
+    ``b_j = a_j - d = p_true - s_j``, ``w_I = C_n^e(llh_I) v_I - sdot_j``,
+    ``w_G = C_n^e(llh_I - dllh) (v_I - dv) - sdot_j``:
+
+    .. math::
+        \\delta\\rho_j = \\|a_j\\| - \\|b_j\\| - dt_u, \\qquad
+        \\delta\\dot\\rho_j = \\frac{a_j^T w_I}{\\|a_j\\|} - \\frac{b_j^T w_G}{\\|b_j\\|} - dt_{ru}
+
+    (``||a|| - ||b||`` is evaluated as ``(2 a.d - |d|^2) / (||a|| + ||b||)``: no cancellation).
+    ``linearized=True`` gives the paper's ``e_j^T J_geo dllh - dt_u`` and ``e_j^T C_n^e dv - dt_ru``
+    with ``e_j = a_j/||a_j||`` (then :meth:`matrix` returns ``H``).  Output
+    ``[drho_1..K, drhodot_1..K]`` (or only ranges with ``rates=False``).  Analytic Jacobian.
+
+    Learnable: ``R`` (default ``"scalar"`` structure on ``diag(sigma_range^2, sigma_rate^2)``).
+    """
+
+    def __init__(
+        self,
+        *,
+        num_satellites: int,
+        rates: bool = True,
+        linearized: bool = False,
+        sigma_range: float = 3.0,
+        sigma_rate: float = 0.05,
+        R: Tensor | None = None,
+        R_structure: str = "scalar",
+        position_in_metres: bool = False,
+        dtype: torch.dtype = torch.float64,
+    ) -> None:
+        super().__init__()
+        self.num_satellites, self.rates, self.linearized = int(num_satellites), rates, linearized
+        self.position_in_metres = position_in_metres
+        self.measurement_dim = self.num_satellites * (2 if rates else 1)
+        if R is None:
+            var = [sigma_range**2] * self.num_satellites + ([sigma_rate**2] * self.num_satellites if rates else [])
+            R = torch.diag(torch.tensor(var, dtype=dtype))
+        register_covariance(self, "R", R, R_structure)
+
+    def _errors(self, x: Tensor, u: Controls) -> tuple[Tensor, Tensor, Tensor]:
+        llh = _get(u, "llh")
+        pos = x[..., 0:3]
+        if self.position_in_metres:
+            pos = pos / _position_scale(llh)
+        return llh, pos, x[..., 3:6]
+
+    def forward(self, x: Tensor, u: Controls = None) -> Tensor:
+        llh, dllh, dv = self._errors(x, u)
+        s = _get(u, "sat_pos")
+        a = geo.geodetic_to_ecef(llh)[..., None, :] - s
+        na = torch.linalg.vector_norm(a, dim=-1)
+        ea = a / na[..., None]
+        if self.linearized:
+            d = (geo.geodetic_jacobian(llh) @ dllh[..., None])[..., 0]
+            rho = (ea * d[..., None, :]).sum(-1)
+        else:
+            d = geo.ecef_displacement(llh, dllh)[..., None, :]
+            b = a - d
+            nb = torch.linalg.vector_norm(b, dim=-1)
+            rho = (2.0 * (a * d).sum(-1) - (d * d).sum(-1)) / (na + nb)
+        rho = rho - x[..., 18, None]
+        if not self.rates:
+            return rho
+        if self.linearized:
+            dve = (dv[..., None, :] @ geo.enu_rotation(llh[..., 0], llh[..., 1]))[..., 0, :]
+            rate = (ea * dve[..., None, :]).sum(-1)
+        else:
+            vel = _get(u, "vel")
+            sv = _get(u, "sat_vel")
+            c_i = geo.enu_rotation(llh[..., 0], llh[..., 1])
+            true_llh = llh - dllh
+            c_t = geo.enu_rotation(true_llh[..., 0], true_llh[..., 1])
+            w_i = (vel[..., None, :] @ c_i)[..., 0, None, :] - sv
+            w_g = ((vel - dv)[..., None, :] @ c_t)[..., 0, None, :] - sv
+            rate = (ea * w_i).sum(-1) - (b * w_g).sum(-1) / nb
+        return torch.cat([rho, rate - x[..., 19, None]], -1)
+
+    def jacobian(self, x: Tensor, u: Controls = None) -> Tensor:
+        llh, dllh, dv = self._errors(x, u)
+        s = _get(u, "sat_pos")
+        k = self.num_satellites
+        a = geo.geodetic_to_ecef(llh)[..., None, :] - s
+        ea = a / torch.linalg.vector_norm(a, dim=-1, keepdim=True)
+        true_llh = llh if self.linearized else llh - dllh
+        jgeo = geo.geodetic_jacobian(true_llh)  # [..., 3, 3]
+        if self.linearized:
+            e = ea
+        else:
+            b = a - geo.ecef_displacement(llh, dllh)[..., None, :]
+            nb = torch.linalg.vector_norm(b, dim=-1, keepdim=True)
+            e = b / nb
+        batch = torch.broadcast_shapes(e.shape[:-2], x.shape[:-1])
+        jac = x.new_zeros(*batch, self.measurement_dim, 20)
+        jac[..., :k, 0:3] = e @ jgeo
+        jac[..., :k, 18] = -1.0
+        if self.rates:
+            c_t = geo.enu_rotation(true_llh[..., 0], true_llh[..., 1])  # rows E, N, U in ECEF
+            jac[..., k:, 3:6] = e @ c_t.mT
+            jac[..., k:, 19] = -1.0
+            if not self.linearized:
+                vt = _get(u, "vel") - dv
+                w_g = (vt[..., None, :] @ c_t)[..., 0, None, :] - _get(u, "sat_vel")
+                proj = (w_g - e * (e * w_g).sum(-1, keepdim=True)) / nb
+                east, north, up = c_t.unbind(-2)
+                lat = true_llh[..., 0]
+                sl, cl = torch.sin(lat)[..., None], torch.cos(lat)[..., None]
+                ve, vn, vu = (vt[..., i, None] for i in range(3))
+                dvec_dlat = -vn * up + vu * north
+                dvec_dlon = ve * (sl * north - cl * up) - vn * sl * east + vu * cl * east
+                rot_part = torch.stack(
+                    [(e * dvec_dlat[..., None, :]).sum(-1), (e * dvec_dlon[..., None, :]).sum(-1), torch.zeros_like(e[..., 0])], -1
+                )
+                jac[..., k:, 0:3] = proj @ jgeo + rot_part
+        if self.position_in_metres:
+            jac[..., 0:3] = jac[..., 0:3] / _position_scale(llh)[..., None, :]
+        return jac
+
+    def matrix(self, u: Controls = None) -> Tensor | None:
+        if not self.linearized:
+            return None
+        x = _get(u, "llh").new_zeros(*_get(u, "llh").shape[:-1], 20)
+        return self.jacobian(x, u)

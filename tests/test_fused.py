@@ -13,7 +13,9 @@ import pytest
 import torch
 from torch import Tensor
 
+from difffilter.bench.cases import builtin_case
 from difffilter.bench.gpsdr import make_gpsdr_model, simulate_gpsdr
+from difffilter.bench.runner import BenchSettings
 from difffilter.filters import (
     EKF,
     RCUKF,
@@ -289,15 +291,13 @@ class _no_fallback_warning:  # noqa: N801 - used as a context manager
 @pytest.mark.slow
 @pytest.mark.parametrize("kind", ["kf", "ekf", "ukf"])
 def test_compiled_benchmark_model_matches_reference(kind: str) -> None:
-    from difffilter.bench.runner import BenchSettings, _inputs, make_difffilter
-
-    data = simulate_gpsdr(batch_size=16, steps=40, seed=2)
-    filt = make_difffilter(kind, F64, BenchSettings())
-    z, m0, p0 = _inputs(kind, data)
+    """The inductor and generated engines on the benchmark model (the inductor build takes minutes)."""
+    case = builtin_case(kind, F64, simulate_gpsdr(batch_size=16, steps=40, seed=2), BenchSettings())
+    filt, z, m0, p0 = case.filter, case.measurements, case.initial_mean, case.initial_cov
     with torch.no_grad():
         ref = filt(z, m0, p0)
-        out = FusedFilter(filt)(z, m0, p0)
-    _assert_same(out, ref, rtol=1e-9)
+        for engine in ("inductor", "generated"):
+            _assert_same(FusedFilter(filt, engine=engine)(z, m0, p0), ref, rtol=1e-9)
 
 
 def test_gpsdr_model_fused_eager_equals_reference() -> None:

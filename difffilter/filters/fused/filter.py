@@ -100,6 +100,8 @@ class FusedFilter(nn.Module):
             opts.setdefault("cpp_wrapper", bool(cpp_wrapper))
             self.compile_options["options"] = opts
         self.reuse_buffers = bool(reuse_buffers)
+        #: the engine that ran the last call: "generated", "inductor", "eager" or "reference"
+        self.last_engine: str | None = None
         self._generated: GeneratedEngine | None = None
         self._generated_failed: str | None = None
         self._inductor: InductorEngine | None = None
@@ -173,13 +175,17 @@ class FusedFilter(nn.Module):
             engine = "inductor"
         if engine in ("auto", "generated") and self._generated_failed is None:
             try:
-                return self.generated_engine()(z, mask3, belief, controls)
+                out = self.generated_engine()(z, mask3, belief, controls)
+                self.last_engine = "generated"
+                return out
             except (UnsupportedOp, CompileError) as exc:
                 if engine == "generated":
                     raise
                 self._fallback(str(exc))
         if self._inductor is not None:
+            self.last_engine = "inductor" if self._inductor.use_compile and not self._inductor.compile_failed else "eager"
             return self._inductor(z, mask3, {"mean": belief["mean"], "cov": belief["cov"]}, controls)
+        self.last_engine = "reference"
         return filt(z, mask=mask3, controls=controls, belief=belief)
 
 

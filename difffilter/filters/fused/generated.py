@@ -84,8 +84,8 @@ class GeneratedEngine:
         outs = run_sequence(prog, state0, step_in, flat_params, threads=threads)
 
         def field(name: str) -> Tensor:
-            gi, shape = prog.traced.fields[name]
-            out = outs[gi][:, :, :bsz].reshape(steps, *shape, bsz).movedim(-1, 0)
+            gi, offset, shape = prog.traced.fields[name]
+            out = outs[gi][:, offset : offset + math.prod(shape), :bsz].reshape(steps, *shape, bsz).movedim(-1, 0)
             kind = prog.traced.dtypes.get(name, dtype)
             return out if kind == dtype else out.to(kind)
 

@@ -74,7 +74,7 @@ class SequenceProgram:
         self._kept: list[Tensor] = []
         ll = traced.fields.get("log_likelihood")
         #: the reverse kernel of a training step: gradient of the log-likelihood only
-        self.likely_backward = BackwardSpec((ll[0],), False) if ll is not None else None
+        self.likely_backward = BackwardSpec((ll[0],), False) if ll is not None else None  # the group holding it
 
     def _build_backward(self, which: BackwardSpec) -> Any:
         with self._source_lock:  # the graph grows while the reverse sweep is written

@@ -435,20 +435,16 @@ def _lower_op(L: Lowering, name: str, args: tuple, kw: dict[str, Any], node: fx.
         x[..., ~keep] = g.const(0.0)
         return x
     if name in ("index",):
-        x = L.arr(a0)
-        idx = []
-        for i in args[1]:
-            if i is None:
-                idx.append(slice(None))
-            elif isinstance(i, np.ndarray):
-                vals = [g.value[v] for v in i.reshape(-1)]
-                if any(g.level[v] != 0 for v in i.reshape(-1)):
-                    raise UnsupportedOp("indexing with a data-dependent index")
-                arr = np.array(vals).reshape(i.shape)
-                idx.append(arr.astype(bool) if arr.dtype == bool else arr.astype(np.int64))
-            else:
-                raise UnsupportedOp("index with a non-constant index")
-        return x[tuple(idx)]
+        return L.arr(a0)[_const_index(g, args[1])]
+    if name == "index_put":
+        x = L.arr(a0).copy()
+        accumulate = args[3] if len(args) > 3 else kw.get("accumulate", False)
+        pos = np.arange(x.size).reshape(x.shape)[_const_index(g, args[1])]
+        vals = np.broadcast_to(L.arr(args[2]), pos.shape)
+        flat = x.reshape(-1)
+        for p_, v in zip(pos.reshape(-1).tolist(), vals.reshape(-1).tolist(), strict=True):
+            flat[p_] = g.binary("add", flat[p_], v) if accumulate else v
+        return flat.reshape(x.shape)
     if name == "index_select":
         x = L.arr(a0)
         ids = [int(g.value[v]) for v in L.arr(args[2]).reshape(-1)]
@@ -483,6 +479,14 @@ def _lower_op(L: Lowering, name: str, args: tuple, kw: dict[str, Any], node: fx.
             count = x.size // max(out.size, 1)
             out = L.binary("div", out, float(count))
         return out
+    if name == "linalg_vector_norm":
+        order = args[1] if len(args) > 1 else kw.get("ord", 2)
+        dims = args[2] if len(args) > 2 else kw.get("dim")
+        keep = args[3] if len(args) > 3 else kw.get("keepdim", False)
+        if order != 2:
+            raise UnsupportedOp(f"vector norm of order {order}")
+        x = L.fl(a0)
+        return L.unary("sqrt", L.reduce("add", L.binary("mul", x, x), dims, keep))
     if name == "logsumexp":
         x = L.fl(a0)
         dims = args[1]
@@ -547,6 +551,8 @@ def _lower_op(L: Lowering, name: str, args: tuple, kw: dict[str, Any], node: fx.
             low = np.swapaxes(low, -1, -2)
         y = L.solve_triangular(low, L.fl(a0), upper=False, left=True, unit=False)
         return L.solve_triangular(np.swapaxes(low, -1, -2), y, upper=True, left=True, unit=False)
+    if name == "fill":
+        return _filled(L, L.arr(a0).shape, args[1], node.meta["val"].dtype)
     if name == "_efficientzerotensor":
         return _filled(L, a0, 0.0, kw.get("dtype"))
     if name in ("zeros", "ones", "full", "empty", "new_zeros", "new_ones", "new_full", "new_empty", "scalar_tensor"):
@@ -574,6 +580,20 @@ def _lower_op(L: Lowering, name: str, args: tuple, kw: dict[str, Any], node: fx.
                 out[i, j] = g.const(1.0 if i == j else 0.0)
         return out
     raise UnsupportedOp(f"aten.{name}")
+
+
+def _const_index(g: ScalarGraph, indices: Any) -> tuple[Any, ...]:
+    """A NumPy index from ATen's list of optional index tensors (constants only)."""
+    idx: list[Any] = []
+    for i in indices:
+        if i is None:
+            idx.append(slice(None))
+            continue
+        if not isinstance(i, np.ndarray) or any(g.level[v] != 0 for v in i.reshape(-1)):
+            raise UnsupportedOp("indexing with a data-dependent index")
+        arr = np.array([g.value[v] for v in i.reshape(-1)]).reshape(i.shape)
+        idx.append(arr.astype(bool) if arr.dtype == bool else arr.astype(np.int64))
+    return tuple(idx)
 
 
 def _filled(L: Lowering, shape: Any, value: Any, dtype: torch.dtype | None) -> Arr:

@@ -39,6 +39,10 @@ from .lower import lower
 __all__ = ["StepLayout", "TracedStep", "fingerprint", "trace_step"]
 
 _TRACE_LOCK = threading.Lock()
+#: largest step (scalar operations of the forward) the generated engine compiles; the code is fully
+#: unrolled, and its reverse sweep is ~3x larger (p003's 20-state IMM bank: 171k operations,
+#: a 38 s forward compile at -O1 and a reverse kernel of several minutes)
+MAX_NODES = 100_000
 _RESULT_KEYS = ("prior_mean", "prior_cov", "log_likelihood", "nis", "num_observed")
 
 
@@ -66,15 +70,15 @@ class StepLayout:
 class TracedStep:
     """A lowered step: the kernel specification and how outputs map to result fields.
 
-    ``fields[name] = (group, shape)``: the output group holding field ``name`` (``mean``,
-    ``cov``, ``prior_mean``, ..., every belief key and every recorded key) and its
+    ``fields[name] = (group, offset, shape)``: where field ``name`` (``mean``, ``cov``,
+    ``prior_mean``, ..., every belief key and every recorded key) is stored, and its
     per-trajectory shape.  ``layout.belief`` is the belief before the first step.
     """
 
     spec: SequenceSpec
     layout: StepLayout
     params: list[tuple[str, Tensor]]
-    fields: dict[str, tuple[int, tuple[int, ...]]]
+    fields: dict[str, tuple[int, int, tuple[int, ...]]]
     record_keys: tuple[str, ...]
     belief_keys: tuple[str, ...]  # entries of the belief after a step (``final_belief``)
     dtypes: dict[str, torch.dtype]  # of the belief entries and recorded values (others: the kernel's)
@@ -252,40 +256,51 @@ def _lower_traced(
         return flat(state), flat(step_in), lower(gm, g, lay.dtype, state + step_in + params)
 
     state, step_in, outs = lowered(*steady)
+    if len(g) > MAX_NODES:
+        raise UnsupportedOp(f"the step is too large for the generated engine ({len(g)} scalar operations, limit {MAX_NODES})")
     groups, fields = _groups(names, outs)
-    slots = [(fields[k][0], i) for k in keys for i in range(len(groups[fields[k][0]]))]
+    slots = [(fields[k][0], fields[k][1] + i) for k in keys for i in range(math.prod(fields[k][2]))]
     body = StepBody(state, step_in, groups, slots)
     first_body = None
     if first is not None:
         state0, step_in0, outs0 = lowered(*first)
         by_name = {name: [int(x) for x in np.asarray(o, dtype=object).reshape(-1)] for name, o in zip(names, outs0, strict=True)}
-        groups0: list[list[int] | None] = [None] * len(groups)
-        for name, (gi, _) in fields.items():
-            nodes = by_name[name]
-            if len(nodes) != len(groups[gi]) or groups0[gi] not in (None, nodes):
-                raise UnsupportedOp("the first step's outputs differ in layout from the later steps'")
-            groups0[gi] = nodes
+        groups0: list[list[int | None]] = [[None] * len(grp) for grp in groups]
+        for name, (gi, off, _) in fields.items():
+            for i, node in enumerate(by_name[name]):
+                if groups0[gi][off + i] not in (None, node):
+                    raise UnsupportedOp("the first step's outputs differ in layout from the later steps'")
+                groups0[gi][off + i] = node
+        if any(n is None for grp in groups0 for n in grp):
+            raise UnsupportedOp("the first step's outputs differ in layout from the later steps'")
         first_body = StepBody(state0, step_in0, groups0, slots)  # type: ignore[arg-type]
     spec = SequenceSpec(g, layout.dtype, flat(params), body, first_body)
     return TracedStep(spec, layout, trained, fields, tuple(record_keys), keys, dtypes)
 
 
-def _groups(names: list[str], outs: list[Any]) -> tuple[list[list[int]], dict[str, tuple[int, tuple[int, ...]]]]:
-    """Output groups (equal outputs share one) and ``fields[name] = (group, shape)``."""
-    groups: list[list[int]] = []
-    fields: dict[str, tuple[int, tuple[int, ...]]] = {}
-    seen: dict[tuple[int, ...], int] = {}
+def _groups(names: list[str], outs: list[Any]) -> tuple[list[list[int]], dict[str, tuple[int, int, tuple[int, ...]]]]:
+    """Output groups and ``fields[name] = (group, offset, shape)``.  An output whose elements
+    appear, in order, inside an earlier (larger) group is stored once: e.g. an IMM's per-mode
+    covariances are a slice of its stacked mode covariances."""
+    arrays = {}
     for name, arr in zip(names, outs, strict=True):
         arr = np.asarray(arr, dtype=object)
         if arr.ndim == 0 or arr.shape[0] != 1:
             raise UnsupportedOp(f"step output {name!r} is not batched (shape {arr.shape})")
-        nodes = tuple(int(x) for x in arr.reshape(-1))
-        if name in fields:
-            continue
-        gi = seen.get(nodes)
-        if gi is None:
-            gi = len(groups)
-            groups.append(list(nodes))
-            seen[nodes] = gi
-        fields[name] = (gi, tuple(arr.shape[1:]))
+        arrays.setdefault(name, arr)
+    groups: list[list[int]] = []
+    where: dict[int, list[tuple[int, int]]] = {}  # node -> [(group, position)]
+    fields: dict[str, tuple[int, int, tuple[int, ...]]] = {}
+    for name in sorted(arrays, key=lambda k: -arrays[k].size):
+        arr = arrays[name]
+        nodes = [int(x) for x in arr.reshape(-1)]
+        found = next(
+            ((gi, pos) for gi, pos in where.get(nodes[0], []) if groups[gi][pos : pos + len(nodes)] == nodes), None
+        ) if nodes else None  # fmt: skip
+        if found is None:
+            found = (len(groups), 0)
+            groups.append(nodes)
+            for pos, n in enumerate(nodes):
+                where.setdefault(n, []).append((found[0], pos))
+        fields[name] = (found[0], found[1], tuple(arr.shape[1:]))
     return groups, fields

@@ -98,6 +98,8 @@ class GeneratedEngine:
             log_likelihood=field("log_likelihood"),
             nis=field("nis"),
             num_observed=field("num_observed"),
-            final_belief={k: field(k)[:, -1] for k in prog.traced.belief_keys},
+            # copies: a view would keep the whole output buffers alive (and unusable for the next
+            # call's outputs) while a truncated-BPTT loop carries the belief into its next window
+            final_belief={k: field(k)[:, -1].clone() for k in prog.traced.belief_keys},
             extras=extras,
         )

@@ -9,8 +9,9 @@ same log-likelihood (dynamax's UKF ``alpha, beta, kappa`` follow the same scaled
 Forward calls return dynamax's default posterior (filtered and predicted means/covariances plus
 the marginal log-likelihood), the counterpart of difffilter's ``FilterResult``;
 training calls are ``jax.value_and_grad`` of the summed marginal log-likelihood w.r.t.
-``log diag R`` (``Q`` fixed), difffilter's training step.  float64 runs enable ``jax_enable_x64``; float32 runs disable it so that no constant
-silently promotes the computation to float64.
+``log diag R`` (``Q`` fixed), difffilter's training step.  float64 runs enable
+``jax_enable_x64``; float32 runs disable it so that no constant silently promotes the
+computation to float64.
 """
 
 from __future__ import annotations

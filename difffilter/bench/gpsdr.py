@@ -188,7 +188,11 @@ def cv_matrices(c: GpsDrConstants, dtype: torch.dtype = torch.float64) -> tuple[
 
 
 def make_cv_model(
-    *, dtype: torch.dtype = torch.float64, structure: str = "full", Q_structure: str | None = None, R_structure: str | None = None  # noqa: N803
+    *,
+    dtype: torch.dtype = torch.float64,
+    structure: str = "full",
+    Q_structure: str | None = None,
+    R_structure: str | None = None,  # noqa: N803
 ) -> LinearModel:
     """Linear CV model on the GPS positions (the Kalman-filter case)."""
     f, h, q, r = cv_matrices(gpsdr_constants(), dtype)

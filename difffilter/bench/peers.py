@@ -67,7 +67,12 @@ class PeerRunner:
         if kind not in self.filterpy_rate:
             ntraj, steps = min(s.filterpy_trajectories, batch), min(s.filterpy_steps, s.steps)
             data = self.bench.data(torch.float64, max(ntraj, 1), steps)
-            kw: dict[str, Any] = {"ukf_alpha": s.ukf_alpha, "ukf_beta": s.ukf_beta, "ukf_kappa": s.ukf_kappa, "imm_q_scales": tuple(s.imm_q_scales)}
+            kw: dict[str, Any] = {
+                "ukf_alpha": s.ukf_alpha,
+                "ukf_beta": s.ukf_beta,
+                "ukf_kappa": s.ukf_kappa,
+                "imm_q_scales": tuple(s.imm_q_scales),
+            }
             if kind == "imm":
                 k = len(s.imm_q_scales)
                 off = (1.0 - s.imm_stay_prob) / max(k - 1, 1)

@@ -52,7 +52,14 @@ def summarize_targets(report: BenchReport, *, batch: int = 256, dtype: str = "fl
     out: list[dict[str, Any]] = []
 
     def add(name: str, value: float | None, target: str, ok: bool | None) -> None:
-        out.append({"target": name, "measured": math.nan if value is None else value, "goal": target, "met": "n/a" if ok is None else ("yes" if ok else "NO")})
+        out.append(
+            {
+                "target": name,
+                "measured": math.nan if value is None else value,
+                "goal": target,
+                "met": "n/a" if ok is None else ("yes" if ok else "NO"),
+            }
+        )
 
     def ratio(kind: str, mode: str, b: int, peer: str = "dynamax") -> float | None:
         r = _find(rows, filter=kind, library=peer, dtype=dtype, B=b, mode=mode)
@@ -89,9 +96,10 @@ def summary_table(report: BenchReport) -> list[dict[str, Any]]:
     out = []
     for kind, dname, b, mode in keys:
         got = {r["library"]: r for r in report.rows if (r["filter"], r["dtype"], r["B"], r["mode"]) == (kind, dname, b, mode)}
+        rates = {lib: r["steps_per_s"] for lib, r in got.items()}
 
-        def rate(lib: str) -> float:
-            return got[lib]["steps_per_s"] if lib in got else math.nan
+        def rate(lib: str, rates: dict[str, float] = rates) -> float:
+            return rates.get(lib, math.nan)
 
         fused = rate("difffilter-fused")
         out.append(

@@ -21,9 +21,9 @@ import numpy as np
 import torch
 
 from .cases import BUILT_IN, BenchCase, CaseFactory, builtin_case, make_difffilter, torch_runner
+from .dynamax_peer import dynamax_available
 from .gpsdr import BenchData, simulate_gpsdr
 from .peers import PeerRunner, filterpy_available
-from .dynamax_peer import dynamax_available
 from .timing import time_callable
 
 __all__ = ["BenchSettings", "BenchReport", "make_difffilter", "run_benchmark", "DTYPES", "MAIN_COLUMNS", "MODES"]
@@ -155,7 +155,9 @@ class _Bench:
         return r
 
     # -- difffilter ----------------------------------------------------------------------------
-    def run_difffilter(self, kind: str, dname: str, batch: int, mode: str, *, fused: bool = False) -> tuple[dict[str, Any], np.ndarray] | None:
+    def run_difffilter(
+        self, kind: str, dname: str, batch: int, mode: str, *, fused: bool = False
+    ) -> tuple[dict[str, Any], np.ndarray] | None:
         """The reference filter (``fused=False``) or :class:`FusedFilter`; the fused row's
         ``compile_s`` is its first call (on a short warm-up sequence), which builds its kernels."""
         lib = "difffilter-fused" if fused else "difffilter"
@@ -188,7 +190,9 @@ class _Bench:
         self.report.agreement.append(
             {"filter": kind, "peer": peer, "dtype": dname, "B": batch, "T": steps, "max_abs_diff": diff, "max_rel_diff": diff / scale}
         )
-        self.log(f"agreement {kind} difffilter vs {peer} ({dname}, B={batch}, T={steps}): max |dlogL| = {diff:.3g} (rel {diff / scale:.2g})")
+        self.log(
+            f"agreement {kind} difffilter vs {peer} ({dname}, B={batch}, T={steps}): max |dlogL| = {diff:.3g} (rel {diff / scale:.2g})"
+        )
 
     def run(self) -> BenchReport:
         s = self.s
@@ -215,7 +219,11 @@ class _Bench:
         if mode == "train":
             for r in self.report.rows:
                 if (r["filter"], r["dtype"], r["B"], r["mode"]) == (kind, dname, batch, "train"):
-                    fwd = [f for f in self.report.rows if (f["filter"], f["dtype"], f["B"], f["library"], f["mode"]) == (kind, dname, batch, r["library"], "forward")]
+                    fwd = [
+                        f
+                        for f in self.report.rows
+                        if (f["filter"], f["dtype"], f["B"], f["library"], f["mode"]) == (kind, dname, batch, r["library"], "forward")
+                    ]
                     if fwd:
                         r["fb_over_f"] = r["seconds"] / fwd[0]["seconds"]
 
@@ -228,7 +236,9 @@ def _first_steps(controls: Any, steps: int) -> Any:
     return {k: v[:, :steps] for k, v in controls.items()}
 
 
-def run_benchmark(settings: BenchSettings, log: Callable[[str], None] = print, *, cases: Mapping[str, CaseFactory] | None = None) -> BenchReport:
+def run_benchmark(
+    settings: BenchSettings, log: Callable[[str], None] = print, *, cases: Mapping[str, CaseFactory] | None = None
+) -> BenchReport:
     """Run every configured case and return the tables (see :mod:`difffilter.bench.report`);
     ``cases`` adds filter kinds beyond the built-in ones."""
     return _Bench(settings, cases or {}, log).run()

@@ -175,5 +175,3 @@ def store(e: Emitter, n: int, ptr: str, pre: list[str]) -> str:
     if e.g.kind[n] == "b":
         return f"vstore({ptr}, {e.vector_ref(n, pre)} ? bc(T(1)) : bc(T(0)));"
     return f"vstore({ptr}, {e.vector_ref(n, pre)});"
-
-

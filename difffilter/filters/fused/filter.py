@@ -210,4 +210,3 @@ def fuse(
         cpp_wrapper=cpp_wrapper,
         reuse_buffers=reuse_buffers,
     )
-

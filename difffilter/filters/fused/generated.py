@@ -30,7 +30,9 @@ def _pad_lanes(x: Tensor, padded: int) -> Tensor:
     return torch.cat([x, x[..., :1].expand(*x.shape[:-1], extra)], -1)
 
 
-def _controls_layout(controls: Controls, dtype: torch.dtype) -> tuple[tuple[tuple[str, tuple[int, ...], torch.dtype], ...] | None, list[Tensor]]:
+def _controls_layout(
+    controls: Controls, dtype: torch.dtype
+) -> tuple[tuple[tuple[str, tuple[int, ...], torch.dtype], ...] | None, list[Tensor]]:
     if controls is None:
         return None, []
     items = [("", controls)] if isinstance(controls, Tensor) else sorted(dict(controls).items())

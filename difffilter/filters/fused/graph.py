@@ -24,7 +24,7 @@ __all__ = ["CONST", "LANE", "UNIFORM", "ScalarGraph", "UNARY", "BINARY", "BOOL_O
 CONST, UNIFORM, LANE = 0, 1, 2
 
 
-class UnsupportedOp(NotImplementedError):
+class UnsupportedOp(NotImplementedError):  # noqa: N818 - names what it reports
     """The step uses an operation the scalar engine does not implement (the caller falls back)."""
 
 

@@ -144,7 +144,9 @@ def _unflatten_controls(layout: StepLayout, flat: list[Tensor]) -> Any:
     return {k: v for (k, _, _), v in zip(layout.controls, vals, strict=True)}
 
 
-def _step_function(filt: RecursiveFilter, layout: StepLayout, keys: list[str], trained: list[tuple[str, Tensor]], seen: dict[str, Any]) -> Any:
+def _step_function(
+    filt: RecursiveFilter, layout: StepLayout, keys: list[str], trained: list[tuple[str, Tensor]], seen: dict[str, Any]
+) -> Any:
     """The loop body of ``RecursiveFilter.forward`` on flat inputs; records the keys it produces in ``seen``."""
     nb = len(keys)
     nc = len(layout.controls) if layout.controls else 0
@@ -173,7 +175,9 @@ def _step_function(filt: RecursiveFilter, layout: StepLayout, keys: list[str], t
     return step
 
 
-def _trace(filt: RecursiveFilter, layout: StepLayout, belief: dict[str, Tensor], trained: list[tuple[str, Tensor]]) -> tuple[Any, dict[str, Any]]:
+def _trace(
+    filt: RecursiveFilter, layout: StepLayout, belief: dict[str, Tensor], trained: list[tuple[str, Tensor]]
+) -> tuple[Any, dict[str, Any]]:
     """``(graph module, {"post": eager post-step belief, "records": keys})`` of one step from ``belief``."""
     keys = sorted(belief)
     seen: dict[str, Any] = {}

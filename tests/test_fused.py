@@ -158,7 +158,7 @@ def test_output_buffers_are_reused_only_when_no_result_holds_them() -> None:
             assert torch.equal(getattr(fourth, name), kept[name]), name
         fresh = FusedFilter(filt, compile=False, reuse_buffers=False)
         fresh(z, m0, p0, controls=u)
-        assert fresh._inductor._kept_outputs == []
+        assert fresh._inductor.buffers.kept == []
         _assert_same(fresh(z, m0, p0, controls=u), ref)
 
 

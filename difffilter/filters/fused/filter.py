@@ -59,8 +59,8 @@ class FusedFilter(nn.Module):
             ``torch.get_num_threads()``); inductor engine: inductor's ``cpp.threads`` (``None``:
             torch's default).  Default 1.
         cpp_wrapper: inductor's C++ wrapper (inductor engine).
-        reuse_buffers: reuse the output buffers of the previous no-grad call when nothing
-            references them (inductor and eager engines).
+        reuse_buffers: reuse the output buffers of the previous call when nothing references
+            them any more (generated engine: any call; inductor and eager engines: no-grad calls).
     """
 
     def __init__(
@@ -140,7 +140,7 @@ class FusedFilter(nn.Module):
     def generated_engine(self) -> GeneratedEngine:
         """The generated-kernel engine of this filter (created on first use)."""
         if self._generated is None:
-            self._generated = GeneratedEngine(self.filter, threads=self.threads)
+            self._generated = GeneratedEngine(self.filter, threads=self.threads, reuse_buffers=self.reuse_buffers)
         return self._generated
 
     def _fallback(self, reason: str) -> None:

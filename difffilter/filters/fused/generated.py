@@ -43,9 +43,10 @@ def _controls_layout(
 class GeneratedEngine:
     """Runs ``filt`` through generated kernels (CPU, float32/float64)."""
 
-    def __init__(self, filt: RecursiveFilter, *, threads: int | None = None) -> None:
+    def __init__(self, filt: RecursiveFilter, *, threads: int | None = None, reuse_buffers: bool = True) -> None:
         self.filter = filt
         self.threads = threads
+        self.reuse_buffers = reuse_buffers
         self._programs: dict[Any, SequenceProgram] = {}
 
     def program(self, layout: StepLayout, belief: Belief) -> SequenceProgram:
@@ -54,7 +55,7 @@ class GeneratedEngine:
         prog = self._programs.get(key)
         if prog is None:
             example = {k: v[:1].detach() for k, v in belief.items()}
-            prog = SequenceProgram(trace_step(self.filter, layout, example))
+            prog = SequenceProgram(trace_step(self.filter, layout, example), reuse_buffers=self.reuse_buffers)
             self._programs[key] = prog
         return prog
 

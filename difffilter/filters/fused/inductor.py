@@ -18,7 +18,7 @@ from torch.nn.utils import parametrize
 
 from ...models.base import Controls, DynamicsModel, MeasurementModel
 from ..base import Belief, FilterResult, RecursiveFilter, slice_controls
-from .kernel import unreferenced
+from .kernel import ReusableBuffers
 from .step import SmallMatmulAsSum, batch_last_step, to_batch_last, transpose01
 
 __all__ = ["InductorEngine"]
@@ -38,13 +38,12 @@ class InductorEngine:
         self.kind = kind
         self.use_compile = compile
         self.compile_options = compile_options
-        self.reuse_buffers = reuse_buffers
+        self.buffers = ReusableBuffers(enabled=reuse_buffers)  # reused across no-grad calls
         dyn, meas = filt.model.dynamics, filt.model.measurement
         self._static_q = not _overridden(dyn, DynamicsModel, "process_noise")
         self._static_r = not _overridden(meas, MeasurementModel, "measurement_noise")
         self._compiled: Callable[..., Any] | None = None
         self.compile_failed = False
-        self._kept_outputs: list[Tensor] = []
 
     def step(self, *args: Any) -> tuple[Tensor, ...]:
         with SmallMatmulAsSum():
@@ -64,25 +63,6 @@ class InductorEngine:
             self._compiled = torch.compile(self.step, dynamic=False, **self.compile_options)
         return self._compiled
 
-    def _output_buffers(self, shapes: list[tuple[int, ...]], like: Tensor) -> list[Tensor]:
-        """Batch-last output buffers of a forward pass without autograd: the previous call's
-        buffers when nothing else references their memory any more (``reuse_buffers``), else
-        new ones.  Touching fresh memory costs a page fault per 4 KiB."""
-        old = self._kept_outputs
-        self._kept_outputs = []
-        if (
-            self.reuse_buffers
-            and [tuple(b.shape) for b in old] == shapes
-            and all(b.dtype == like.dtype and b.device == like.device and unreferenced(b) for b in old)
-        ):
-            bufs = old
-        else:
-            del old
-            bufs = [like.new_empty(shape) for shape in shapes]
-        if self.reuse_buffers:
-            self._kept_outputs = bufs
-        return bufs
-
     def __call__(self, z: Tensor, mask: Tensor | None, belief: Belief, controls: Controls) -> FilterResult:
         """``z [B, T, m]`` (validated), ``mask [B, T, m]`` or None, a ``{"mean", "cov"}`` belief."""
         filt = self.filter
@@ -97,7 +77,7 @@ class InductorEngine:
         # in-place writes into one buffer would chain T copy nodes, so the list is kept.
         direct = not torch.is_grad_enabled()
         if direct:
-            bufs = self._output_buffers([(steps, *shape) for shape in ((n, bsz), (n, n, bsz), (n, bsz), (n, n, bsz))], z)
+            bufs = self.buffers.get([(steps, *shape) for shape in ((n, bsz), (n, n, bsz), (n, bsz), (n, n, bsz))], z)
         with parametrize.cached():
             dyn, meas = filt.model.dynamics, filt.model.measurement
             q_static = to_batch_last(dyn.Q, 2) if self._static_q else None

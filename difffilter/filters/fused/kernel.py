@@ -22,7 +22,7 @@ from .codegen import BackwardSpec, backward_source, forward_source
 from .emit import VECTOR_BYTES
 from .trace import TracedStep
 
-__all__ = ["SequenceProgram", "lanes", "run_sequence"]
+__all__ = ["ReusableBuffers", "SequenceProgram", "lanes", "run_sequence", "unreferenced"]
 
 _P = ctypes.c_void_p
 _I64 = ctypes.c_int64
@@ -52,6 +52,34 @@ def unreferenced(buf: Tensor) -> bool:
         return False
 
 
+class ReusableBuffers:
+    """Output buffers of the previous call, handed out again once nothing references them (no
+    result, view, NumPy array or autograd graph), else fresh ones; ``enabled=False`` always
+    allocates."""
+
+    def __init__(self, *, enabled: bool = True) -> None:
+        self.enabled = enabled
+        self.kept: list[Tensor] = []
+        self._lock = threading.Lock()
+
+    def get(self, shapes: list[tuple[int, ...]], like: Tensor) -> list[Tensor]:
+        with self._lock:
+            old, self.kept = self.kept, []
+        if (
+            self.enabled
+            and [tuple(b.shape) for b in old] == shapes
+            and all(b.dtype == like.dtype and b.device == like.device and unreferenced(b) for b in old)
+        ):
+            bufs = old
+        else:
+            del old
+            bufs = [like.new_empty(shape) for shape in shapes]
+        if self.enabled:
+            with self._lock:
+                self.kept = bufs
+        return bufs
+
+
 def _pointers(tensors: list[Tensor]) -> ctypes.Array:
     return (_P * max(len(tensors), 1))(*[t.data_ptr() for t in tensors])
 
@@ -59,7 +87,7 @@ def _pointers(tensors: list[Tensor]) -> ctypes.Array:
 class SequenceProgram:
     """Compiled forward kernel of a traced step, plus reverse kernels built on first use."""
 
-    def __init__(self, traced: TracedStep) -> None:
+    def __init__(self, traced: TracedStep, *, reuse_buffers: bool = True) -> None:
         self.traced = traced
         spec = traced.spec
         self.lanes = lanes(spec.dtype)
@@ -71,7 +99,8 @@ class SequenceProgram:
         self._backward: dict[BackwardSpec, Any] = {}  # compiled function or the Future building it
         self._lock = threading.Lock()
         self._source_lock = threading.Lock()
-        self._kept: list[Tensor] = []
+        # fresh output memory costs a page fault per 4 KiB, measured at about as much as the UKF kernel
+        self._buffers = ReusableBuffers(enabled=reuse_buffers)
         ll = traced.fields.get("log_likelihood")
         #: the reverse kernel of a training step: gradient of the log-likelihood only
         self.likely_backward = BackwardSpec((ll[0],), False) if ll is not None else None  # the group holding it
@@ -115,26 +144,11 @@ class SequenceProgram:
     def forward(self, state0: Tensor, step_in: Tensor, params: Tensor, threads: int) -> list[Tensor]:
         """Outputs ``[T, K_g, Bp]`` per group for ``state0 [S, Bp]``, ``step_in [T, I, Bp]``, ``params [P]``."""
         steps, bp = step_in.shape[0], state0.shape[1]
-        outs = self._output_buffers([(steps, k, bp) for k in self.group_sizes], state0)
+        outs = self._buffers.get([(steps, k, bp) for k in self.group_sizes], state0)
         ptrs = _pointers(outs)
         args = (steps, bp, state0.data_ptr(), step_in.data_ptr(), params.data_ptr(), ctypes.cast(ptrs, _P))
         self._split(bp // self.lanes, threads, lambda a, b: self._forward(a, b, *args))
         return outs
-
-    def _output_buffers(self, shapes: list[tuple[int, int, int]], like: Tensor) -> list[Tensor]:
-        """The previous call's output buffers if nothing references them any more (their results
-        and any autograd graph holding them are gone), else new ones.  Fresh memory costs a page
-        fault per 4 KiB, measured at about as much as the UKF kernel itself."""
-        with self._lock:
-            old, self._kept = self._kept, []
-        if [tuple(b.shape) for b in old] == shapes and all(b.dtype == like.dtype and unreferenced(b) for b in old):
-            bufs = old
-        else:
-            del old
-            bufs = [like.new_empty(shape) for shape in shapes]
-        with self._lock:
-            self._kept = bufs
-        return bufs
 
     def backward(
         self, which: BackwardSpec, state0: Tensor, step_in: Tensor, params: Tensor, outs: list[Tensor], grads: list[Tensor], threads: int

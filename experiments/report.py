@@ -3,12 +3,16 @@
     python experiments/report.py                            # results/*.md -> results/REPORT.md
     python experiments/report.py outputs/train/runs/<run>   # add run directories (results.csv)
     python experiments/report.py --print --no-write         # only print the report
+    python experiments/report.py outputs/train/multiruns/<sweep>   # add a seed sweep's summary.md
 
 Inputs: the per-experiment sections ``results/<name>.md`` (written by hand after the full-size
 runs: command, table, wall time, interpretation) and/or Hydra run directories holding the
-``results.csv`` that ``experiments/train.py`` writes (a ``.md`` or ``.csv`` path works too).
+``results.csv`` that ``experiments/train.py`` writes (a ``.md`` or ``.csv`` path works too), and/or
+multirun directories holding the ``summary.md`` of a sweep over seeds (:mod:`difffilter.learn.sweep`),
+included as sections.
 The report opens with a summary (one line per experiment: hand-tuned, learned and oracle RMSE,
-learned ANEES against its 95 % band, the paper's claim), then each run's table with a ``paper``
+learned ANEES with its 95 % t-interval over test runs against the value of a consistent filter
+and the fraction of steps inside the per-step chi-square band, the paper's claim), then each run's table with a ``paper``
 column holding the published number of the matching filter, then the collected sections.
 """
 
@@ -23,7 +27,17 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-__all__ = ["PUBLISHED", "Published", "build_report", "load_run", "main", "normalise_table", "parse_markdown_tables", "summary_row"]
+__all__ = [
+    "PUBLISHED",
+    "Published",
+    "build_report",
+    "load_run",
+    "load_sweep",
+    "main",
+    "normalise_table",
+    "parse_markdown_tables",
+    "summary_row",
+]
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -76,7 +90,7 @@ PUBLISHED: dict[str, Published] = {
     ),
 }
 
-_SHOWN = ("rmse_pos", "anees", "anees_lo", "anees_hi", "nis", "nll", "time_per_step_ms")
+_SHOWN = ("rmse_pos", "anees", "anees_dof", "anees_run_ci_lo", "anees_run_ci_hi", "anees_step_band_frac", "nis", "nll", "time_per_step_ms")
 
 
 def paper_id(name: str) -> str | None:
@@ -121,27 +135,20 @@ def parse_markdown_tables(text: str) -> list[list[dict[str, str]]]:
     return tables
 
 
-_BAND = re.compile(r"band\s*\[?\s*([0-9.]+)\s*(?:-|,|to)\s*([0-9.]+)")
-
-
 def _column_key(header: str) -> str:
     """``"rmse_pos (m)"`` -> ``"rmse_pos"``: a header's first word, lower case."""
     return re.split(r"[\s(\[]", header.strip().lower(), maxsplit=1)[0]
 
 
 def normalise_table(rows: list[dict[str, str]]) -> list[dict[str, str]]:
-    """Rows keyed by their headers' first words (bold marks dropped); an ``anees (band lo-hi)``
-    header also gives ``anees_lo``/``anees_hi``."""
+    """Rows keyed by their headers' first words (bold marks dropped).  A band written in a header
+    (``anees (band lo-hi)``, the runs x steps chi-square band of older sections) is not read: it
+    treated correlated steps as independent."""
     out = []
     for r in rows:
         new: dict[str, str] = {}
         for header, cell in r.items():
-            key = _column_key(header)
-            new.setdefault(key, cell.replace("**", "").strip())
-            band = _BAND.search(header.lower())
-            if key == "anees" and band:
-                new.setdefault("anees_lo", band.group(1))
-                new.setdefault("anees_hi", band.group(2))
+            new.setdefault(_column_key(header), cell.replace("**", "").strip())
         out.append(new)
     return out
 
@@ -204,19 +211,34 @@ def load_run(path: str | Path) -> Run:
     return Run(name, results_table(parse_markdown_tables(text)) or [], p, text)
 
 
+def load_sweep(directory: str | Path) -> Run:
+    """A seed sweep's ``summary.md`` as a section named ``sweep <experiment>`` (no summary row: the
+    sweep's own tables carry the intervals over seeds)."""
+    root = Path(directory)
+    jobs = sorted(p.parent for p in root.rglob("results.md"))
+    name = _run_name(jobs[0]) if jobs else root.name
+    text = re.sub(r"^# Sweep summary", f"# Sweep summary: {name}", (root / "summary.md").read_text(), count=1, flags=re.M)
+    return Run(f"sweep {name}", [], root / "summary.md", text)
+
+
 def summary_row(run: Run) -> str:
-    """One summary line: hand-tuned / learned / oracle RMSE, learned ANEES vs band, claim."""
+    """One summary line: hand-tuned / learned / oracle RMSE, learned ANEES with its run-level
+    interval and per-step band fraction (when the row has them), claim."""
     by = {k: _role_row(run.rows, k) for k in ("hand-tuned", "learned", "oracle")}
     rmse = {k: _float(r.get("rmse_pos")) if r else math.nan for k, r in by.items()}
     gain = (rmse["learned"] / rmse["hand-tuned"] - 1.0) * 100.0 if rmse["hand-tuned"] > 0 else math.nan
     learned = by["learned"] or {}
-    anees, lo, hi = (_float(learned.get(k)) for k in ("anees", "anees_lo", "anees_hi"))
+    anees, lo, hi, dof, frac = (
+        _float(learned.get(k)) for k in ("anees", "anees_run_ci_lo", "anees_run_ci_hi", "anees_dof", "anees_step_band_frac")
+    )
     if math.isnan(anees):
         band = ""
-    elif math.isnan(lo) or math.isnan(hi):
+    elif math.isnan(lo) or math.isnan(hi) or math.isnan(dof):
         band = f"{anees:.4g}"
     else:
-        band = f"{anees:.4g} [{lo:.4g}, {hi:.4g}]" + (" in" if lo <= anees <= hi else " out")
+        band = f"{anees:.4g} [{lo:.4g}, {hi:.4g}] (d = {dof:.4g})" + (" in" if lo <= dof <= hi else " out")
+        if not math.isnan(frac):
+            band += f"; {100 * frac:.0f} % steps in band"
     pub = PUBLISHED.get(paper_id(run.name) or "")
     cells = [
         run.name,
@@ -253,12 +275,16 @@ def build_report(runs: Sequence[Run], *, sections: Sequence[Run] = ()) -> str:
         "# difffilter: the papers' experiments",
         "",
         "Learned vs hand-tuned (the paper's settings) vs oracle on held-out test trajectories; "
-        "RMSE in the truth's units, ANEES with its 95 % chi-square band. Generated by `experiments/report.py`.",
+        "RMSE in the truth's units; ANEES [95 % t-interval over test runs] (d: its value for a consistent filter; in/out: d inside"
+        " the interval or not) and the fraction of steps whose mean over runs lies in the per-step 95 % chi-square band"
+        " (rows without them come from older sections whose band treated correlated steps as independent: value only)."
+        " Generated by `experiments/report.py`.",
         "",
-        "| experiment | hand-tuned rmse | learned rmse | oracle rmse | learned vs hand-tuned | learned ANEES [band] | paper's claim |",
+        "| experiment | hand-tuned rmse | learned rmse | oracle rmse | learned vs hand-tuned "
+        "| learned ANEES [run CI] (d) | paper's claim |",
         "|---|---|---|---|---|---|---|",
     ]
-    # a section repeating a run's experiment is summarised once, from the run (its csv has the bands)
+    # a section repeating a run's experiment is summarised once, from the run (its csv has the intervals)
     names = {r.name for r in runs}
     out += [summary_row(r) for r in [*runs, *(s for s in sections if s.name not in names)] if r.rows]
     for run in runs:
@@ -269,7 +295,8 @@ def build_report(runs: Sequence[Run], *, sections: Sequence[Run] = ()) -> str:
         out.append(run_table(run))
     for sec in sections:
         body = re.sub(r"^(#+)", r"#\1", sec.text.strip(), flags=re.M)  # nest its headings under the report's
-        out += [""] + ([] if body.startswith("## ") else [f"## {sec.name}", ""]) + [body, "", f"(from `results/{sec.source.name}`)"]
+        origin = str(sec.source) if sec.source.name == "summary.md" else f"results/{sec.source.name}"
+        out += [""] + ([] if body.startswith("## ") else [f"## {sec.name}", ""]) + [body, "", f"(from `{origin}`)"]
     return "\n".join(out) + "\n"
 
 
@@ -285,7 +312,9 @@ def main(argv: Sequence[str] | None = None) -> str:
     results = Path(args.results_dir)
     output = Path(args.output) if args.output else results / "REPORT.md"
     sections = [load_run(p) for p in sorted(results.glob("*.md")) if p.resolve() != output.resolve()] if results.is_dir() else []
-    runs = [load_run(p) for p in args.runs]
+    sweeps = [Path(p) for p in args.runs if (Path(p) / "summary.md").exists()]
+    runs = [load_run(p) for p in args.runs if Path(p) not in sweeps]
+    sections += [load_sweep(p) for p in sweeps]
     text = build_report(runs, sections=sections)
     if not args.no_write:
         output.parent.mkdir(parents=True, exist_ok=True)

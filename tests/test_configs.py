@@ -35,7 +35,6 @@ ROUNDS = [{g: OPTIONS[g][i % len(OPTIONS[g])] for g in GENERIC} for i in range(m
 EXPERIMENTS = sorted(p.stem for p in (CONF / "experiment").glob("*.yaml"))
 
 
-
 def _compose(tmp_path: Path, overrides: list[str], name: str = "train", **kw) -> DictConfig:
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
         extra = [f"paths.output_dir={tmp_path}", f"paths.log_dir={tmp_path}/logs"] if name == "train" else []

@@ -107,8 +107,19 @@ def test_blend_filter_shares_one_model_and_matches_its_branches():
 def test_experiment_smoke(tmp_path, experiment, expected):
     rows, md = run_train_smoke(tmp_path, experiment)
     assert [r["filter"] for r in rows] == expected
-    for col in ("rmse_pos", "rmse_state", "anees", "anees_lo", "anees_hi", "nis", "nll", "time_per_step_ms"):
+    for col in (
+        "rmse_pos",
+        "rmse_state",
+        "anees",
+        "anees_run_ci_lo",
+        "anees_run_ci_hi",
+        "anees_step_band_frac",
+        "nis",
+        "nll",
+        "time_per_step_ms",
+    ):
         assert col in rows[0], col
+    assert "anees_lo" not in rows[0] and "nis_lo" not in rows[0]  # the runs x steps chi-square band is gone
     for r in rows:
         assert float(r["rmse_pos"]) > 0 and math.isfinite(float(r["rmse_pos"])), r
         assert math.isfinite(float(r["anees"])) and math.isfinite(float(r["nll"])) and float(r["time_per_step_ms"]) > 0, r

@@ -29,8 +29,10 @@ def _row(name, rmse, anees=8.0):
         "filter": name,
         "rmse_pos": rmse,
         "anees": anees,
-        "anees_lo": 7.5,
-        "anees_hi": 8.5,
+        "anees_dof": 8.0,
+        "anees_run_ci_lo": anees - 0.5,
+        "anees_run_ci_hi": anees + 0.5,
+        "anees_step_band_frac": 0.9,
         "nis": 2.0,
         "nll": 1.0,
         "time_per_step_ms": 3.0,
@@ -51,7 +53,7 @@ def test_report_from_run_directory_and_sections(report, tmp_path):
     run = tmp_path / "run"
     rows = [_row("hand-tuned", 0.125, 7.0), _row("learned", 0.100), _row("oracle", 0.099), _row("ekf", 0.126), _row("ukf", 0.127)]
     write_results(rows, run, title="difffilter results: p004_blend")
-    # a hand-written section in results/
+    # a hand-written section in results/ (an older one: its runs x steps band columns are ignored)
     results = tmp_path / "results"
     results.mkdir()
     section = "# p000_gpsdr\n\n| filter | rmse_pos | anees | anees_lo | anees_hi |\n|---|---|---|---|---|\n"
@@ -61,11 +63,15 @@ def test_report_from_run_directory_and_sections(report, tmp_path):
     written = (results / "REPORT.md").read_text()
     assert written == text
     lines = text.splitlines()
-    # summary: one line per experiment, learned vs hand-tuned in percent, ANEES against its band
+    # summary: one line per experiment, learned vs hand-tuned in percent, ANEES with its run-level
+    # interval against d and the per-step band fraction; an old section's band is not a verdict
     p004 = next(x for x in lines if x.startswith("| p004_blend |"))
-    assert "| 0.125 | 0.1 | 0.099 | -20.0 % | 8 [7.5, 8.5] in |" in p004 and "9.53" in p004
+    assert "| 0.125 | 0.1 | 0.099 | -20.0 % | 8 [7.5, 8.5] (d = 8) in; 90 % steps in band |" in p004 and "9.53" in p004
     p000 = next(x for x in lines if x.startswith("| p000_gpsdr |"))
-    assert "| 6 | 4.5 | - | -25.0 % | 9 [7.98, 8.02] out |" in p000
+    assert "| 6 | 4.5 | - | -25.0 % | 9 |" in p000 and "7.98" not in p000
+    # the run's table shows the new consistency columns, never the old band
+    assert "| filter | rmse_pos | anees | anees_dof | anees_run_ci_lo | anees_run_ci_hi | anees_step_band_frac |" in text
+    assert "anees_lo" not in text.split("## p000_gpsdr")[0]
     # the run's table puts each published number beside the matching filter
     assert any(x.startswith("| ekf | 0.126 |") and x.endswith("| 9.53 cm |") for x in lines)
     assert any(x.startswith("| ukf | 0.127 |") and x.endswith("| 5.68 cm |") for x in lines)
@@ -76,13 +82,13 @@ def test_report_from_run_directory_and_sections(report, tmp_path):
     (results / "p004_blend.md").write_text("| filter | rmse_pos |\n|---|---|\n| hand-tuned | 0.2 |\n| learned | 0.1 |\n")
     text = report.main([str(run), "--results-dir", str(results), "--no-write"])
     assert sum(x.startswith("| p004_blend |") for x in text.splitlines()) == 1 and "\n## p004_blend\n" in text
-    # hand-written tables: units and bands in the headers, roles inside longer names, bold cells
+    # hand-written tables: units and (ignored) bands in the headers, roles inside longer names, bold cells
     table = "| filter (4 runs) | rmse_pos (m) | anees (band 19.85-20.15) |\n|---|---|---|\n"
     table += "| IMM, hand-tuned | 3.500 [3.9] | 218 |\n| **IMM, learned** | **3.150** | 20.0 |\n| IMM, oracle | 3.0 | 20.1 |\n"
     (results / "p003_imm.md").write_text("## p003\n\n" + table)
     text = report.main(["--results-dir", str(results), "--no-write"])
     p003 = next(x for x in text.splitlines() if x.startswith("| p003_imm |"))
-    assert "| 3.5 | 3.15 | 3 | -10.0 % | 20 [19.85, 20.15] in |" in p003 and "5 vs 7 steps" in p003
+    assert "| 3.5 | 3.15 | 3 | -10.0 % | 20 |" in p003 and "5 vs 7 steps" in p003
     # a second run does not read its own REPORT.md back as a section
     again = report.main(["--results-dir", str(results), "--no-write"])
     assert "REPORT" not in again
@@ -91,3 +97,15 @@ def test_report_from_run_directory_and_sections(report, tmp_path):
 def test_missing_run_is_an_error(report, tmp_path):
     with pytest.raises(FileNotFoundError):
         report.load_run(tmp_path / "nothing")
+
+
+def test_sweep_summary_is_included_as_a_section(report, tmp_path):
+    sweep = tmp_path / "sweep"
+    for k in range(2):
+        write_results([_row("hand-tuned", 0.125), _row("learned", 0.1 + 0.01 * k)], sweep / str(k), title="difffilter results: p004_blend")
+    (sweep / "summary.md").write_text(
+        "# Sweep summary\n\n## all jobs (seeds 0, 1; jobs 0, 1)\n\n| filter | seeds |\n|---|---|\n| learned | 2 |\n"
+    )
+    text = report.main([str(sweep), "--results-dir", str(tmp_path / "none"), "--no-write"])
+    assert "\n## Sweep summary: p004_blend\n" in text and "\n### all jobs (seeds 0, 1; jobs 0, 1)\n" in text
+    assert f"(from `{sweep / 'summary.md'}`)" in text and "## p004_blend (run" not in text

@@ -29,7 +29,6 @@ ROOT = Path(__file__).resolve().parents[1]
 f64 = torch.float64
 
 
-
 def _events(directory: Path) -> EventAccumulator:
     files = list(directory.rglob("events.out.tfevents.*"))
     assert files, f"no TensorBoard event file under {directory}"

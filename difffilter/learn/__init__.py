@@ -4,10 +4,14 @@ trajectory data module (TBPTT windows), losses, metrics, figures and the experim
 :mod:`difffilter.papers`."""
 
 from ..selection import assign_parameters, learnable_values, match_parameters, select_parameters
+from . import replicates  # noqa: F401 - registers the `replicate_seed` resolver of the configs
+from .consistency import Consistency, consistency
 from .data import TrajectoryDataModule, TrajectorySet, WindowedTrajectories
+from .evaluation import evaluate_runs
 from .experiment import evaluate_filter, run_experiment
+from .intervals import GapClosed, Interval, block_bootstrap_difference, crossed_interval, gap_closed, t_interval
 from .learner import FilterLearner
-from .losses import CompositeLoss, HuberLoss, LogNormalPrior, MSELoss, NEESLoss, NLLLoss, NormalPrior
+from .losses import CompositeLoss, HuberLoss, LogNormalPrior, MSELoss, NEESLoss, NLLLoss, NormalPrior, StateNLLLoss
 from .metrics import (
     anees,
     anis,
@@ -20,25 +24,36 @@ from .metrics import (
     nll_per_step,
     rmse,
 )
+from .sweep import SweepSummary, summarize_sweep
 
 __all__ = [
     "CompositeLoss",
+    "Consistency",
     "FilterLearner",
+    "GapClosed",
     "HuberLoss",
+    "Interval",
     "LogNormalPrior",
     "MSELoss",
     "NEESLoss",
     "NLLLoss",
     "NormalPrior",
+    "StateNLLLoss",
+    "SweepSummary",
     "TrajectoryDataModule",
     "TrajectorySet",
     "WindowedTrajectories",
     "anees",
     "anis",
     "assign_parameters",
+    "block_bootstrap_difference",
     "chi2_interval",
+    "consistency",
+    "crossed_interval",
     "evaluate_filter",
+    "evaluate_runs",
     "finalize_metrics",
+    "gap_closed",
     "innovation_whiteness",
     "learnable_values",
     "match_parameters",
@@ -49,4 +64,6 @@ __all__ = [
     "rmse",
     "run_experiment",
     "select_parameters",
+    "summarize_sweep",
+    "t_interval",
 ]

@@ -9,7 +9,9 @@ evaluates on the held-out test trajectories
 * ``oracle``     - the filter with the simulator's true parameters (when ``experiment.oracle``),
 * every entry of ``experiment.baselines``,
 
-and writes ``results.csv`` / ``results.md`` to ``paths.output_dir``.
+and writes ``results.csv`` / ``results.md`` (pooled rows, consistency per block) and
+``per_run.csv`` (every filter's metrics on every test run, for paired comparisons across
+filters and seeds: :mod:`difffilter.learn.evaluation`) to ``paths.output_dir``.
 
 The ``experiment`` config node (per-paper overlays set it)::
 
@@ -27,10 +29,17 @@ The ``experiment`` config node (per-paper overlays set it)::
       truth_position_index: null  # the same in the truth (default: position_index)
       state_index: null           # components for NEES / rmse_state (null: all)
       truth_index: null
+      state_blocks: null          # {name: state indices}: NEES per block, e.g. {position: [0, 1], velocity: [2, 3]}
+      truth_blocks: null          # the blocks' truth components (default: mapped through state_index/truth_index)
       metric: rmse_pos            # learned-filter metric run_experiment returns (Optuna)
       eval_batch_size: null       # test trajectories per evaluation batch (null: all)
       error_quantiles: null       # e.g. [0.5, 0.95]: extra columns pos_err_p50, pos_err_p95 =
                                   # quantiles of the position error norm over all test steps
+
+With a smoother configured (``smoother=rts``, ``cfg.smoother.evaluate``), every filter that a
+smoother supports gets a second row ``"<name> (smoothed)"``: the same metrics of the smoothed
+states ``x_{t|T}`` over each whole test trajectory (``nis``/``nll`` are the filter's, and
+``time_per_step_ms`` covers filter and smoother).
 
 Names in ``hand_tuned``/``params`` follow :func:`difffilter.selection.assign_parameters`
 (a vector sets a covariance's diagonal; a scalar sets ``s I`` or a ScaledMatrix's scale).
@@ -46,7 +55,6 @@ from __future__ import annotations
 import copy
 import csv
 import math
-import time
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -60,13 +68,29 @@ from .._util import as_dtype
 from ..filters.protocol import Filter
 from ..models.layout import model_defaults
 from ..selection import assign_parameters, match_parameters, parameter_owners
+from ..smoothers import Smoother, make_smoother, smoother_spec
 from .data import TrajectorySet
-from .metrics import component_error, finalize_metrics, metric_sums
-from .stability import bounded_jitter
+from .evaluation import PER_RUN_FILE, consistency_table, evaluate_runs, write_per_run
 
 __all__ = ["apply_model_defaults", "build_filter", "evaluate_filter", "format_results", "run_experiment", "write_results"]
 
-COLUMNS = ("filter", "rmse_pos", "rmse_state", "anees", "anees_lo", "anees_hi", "nis", "nis_lo", "nis_hi", "nll", "time_per_step_ms")
+COLUMNS = (
+    "filter",
+    "rmse_pos",
+    "rmse_state",
+    "anees",
+    "anees_dof",
+    "anees_run_ci_lo",
+    "anees_run_ci_hi",
+    "anees_step_band_frac",
+    "nis",
+    "nis_dof",
+    "nis_run_ci_lo",
+    "nis_run_ci_hi",
+    "nis_step_band_frac",
+    "nll",
+    "time_per_step_ms",
+)
 
 
 def _plain(node: Any) -> Any:
@@ -85,7 +109,6 @@ def build_filter(filter_cfg: Any, *, dtype: torch.dtype, params: Mapping[str, An
     return filt
 
 
-@torch.no_grad()
 def evaluate_filter(
     filt: Filter,
     data: TrajectorySet,
@@ -99,49 +122,29 @@ def evaluate_filter(
     state_index: list[int] | None = None,
     truth_index: list[int] | None = None,
     error_quantiles: list[float] | None = None,
+    blocks: Mapping[str, list[int]] | None = None,
+    truth_blocks: Mapping[str, list[int]] | None = None,
+    smoother: Smoother | None = None,
 ) -> dict[str, float]:
-    """Metrics of ``filt`` on every trajectory of ``data`` (see :func:`finalize_metrics`) plus
-    ``time_per_step_ms``: wall time of one filter step on a batch of ``batch_size`` trajectories
-    (default: all of them at once), and for each ``q`` of ``error_quantiles`` ``pos_err_p{100 q}``:
-    the ``q``-quantile of the position error norm ``||e_{b,t}||`` over all steps with a truth
-    (median and tail of the error, which ``rmse_pos`` averages away)."""
-    n = len(data)
-    size = batch_size or n
-    sums: dict[str, torch.Tensor] = {}
-    elapsed, batches = 0.0, 0
-    norms: list[torch.Tensor] = []
-    for first in range(0, n, size):
-        batch = data.batch(torch.arange(first, min(first + size, n)))
-        mean0 = batch["initial_mean"] if batch["initial_mean"] is not None else initial_mean
-        cov0 = batch["initial_cov"] if batch["initial_cov"] is not None else initial_cov
-        if mean0 is None or cov0 is None:
-            raise ValueError("no initial belief: the data carries none and none was given")
-        tic = time.perf_counter()
-        with bounded_jitter(max_jitter):
-            res = filt(batch["measurements"], mean0, cov0, mask=batch["mask"], controls=batch["controls"])
-        elapsed += time.perf_counter() - tic
-        batches += 1
-        if error_quantiles and batch["truth"] is not None:
-            pos_idx = position_index if position_index is not None else state_index
-            pos_tidx = truth_position_index if position_index is not None else truth_index
-            err, valid = component_error(res.mean, batch["truth"], pos_idx, pos_tidx)
-            norms.append(torch.linalg.vector_norm(err, dim=-1)[valid].to(torch.float64))
-        for k, v in metric_sums(
-            res,
-            batch["truth"],
-            position_index=position_index,
-            truth_position_index=truth_position_index,
-            state_index=state_index,
-            truth_index=truth_index,
-        ).items():
-            sums[k] = sums.get(k, torch.zeros((), dtype=torch.float64)) + v
-    out = finalize_metrics(sums)
-    out["time_per_step_ms"] = 1e3 * elapsed / (batches * data.num_steps)
-    if norms and sum(v.numel() for v in norms) > 0:
-        all_norms = torch.cat(norms)
-        for q in error_quantiles or []:
-            out[f"pos_err_p{100 * float(q):g}"] = float(torch.quantile(all_norms, float(q)))
-    return out
+    """The pooled results row of ``filt`` on every trajectory of ``data``: the ``summary`` of
+    :func:`difffilter.learn.evaluation.evaluate_runs` (same arguments; its per-run metrics too;
+    with a ``smoother`` built on ``filt``, of the smoothed states)."""
+    return evaluate_runs(
+        filt,
+        data,
+        initial_mean=initial_mean,
+        initial_cov=initial_cov,
+        batch_size=batch_size,
+        max_jitter=max_jitter,
+        position_index=position_index,
+        truth_position_index=truth_position_index,
+        state_index=state_index,
+        truth_index=truth_index,
+        error_quantiles=error_quantiles,
+        blocks=blocks,
+        truth_blocks=truth_blocks,
+        smoother=smoother,
+    ).summary
 
 
 def _parameter_summary(filt: Filter, names: list[str]) -> str:
@@ -159,12 +162,21 @@ def _parameter_summary(filt: Filter, names: list[str]) -> str:
 
 
 def format_results(rows: list[dict[str, Any]], *, title: str = "results", note: str = "") -> str:
-    """A markdown table of evaluation rows."""
-    extra = sorted({k for r in rows for k in r} - set(COLUMNS) - {"parameters"})
+    """A markdown table of evaluation rows, then the consistency table (per state block)."""
+    extra = sorted(k for k in {k for r in rows for k in r} - set(COLUMNS) - {"parameters"} if not k.startswith("nees_"))
     cols = [c for c in COLUMNS if any(c in r for r in rows)] + extra + (["parameters"] if any("parameters" in r for r in rows) else [])
     fmt = lambda v: v if isinstance(v, str) else ("nan" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.4g}")  # noqa: E731
     lines = [f"# {title}", "", note, "", "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
     lines += ["| " + " | ".join(fmt(r.get(c, float("nan"))) for c in cols) + " |" for r in rows]
+    table = consistency_table(rows)
+    if table:
+        lines += [
+            "",
+            "Consistency: run-level mean [95 % t-interval over test runs] (value of a consistent filter), and the",
+            "fraction of steps whose mean over runs lies in the per-step 95 % chi-square band.",
+            "",
+            table,
+        ]
     return "\n".join(lines) + "\n"
 
 
@@ -249,37 +261,64 @@ def run_experiment(cfg: DictConfig) -> dict[str, Any]:
         filters[name] = build_filter(spec.get("filter") or cfg.filter, dtype=dtype, params=spec.get("params"))
     indices = {k: exp.get(k) for k in ("position_index", "truth_position_index", "state_index", "truth_index")}
     indices = {k: None if v is None else [int(i) for i in v] for k, v in indices.items()}
+    blocks = {str(k): [int(i) for i in v] for k, v in (_plain(exp.get("state_blocks")) or {}).items()} or None
+    truth_blocks = {str(k): [int(i) for i in v] for k, v in (_plain(exp.get("truth_blocks")) or {}).items()} or None
+    per_run: dict[str, dict[str, torch.Tensor]] = {}
     mean0, cov0 = learner.initial_mean, learner.initial_cov
     learned_names = list(cfg.get("learn") or [])
+    spec = smoother_spec(_plain(cfg.get("smoother")))
+    smoothed_rows = spec is not None and bool(spec.get("evaluate", True))
+    kwargs = {
+        "initial_mean": mean0,
+        "initial_cov": cov0,
+        "batch_size": exp.get("eval_batch_size"),
+        "max_jitter": cfg.learner.get("max_jitter"),
+        "error_quantiles": None if exp.get("error_quantiles") is None else [float(q) for q in exp.error_quantiles],
+        "blocks": blocks,
+        "truth_blocks": truth_blocks,
+        **indices,
+    }
     rows = []
     for name, filt in filters.items():
         filt = filt.to(dtype).eval()
         row: dict[str, Any] = {"filter": name}
-        row.update(
-            evaluate_filter(
-                filt,
-                test,
-                initial_mean=mean0,
-                initial_cov=cov0,
-                batch_size=exp.get("eval_batch_size"),
-                max_jitter=cfg.learner.get("max_jitter"),
-                error_quantiles=None if exp.get("error_quantiles") is None else [float(q) for q in exp.error_quantiles],
-                **indices,
-            )
-        )
+        evaluation = evaluate_runs(filt, test, **kwargs)
+        row.update(evaluation.summary)
+        per_run[name] = evaluation.per_run
         if learned_names:
             try:
                 row["parameters"] = _parameter_summary(filt, learned_names)
             except ValueError:
                 row["parameters"] = ""
         rows.append(row)
+        if smoothed_rows:
+            assert spec is not None
+            try:
+                smoother = make_smoother(filt, spec["kind"], lag=spec.get("lag"), time_chunk=spec.get("time_chunk"))
+            except (TypeError, ValueError) as exc:  # e.g. a Blend baseline: no smoother, say so
+                print(f"no smoothed row for {name}: {exc}")
+                continue
+            smoothed = evaluate_runs(filt, test, smoother=smoother, **kwargs)
+            rows.append({"filter": f"{name} (smoothed)", **smoothed.summary})
+            per_run[f"{name} (smoothed)"] = smoothed.per_run
+            if "parameters" in row:
+                rows[-1]["parameters"] = row["parameters"]
     note = (
         f"experiment `{exp.get('name', '')}`: {len(test)} held-out test trajectories x {test.num_steps} steps, "
         f"loss `{cfg.loss.get('_target_', cfg.loss)}`, learned {learned_names}; rmse in the truth's units; "
-        "anees/nis with 95 % chi-square bounds (_lo/_hi); nll per observed step (nats); time_per_step_ms for the whole test batch."
+        "anees/nis: run-level means with 95 % t-intervals over runs (_run_ci_lo/hi) and the fraction of steps inside the "
+        "per-step chi-square band (_step_band_frac); nll per observed step (nats); time_per_step_ms for the whole test batch."
     )
+    if smoothed_rows:
+        assert spec is not None
+        kind = spec["kind"] if spec["kind"] == "rts" else f"fixed-lag (L = {spec.get('lag')})"
+        note += (
+            f" '(smoothed)' rows: the same filter followed by the {kind} smoother over each whole test trajectory "
+            f"(training {'on smoothed' if spec.get('train', True) else 'on filtered'} states); their nis/nll are the filter's."
+        )
     output_dir = Path(cfg.paths.output_dir)
     write_results(rows, output_dir, title=f"difffilter results: {exp.get('name', '')}", note=note)
+    write_per_run(per_run, output_dir / PER_RUN_FILE)
     print(format_results(rows, title=f"results ({output_dir})", note=note))
     learned = next(r for r in rows if r["filter"] == "learned")
     metric_name = exp.get("metric", "rmse_pos")

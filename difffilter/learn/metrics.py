@@ -10,10 +10,11 @@ Conventions:
 * ``rmse`` is the root of the mean squared error *norm* over the chosen components (the
   distance error for positions): ``sqrt(mean_{b,t} ||e_{b,t}||^2)``.
 * ``NEES_{b,t} = e^T P^{-1} e`` on the chosen sub-block of the covariance; ``ANEES`` averages it
-  over runs and steps and is consistent when close to the number of components ``d``.  The
-  average of ``N`` independent ``chi2(d)`` variables is ``chi2(N d) / N``, which gives the two-sided
-  95 % bounds of :func:`chi2_interval`.  ``NIS`` is the same for innovations (``d`` = observed
-  components per step).
+  and is consistent when close to the number of components ``d``.  ``NIS`` is the same for
+  innovations (``d`` = observed components per step).  The steps of one run are *not*
+  independent, so no band is derived from the runs x steps average here: the consistency
+  verdicts (per-step chi-square band over runs, run-level t-interval, per state block) are in
+  :mod:`difffilter.learn.consistency`.
 * Additive sums (:func:`metric_sums`) let batches and processes be combined exactly before
   :func:`finalize_metrics` divides (what the Lightning module does under DDP).
 """
@@ -117,8 +118,8 @@ def nll_per_step(result: FilterResult) -> Tensor:
 
 def chi2_quantile(prob: float, dof: float) -> float:
     """Quantile of ``chi2(dof)``: scipy when available, else the Wilson-Hilferty approximation
-    ``dof (1 - 2/(9 dof) + z_p sqrt(2/(9 dof)))^3`` (relative error of the 2.5/50/97.5 % quantiles below ``0.08 / dof``; ANEES bounds use
-    ``dof = n x runs x steps``, where it is negligible)."""
+    ``dof (1 - 2/(9 dof) + z_p sqrt(2/(9 dof)))^3`` (relative error of the 2.5/50/97.5 % quantiles below ``0.08 / dof``; the
+    per-step bands use ``dof = d x runs``)."""
     if dof <= 0:
         raise ValueError(f"dof must be positive, got {dof}")
     try:
@@ -136,8 +137,10 @@ def wilson_hilferty(prob: float, dof: float) -> float:
 
 
 def chi2_interval(dof: float, num_samples: int, prob: float = 0.95) -> tuple[float, float]:
-    """Two-sided ``prob`` interval of the average of ``num_samples`` independent ``chi2(dof)``
-    variables (ANEES with ``dof = n``, ``num_samples = runs x steps``): ``chi2(N dof) / N``."""
+    """Two-sided ``prob`` interval of the average of ``num_samples`` *independent* ``chi2(dof)``
+    variables: ``chi2(N dof) / N``.  For NEES this is the band of one step's mean over
+    ``num_samples`` independent runs; it is not a band for an average over the steps of a run,
+    which are correlated (see :mod:`difffilter.learn.consistency`)."""
     total = dof * num_samples
     tail = 0.5 * (1.0 - prob)
     return chi2_quantile(tail, total) / num_samples, chi2_quantile(1.0 - tail, total) / num_samples
@@ -265,25 +268,22 @@ def metric_sums(
     return {k: v.detach() for k, v in out.items()}
 
 
-def finalize_metrics(sums: Mapping[str, Tensor | float], *, bounds: bool = True) -> dict[str, float]:
-    """Turn summed statistics into ``rmse_pos``, ``rmse_state``, ``anees`` (+ ``anees_lo/hi``
-    95 % bounds), ``nis`` (mean NIS per observed step, + bounds) and ``nll`` (per observed step)."""
+def finalize_metrics(sums: Mapping[str, Tensor | float]) -> dict[str, float]:
+    """Turn summed statistics into ``rmse_pos``, ``rmse_state``, ``anees`` (mean NEES over every
+    run and step), ``nis`` (mean NIS per observed step) and ``nll`` (per observed step).
+
+    Point values only: the steps behind these sums are correlated, so their count gives no valid
+    interval (:mod:`difffilter.learn.consistency` has the verdicts)."""
     s = {k: float(v) for k, v in sums.items()}
     out: dict[str, float] = {}
     if s.get("nll_steps", 0) > 0:
         out["nll"] = s["nll_sum"] / s["nll_steps"]
     if s.get("nis_count", 0) > 0:
         out["nis"] = s["nis_sum"] / s["nis_count"]
-        if bounds:
-            lo, hi = chi2_interval(s["nis_dof"] / s["nis_count"], int(s["nis_count"]))
-            out["nis_lo"], out["nis_hi"] = lo, hi
     if s.get("pos_count", 0) > 0:
         out["rmse_pos"] = math.sqrt(s["sq_pos"] / s["pos_count"])
     if s.get("state_count", 0) > 0:
         out["rmse_state"] = math.sqrt(s["sq_state"] / s["state_count"])
     if s.get("nees_count", 0) > 0:
         out["anees"] = s["nees_sum"] / s["nees_count"]
-        if bounds:
-            lo, hi = chi2_interval(s["nees_dof"] / s["nees_count"], int(s["nees_count"]))
-            out["anees_lo"], out["anees_hi"] = lo, hi
     return out

@@ -21,7 +21,7 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
-from ..._util import generator
+from ...learn.intervals import block_bootstrap_difference
 from ...selection import assign_parameters
 
 __all__ = ["block_bootstrap", "compare", "markdown_row", "MARKDOWN_HEADER"]
@@ -47,21 +47,13 @@ def _errors(filt: torch.nn.Module, data: Any) -> torch.Tensor:
 
 def block_bootstrap(a: torch.Tensor, b: torch.Tensor, *, block: int, draws: int, seed: int = 0) -> dict[str, tuple[float, float]]:
     """95 % intervals of ``median(a) - median(b)`` and ``rms(a) - rms(b)`` for paired series
-    ``a``, ``b`` ``[T]`` by a circular moving-block bootstrap (the same resampled epochs for both)."""
-    if a.shape != b.shape or a.dim() != 1:
-        raise ValueError(f"a and b must be paired 1-D series, got {tuple(a.shape)} and {tuple(b.shape)}")
-    n = a.shape[0]
-    if not 1 <= block <= n:
-        raise ValueError(f"block must lie in [1, {n}], got {block}")
-    gen = generator(seed)
-    per = -(-n // block)
-    starts = torch.randint(0, n, (draws, per), generator=gen)
-    idx = ((starts[..., None] + torch.arange(block)) % n).reshape(draws, -1)[:, :n]
-    ra, rb = a[idx], b[idx]
-    med = ra.median(1).values - rb.median(1).values
-    rms = ra.pow(2).mean(1).sqrt() - rb.pow(2).mean(1).sqrt()
-    q = torch.tensor([0.025, 0.975], dtype=a.dtype)
-    return {"median": tuple(torch.quantile(med, q).tolist()), "rms": tuple(torch.quantile(rms, q).tolist())}
+    ``a``, ``b`` ``[T]`` by a circular moving-block bootstrap (the same resampled epochs for both:
+    :func:`difffilter.learn.intervals.block_bootstrap_difference`)."""
+    out = {}
+    for stat in ("median", "rms"):
+        iv = block_bootstrap_difference(a, b, statistic=stat, block=block, draws=draws, seed=seed)
+        out[stat] = (iv.lo, iv.hi)
+    return out
 
 
 def compare(run_dir: str | Path, *, block: int = 50, draws: int = 4000) -> dict[str, Any]:

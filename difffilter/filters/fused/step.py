@@ -33,6 +33,9 @@ _MAX_CONTRACTION = 32
 def filter_kind(filt: RecursiveFilter) -> str | None:
     """``"sukf"``, ``"ukf"`` or ``"ekf"`` (EKF and KalmanFilter) if this step implements ``filt``'s
     equations (not a subclass with its own ``predict``/``update``, additive noise), else None."""
+    model = getattr(filt, "model", None)
+    if model is None or not all(getattr(part, "additive_noise", True) for part in (model.dynamics, model.measurement)):
+        return None  # this step adds Q and R; a model with non-additive noise needs the filter's own equations
     kinds = ((SimplifiedUKF, "sukf"), (UKF, "ukf"), (EKF, "ekf"))
     for cls, kind in kinds:
         if isinstance(filt, cls):

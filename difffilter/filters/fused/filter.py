@@ -6,9 +6,11 @@ import warnings
 from typing import Any
 
 from torch import Tensor, nn
+from torch.nn.utils import parametrize
 
 from ...models.base import Controls
-from ..base import Belief, FilterResult, RecursiveFilter
+from ..base import Belief, FilterResult, RecursiveFilter, slice_controls, through_diffuse_phase
+from ..diffuse import DIFFUSE_COV
 from .build import CompileError
 from .generated import GeneratedEngine
 from .graph import UnsupportedOp
@@ -35,18 +37,27 @@ class FusedFilter(nn.Module):
       whole sequence, one SIMD vector of trajectories at a time, with the belief in registers.
       Its backward is a generated reverse sweep that recomputes each step from the stored
       beliefs.  Works for any filter or mixer whose step has no Python decision on data values
-      (KF, EKF, UKF in every variant, SimplifiedUKF, IMM of any bank...).  Cholesky factors are
-      branch-free: a non-positive pivot is clamped to ``n * eps * max|diag| + tiny`` where the
-      reference retries with jitter (equal on positive-definite inputs).  Kernels are cached on
-      disk (:func:`~difffilter.filters.fused.build.cache_dir`); the first build of a kernel takes
+      (KF, EKF, UKF in every variant, SimplifiedUKF, IMM of any bank, angular models...).
+      Where the reference branches on data, the kernel computes both sides and selects per
+      trajectory (the Joseph-form fallback of :func:`~difffilter.filters.update.gaussian_update`,
+      the semi-definite square root of :func:`~difffilter.linalg.psd_sqrt`); the one
+      difference: an innovation covariance that is not positive definite has its non-positive
+      pivots clamped to ``n * eps * max|diag| + tiny`` where the reference adds jitter (both flag
+      the step in ``extras["untrusted"]``).  Kernels are cached on disk
+      (:func:`~difffilter.filters.fused.build.cache_dir`); the first build of a kernel takes
       seconds to a minute, later processes load it.
     * ``"inductor"``: a batch-last, branch-free twin of the UKF/SimplifiedUKF/EKF/KalmanFilter
-      step, compiled by ``torch.compile`` per step (any device inductor supports); per-step
-      clamped pivots in ``extras["cholesky_clamps"]``.
+      step (Joseph-form fallback included), compiled by ``torch.compile`` per step (any device
+      inductor supports); per-step clamped pivots in ``extras["cholesky_clamps"]``.  Refuses
+      models with angular components (no circular means) or non-additive noise.
     * ``"eager"``: the same batch-last step uncompiled (for debugging and tests).
     * ``"auto"`` (default): ``"generated"`` on CPU, else ``"inductor"``; if the generated engine
       cannot run the filter (a warning says why), ``"inductor"`` when it supports the filter,
       else the filter itself.  ``compile=False`` selects ``"eager"``.
+
+    Every engine starts from the filter's own :meth:`~RecursiveFilter.start_belief`: a diffuse
+    prior's first steps run in the filter's exact two-part form, the remaining steps on the
+    engine; ``extras["untrusted"]`` is computed as the reference loop computes it.
 
     Args:
         filt: the filter (any :class:`RecursiveFilter`; the inductor and eager engines need a
@@ -84,6 +95,10 @@ class FusedFilter(nn.Module):
         if engine == "auto" and not compile:
             engine = "eager"
         self.kind = filter_kind(filt)
+        if engine in ("inductor", "eager") and _angular(filt, self.kind):
+            raise TypeError(_ANGULAR_REFUSAL.format(*_angular(filt, self.kind)))
+        if _angular(filt, self.kind):
+            self.kind = None  # the batch-last step has no circular means or wrapped state addition
         if engine in ("inductor", "eager") and self.kind is None:
             raise TypeError(
                 f"FusedFilter's {engine} engine supports UKF (noise='additive'), SimplifiedUKF, EKF and KalmanFilter "
@@ -126,9 +141,11 @@ class FusedFilter(nn.Module):
     def measurement_dim(self) -> int:
         return self.filter.measurement_dim
 
-    def initial_belief(self, initial_mean: Tensor, initial_cov: Tensor, batch_size: int | None = None) -> Belief:
+    def initial_belief(
+        self, initial_mean: Tensor, initial_cov: Tensor, batch_size: int | None = None, *, controls: Controls = None
+    ) -> Belief:
         """The wrapped filter's :meth:`~RecursiveFilter.initial_belief`."""
-        return self.filter.initial_belief(initial_mean, initial_cov, batch_size)
+        return self.filter.initial_belief(initial_mean, initial_cov, batch_size, controls=controls)
 
     def step(
         self, belief: Belief, measurement: Tensor, mask: Tensor | None = None, controls: Controls = None
@@ -164,7 +181,12 @@ class FusedFilter(nn.Module):
         if belief is None:
             if mean0 is None or cov0 is None:
                 raise ValueError("initial_mean and initial_cov are required unless belief= is given")
-            belief = filt.init_belief(mean0, cov0)
+            with parametrize.cached():
+                belief = filt.start_belief(mean0, cov0, slice_controls(controls, 0))
+        if DIFFUSE_COV in belief:
+            # a diffuse prior's first steps run in the filter's exact two-part form (reference code)
+            self.last_engine = "reference"
+            return through_diffuse_phase(filt, self.forward, z, mask3, controls, belief)
         bsz, n = z.shape[0], filt.state_dim
         if belief["mean"].shape != (bsz, n) or belief["cov"].shape != (bsz, n, n):
             raise ValueError(f"belief must hold mean [B, n] = [{bsz}, {n}] and cov [B, n, n], got {tuple(belief['mean'].shape)}")
@@ -187,6 +209,23 @@ class FusedFilter(nn.Module):
             return self._inductor(z, mask3, {"mean": belief["mean"], "cov": belief["cov"]}, controls)
         self.last_engine = "reference"
         return filt(z, mask=mask3, controls=controls, belief=belief)
+
+
+_ANGULAR_REFUSAL = (
+    "FusedFilter does not compute wrap-aware unscented means in its inductor/eager engines: the model declares angular "
+    "components (states {}, measurements {}); use engine='generated' (CPU) or run the filter directly"
+)
+
+
+def _angular(filt: RecursiveFilter, kind: str | None) -> tuple[list[int], list[int]] | None:
+    """The angular state and measurement components that the batch-last step would mishandle
+    (an EKF's measurement residual already wraps), or None."""
+    model = getattr(filt, "model", None)
+    if model is None:
+        return None
+    states = list(getattr(model.dynamics, "angular", ()))
+    meas = list(getattr(model.measurement, "angular", ())) if kind != "ekf" else []
+    return (states, meas) if states or meas else None
 
 
 def fuse(

@@ -16,6 +16,7 @@ from torch import Tensor
 
 from ...models.base import Controls
 from ..base import Belief, FilterResult, RecursiveFilter
+from ..update import untrusted_steps
 from .kernel import SequenceProgram, lanes, run_sequence
 from .trace import StepLayout, fingerprint, trace_step
 
@@ -93,12 +94,17 @@ class GeneratedEngine:
             return out if kind == dtype else out.to(kind)
 
         extras = {k: field(k) for k in prog.traced.record_keys}
+        mean, cov, prior_cov, loglik = field("mean"), field("cov"), field("prior_cov"), field("log_likelihood")
+        # the run-wide check of the reference loop, and the steps' own flags
+        extras["untrusted"] = untrusted_steps(mean.detach(), cov.detach(), prior_cov.detach(), loglik.detach()) | (
+            field("step_untrusted") != 0
+        )
         return FilterResult(
-            mean=field("mean"),
-            cov=field("cov"),
+            mean=mean,
+            cov=cov,
             prior_mean=field("prior_mean"),
-            prior_cov=field("prior_cov"),
-            log_likelihood=field("log_likelihood"),
+            prior_cov=prior_cov,
+            log_likelihood=loglik,
             nis=field("nis"),
             num_observed=field("num_observed"),
             # copies: a view would keep the whole output buffers alive (and unusable for the next

@@ -18,6 +18,7 @@ from torch.nn.utils import parametrize
 
 from ...models.base import Controls, DynamicsModel, MeasurementModel
 from ..base import Belief, FilterResult, RecursiveFilter, slice_controls
+from ..update import untrusted_steps
 from .kernel import ReusableBuffers
 from .step import SmallMatmulAsSum, batch_last_step, to_batch_last, transpose01
 
@@ -119,7 +120,9 @@ class InductorEngine:
             post_cov = torch.stack(cols[1]).permute(3, 0, 1, 2)
             prior_mean = torch.stack(cols[2]).permute(2, 0, 1)
             prior_cov = torch.stack(cols[3]).permute(3, 0, 1, 2)
-        ll, nis, nobs, clamps = (torch.stack(c, 1) for c in cols[4:])
+        ll, nis, nobs, clamps, s_clamps = (torch.stack(c, 1) for c in cols[4:])
+        # the reference loop's flags: the run-wide check and an innovation covariance that needed repair
+        untrusted = untrusted_steps(post_mean.detach(), post_cov.detach(), prior_cov.detach(), ll.detach()) | (s_clamps != 0)
         return FilterResult(
             mean=post_mean,
             cov=post_cov,
@@ -129,5 +132,5 @@ class InductorEngine:
             nis=nis,
             num_observed=nobs,
             final_belief={"mean": post_mean[:, -1], "cov": post_cov[:, -1]},
-            extras={"cholesky_clamps": clamps},
+            extras={"cholesky_clamps": clamps, "untrusted": untrusted},
         )

@@ -73,6 +73,16 @@ def lower_pointwise(L: Lowering, name: str, args: tuple, kw: dict[str, Any], nod
         return out
     if name in ("pow",):
         return L.binary("pow", a0, args[1])
+    if name == "nextafter":  # constants only (a constraint's open bounds), in the kernel's dtype
+        a, b = np.broadcast_arrays(L.fl(a0), L.fl(args[1]))
+        if not all(g.is_const(int(x)) for x in (*a.reshape(-1), *b.reshape(-1))):
+            raise UnsupportedOp("nextafter of values that are not constants")
+
+        def after(x: int, y: int) -> int:
+            towards = torch.nextafter(torch.tensor(g.value[x], dtype=L.dtype), torch.tensor(g.value[y], dtype=L.dtype))
+            return g.const(towards.item())
+
+        return np.asarray(np.frompyfunc(after, 2, 1)(a, b), dtype=object)
     if name == "square":
         return L.binary("mul", a0, a0)
     if name == "reciprocal":

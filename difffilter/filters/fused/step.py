@@ -185,6 +185,40 @@ def _noise(static: Tensor | None, fn: Callable[[Tensor, Controls], Tensor], mean
     return static if static is not None else to_batch_last(fn(transpose01(mean), u), 2)
 
 
+def _joseph_where_lossy(
+    new_cov: Tensor,
+    prior_cov: Tensor,
+    factor: Tensor,
+    w: Tensor,
+    observed: Tensor | None,
+    jac: Tensor | None,
+    r: Tensor,
+    dx: Tensor | None,
+    dz: Tensor | None,
+    wc: Tensor | None,
+) -> Tensor:
+    """``new_cov [n, n, B]`` where ``P - K S K^T`` keeps its digits, else the Joseph form: of the
+    linearised system (``jac`` given) or of the sigma-point deviations ``dx [S, n, B]``,
+    ``dz [S, m, B]`` with weights ``wc`` (the reference's ``gaussian_update`` fallbacks)."""
+    n = new_cov.shape[0]
+    switch = 64.0 * torch.finfo(new_cov.dtype).eps ** 0.5
+    lossy = torch.zeros_like(new_cov[0, 0], dtype=torch.bool)
+    for i in range(n):
+        lossy = lossy | (new_cov[i, i] < switch * prior_cov[i, i])
+    gain = transpose01(solve_lower_transposed(factor, w))  # K = W^T L^{-1}: [n, m, B]
+    rm = r if observed is None else r * (observed[:, None] * observed[None])
+    gr = matmul_batch_last(matmul_batch_last(gain, rm), transpose01(gain))
+    if jac is not None:
+        h = jac if observed is None else jac * observed[:, None]
+        a = torch.eye(n, dtype=new_cov.dtype, device=new_cov.device)[..., None] - matmul_batch_last(gain, h)
+        stable = matmul_batch_last(matmul_batch_last(a, prior_cov), transpose01(a)) + gr
+    else:
+        dzm = dz if observed is None else dz * observed[None]  # type: ignore[index]
+        dev = dx - (gain[None] * dzm[:, None]).sum(2)  # type: ignore[operator] # dx_s - K dz_s: [S, n, B]
+        stable = _weighted_cov(dev, dev, wc) + gr  # type: ignore[arg-type]
+    return torch.where(lossy, symmetrize(stable), new_cov)
+
+
 def batch_last_step(
     filt: RecursiveFilter,
     kind: str,
@@ -199,8 +233,12 @@ def batch_last_step(
     """One predict/update of ``filt`` (of :func:`filter_kind` ``kind``) on ``mean [n, B]``,
     ``cov [n, n, B]`` and ``z [B, m]``; ``observed [m, B]`` (1.0 observed, 0.0 missing) or
     None; ``q_static``/``r_static`` batch-last noise matrices or None (state dependent).
-    Returns the posterior, the prior, log-likelihood, NIS, observed count and clamped pivots,
-    batch-last."""
+    Returns the posterior, the prior, log-likelihood, NIS, observed count, clamped pivots and
+    clamped pivots of the innovation covariance, batch-last.
+
+    As in :func:`~difffilter.filters.update.gaussian_update`, a posterior covariance whose
+    variance ``P - K S K^T`` falls below ``64 sqrt(eps)`` times its prior is taken from the
+    Joseph form instead (branch-free: computed every step, selected per trajectory)."""
     dyn, meas = filt.model.dynamics, filt.model.measurement
     n = mean.shape[0]
     clamps = torch.zeros_like(mean[0])
@@ -262,8 +300,8 @@ def batch_last_step(
         num_obs = observed.sum(0)
     else:
         num_obs = torch.full_like(mean[0], float(mdim))
-    factor, c = cholesky_lower(pzz)
-    clamps = clamps + c
+    factor, s_clamps = cholesky_lower(pzz)
+    clamps = clamps + s_clamps
     sol = solve_lower(factor, torch.cat([transpose01(pxz), e[:, None]], 1))  # [m, n + 1, B]
     w, v = sol[:, :-1], sol[:, -1]
     new_mean = prior_mean + sum_terms([w[i] * v[i] for i in range(mdim)])
@@ -281,7 +319,19 @@ def batch_last_step(
         )
     else:
         new_cov = prior_cov - sum_terms([w[i][:, None] * w[i][None] for i in range(mdim)])  # P- - W^T W
+        new_cov = _joseph_where_lossy(
+            new_cov,
+            prior_cov,
+            factor,
+            w,
+            observed,
+            jac,
+            r,
+            update_offsets if jac is None else None,
+            dz if jac is None else None,
+            update_wc if jac is None else None,
+        )
     maha = sum_terms([v[i] * v[i] for i in range(mdim)])
     logdet = 2.0 * sum_terms([torch.log(factor[i, i]) for i in range(mdim)])
     ll = -0.5 * (maha + logdet + num_obs * _LOG_2PI)
-    return new_mean, new_cov, prior_mean, prior_cov, ll, maha, num_obs, clamps
+    return new_mean, new_cov, prior_mean, prior_cov, ll, maha, num_obs, clamps, s_clamps

@@ -4,9 +4,8 @@ The step traced is exactly the body of :meth:`RecursiveFilter.forward`'s loop: `
 ``update``, ``finalize_belief`` and ``record``, on a belief of batch size one.  It is traced with
 fake tensors (``make_fx``), so any Python decision on the *values* of the belief or the data
 fails the trace (and the caller falls back to another engine) instead of being frozen into the
-kernel.  One such decision is expected and handled: :func:`~difffilter.linalg.safe_cholesky`
-retries a failing factorisation with jitter; while tracing it is replaced by the bare
-factorisation, which the lowering writes as a branch-free Cholesky with clamped pivots.
+kernel.  The linear-algebra helpers that make such decisions are replaced by branch-free
+equivalents while tracing (:func:`_traceable`).
 
 Model parameters that require a gradient become inputs of the kernel; buffers and frozen
 parameters are folded in as constants (their values are part of :func:`fingerprint`, so a
@@ -43,7 +42,7 @@ _TRACE_LOCK = threading.Lock()
 #: unrolled, and its reverse sweep is ~3x larger (p003's 20-state IMM bank: 171k operations,
 #: a 38 s forward compile at -O1 and a reverse kernel of several minutes)
 MAX_NODES = 100_000
-_RESULT_KEYS = ("prior_mean", "prior_cov", "log_likelihood", "nis", "num_observed")
+_RESULT_KEYS = ("prior_mean", "prior_cov", "log_likelihood", "nis", "num_observed", "step_untrusted")
 
 
 @dataclass(frozen=True)
@@ -116,23 +115,53 @@ def fingerprint(filt: nn.Module) -> str:
     return h.hexdigest()
 
 
+def _bare_cholesky(a: Tensor, *, max_jitter: float | None = None) -> linalg.CholeskyResult:
+    """``safe_cholesky`` without its retry: the lowering clamps non-positive pivots instead."""
+    chol, info = torch.linalg.cholesky_ex(a)
+    return linalg.CholeskyResult(chol, info.to(a.dtype))
+
+
+def _semidefinite_sqrt(a: Tensor) -> linalg.CholeskyResult:
+    """``psd_sqrt`` without its branches: the exact semi-definite factor (zero columns for zero
+    pivots), which is also the Cholesky factor of a positive-definite matrix."""
+    factor, _ = linalg._semidefinite_factor(linalg.symmetrize(a))
+    return linalg.CholeskyResult(factor, torch.zeros_like(a[..., 0, 0]))
+
+
+def _always(flags: Tensor) -> bool:
+    return True
+
+
+#: What tracing replaces, in every difffilter module that imported it: functions with a Python
+#: branch on data values, by branch-free ones with the same values (see :func:`_traceable`).
+_TRACEABLE = {"safe_cholesky": _bare_cholesky, "psd_sqrt": _semidefinite_sqrt, "any_set": _always}
+
+
 @contextmanager
-def _branch_free_cholesky() -> Iterator[None]:
-    """Replace ``safe_cholesky`` in every difffilter module by the bare factorisation while tracing."""
-    original = linalg.safe_cholesky
+def _traceable() -> Iterator[None]:
+    """While tracing, replace the linear-algebra helpers that branch on data values.
 
-    def bare(a: Tensor, *, max_jitter: float | None = None) -> linalg.CholeskyResult:
-        chol, info = torch.linalg.cholesky_ex(a)
-        return linalg.CholeskyResult(chol, info.to(a.dtype))
-
-    mods = [m for name, m in list(sys.modules.items()) if name.startswith("difffilter") and getattr(m, "safe_cholesky", None) is original]
-    for m in mods:
-        m.safe_cholesky = bare  # type: ignore[attr-defined]
+    ``safe_cholesky`` retries a failed factorisation with jitter: the bare factorisation is
+    traced, and the lowering clamps non-positive pivots (equal on positive-definite inputs).
+    ``psd_sqrt`` tries a Cholesky factor and falls back to the semi-definite factor: the
+    semi-definite factor is traced (equal on positive semi-definite inputs).  ``any_set``
+    guards work selected per element with ``torch.where``: it is taken, which gives the
+    reference values.
+    """
+    originals = {name: getattr(linalg, name) for name in _TRACEABLE}
+    patched = []
+    for mod_name, mod in list(sys.modules.items()):
+        if not mod_name.startswith("difffilter"):
+            continue
+        for name, original in originals.items():
+            if getattr(mod, name, None) is original:
+                setattr(mod, name, _TRACEABLE[name])
+                patched.append((mod, name, original))
     try:
         yield
     finally:
-        for m in mods:
-            m.safe_cholesky = original  # type: ignore[attr-defined]
+        for mod, name, original in patched:
+            setattr(mod, name, original)
 
 
 def _unflatten_controls(layout: StepLayout, flat: list[Tensor]) -> Any:
@@ -142,6 +171,17 @@ def _unflatten_controls(layout: StepLayout, flat: list[Tensor]) -> Any:
     if len(layout.controls) == 1 and layout.controls[0][0] == "":
         return vals[0]
     return {k: v for (k, _, _), v in zip(layout.controls, vals, strict=True)}
+
+
+def _step_flag(info: Any) -> Tensor:
+    """``[1]`` 1.0 where the step flags itself untrusted (``StepInfo.untrusted``, or an
+    innovation covariance that needed repair, ``StepInfo.jitter``), else 0.0."""
+    flag = torch.zeros_like(info.log_likelihood)
+    if getattr(info, "untrusted", None) is not None:
+        flag = flag + info.untrusted.to(flag.dtype)
+    if getattr(info, "jitter", None) is not None:
+        flag = flag + (info.jitter != 0).to(flag.dtype)
+    return flag
 
 
 def _step_function(
@@ -170,7 +210,8 @@ def _step_function(
         seen["records"] = list(rec)
         seen["record_values"] = dict(rec)
         out = [seen["post"][k] for k in seen["post"]]
-        return out + [prior["mean"], prior["cov"], info.log_likelihood, info.nis, info.num_observed] + list(rec.values())
+        result = [prior["mean"], prior["cov"], info.log_likelihood, info.nis, info.num_observed, _step_flag(info)]
+        return out + result + list(rec.values())
 
     return step
 
@@ -215,7 +256,7 @@ def trace_step(filt: RecursiveFilter, layout: StepLayout, example_belief: dict[s
     entries.  Raises :class:`UnsupportedOp` when the engine cannot run the filter.
     """
     trained = [(n, p) for n, p in filt.named_parameters() if p.requires_grad]
-    with _TRACE_LOCK, _branch_free_cholesky(), torch.no_grad():
+    with _TRACE_LOCK, _traceable(), torch.no_grad():
         gm0, eager0 = _trace(filt, layout, example_belief, trained)
         post = list(eager0["post"])
         if post == [k for k, _, _ in layout.belief]:

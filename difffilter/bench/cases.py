@@ -86,10 +86,19 @@ def builtin_case(kind: str, dtype: torch.dtype, data: BenchData, settings: Any) 
     return BenchCase(filt, data.measurements, data.initial_mean, data.initial_cov)
 
 
-def torch_runner(case: BenchCase, mode: str, *, fused: bool = False, threads: int = 1, engine: str = "auto") -> Callable[[], np.ndarray]:
+def torch_runner(
+    case: BenchCase, mode: str, *, fused: bool = False, threads: int = 1, engine: str = "auto", runner: Any = None
+) -> Callable[[], np.ndarray]:
     """The timed call: ``forward`` (no gradient) or ``train`` (total log-likelihood and its
-    gradient w.r.t. the trained parameters); returns the per-trajectory log-likelihood."""
-    filt: Any = FusedFilter(case.filter, engine=engine, threads=threads) if fused else case.filter
+    gradient w.r.t. the trained parameters); returns the per-trajectory log-likelihood.
+
+    ``runner``: the module to call (e.g. the ``.runner`` of an earlier call, so that a warm-up
+    builds the kernels of the very wrapper that is timed); default ``case.filter``, or a new
+    :class:`FusedFilter` of it when ``fused``."""
+    if runner is not None:
+        filt: Any = runner
+    else:
+        filt = FusedFilter(case.filter, engine=engine, threads=threads) if fused else case.filter
     params = [p for p in case.filter.parameters() if p.requires_grad]
 
     def forward() -> np.ndarray:

@@ -35,6 +35,11 @@ The ``experiment`` config node (per-paper overlays set it)::
       eval_batch_size: null       # test trajectories per evaluation batch (null: all)
       error_quantiles: null       # e.g. [0.5, 0.95]: extra columns pos_err_p50, pos_err_p95 =
                                   # quantiles of the position error norm over all test steps
+      test_name: null             # the test set's label in sweep summaries (null: "main" when extra tests exist)
+      extra_tests: {}             # {name: simulator config}: more held-out test sets (another scenario
+                                  # family), drawn with the test set's size and seed; each gets the same
+                                  # filters and files in <output_dir>/extra_tests/<name>/ (the oracle row
+                                  # keeps the main test set's true parameters)
 
 Names in ``hand_tuned``/``params`` follow :func:`difffilter.selection.assign_parameters`
 (a vector sets a covariance's diagonal; a scalar sets ``s I`` or a ScaledMatrix's scale).
@@ -64,7 +69,7 @@ from ..filters.protocol import Filter
 from ..models.layout import model_defaults
 from ..selection import assign_parameters, match_parameters, parameter_owners
 from .data import TrajectorySet
-from .evaluation import PER_RUN_FILE, consistency_table, evaluate_runs, write_per_run
+from .evaluation import EXTRA_TESTS_DIR, PER_RUN_FILE, consistency_table, evaluate_runs, write_per_run
 
 __all__ = ["apply_model_defaults", "build_filter", "evaluate_filter", "format_results", "run_experiment", "write_results"]
 
@@ -223,6 +228,63 @@ def apply_model_defaults(cfg: DictConfig, filt: Filter) -> None:
             cfg.experiment.position_index = list(defaults.layout.position)
 
 
+def _evaluate_and_write(
+    cfg: DictConfig,
+    filters: Mapping[str, Filter],
+    test: TrajectorySet,
+    learner: Any,
+    learned_names: list[str],
+    output_dir: Path,
+    *,
+    label: str = "",
+    print_table: bool = False,
+) -> list[dict[str, Any]]:
+    """Evaluate every filter on ``test``; write ``results.csv``/``results.md``/``per_run.csv`` to
+    ``output_dir``; return the rows."""
+    exp = cfg.experiment
+    dtype = as_dtype(cfg.dtype)
+    indices = {k: exp.get(k) for k in ("position_index", "truth_position_index", "state_index", "truth_index")}
+    indices = {k: None if v is None else [int(i) for i in v] for k, v in indices.items()}
+    blocks = {str(k): [int(i) for i in v] for k, v in (_plain(exp.get("state_blocks")) or {}).items()} or None
+    truth_blocks = {str(k): [int(i) for i in v] for k, v in (_plain(exp.get("truth_blocks")) or {}).items()} or None
+    per_run: dict[str, dict[str, torch.Tensor]] = {}
+    rows = []
+    for name, filt in filters.items():
+        filt = filt.to(dtype).eval()
+        row: dict[str, Any] = {"filter": name}
+        evaluation = evaluate_runs(
+            filt,
+            test,
+            initial_mean=learner.initial_mean,
+            initial_cov=learner.initial_cov,
+            batch_size=exp.get("eval_batch_size"),
+            max_jitter=cfg.learner.get("max_jitter"),
+            error_quantiles=None if exp.get("error_quantiles") is None else [float(q) for q in exp.error_quantiles],
+            blocks=blocks,
+            truth_blocks=truth_blocks,
+            **indices,
+        )
+        row.update(evaluation.summary)
+        per_run[name] = evaluation.per_run
+        if learned_names:
+            try:
+                row["parameters"] = _parameter_summary(filt, learned_names)
+            except ValueError:
+                row["parameters"] = ""
+        rows.append(row)
+    note = (
+        f"experiment `{exp.get('name', '')}`{f' (test set `{label}`)' if label else ''}: {len(test)} held-out test trajectories x "
+        f"{test.num_steps} steps, loss `{cfg.loss.get('_target_', cfg.loss)}`, learned {learned_names}; rmse in the truth's units; "
+        "anees/nis: run-level means with 95 % t-intervals over runs (_run_ci_lo/hi) and the fraction of steps inside the "
+        "per-step chi-square band (_step_band_frac); nll per observed step (nats); time_per_step_ms for the whole test batch."
+    )
+    write_results(rows, output_dir, title=f"difffilter results: {exp.get('name', '')}", note=note)
+    write_per_run(per_run, output_dir / PER_RUN_FILE)
+    if print_table:
+        print(format_results(rows, title=f"results ({output_dir})", note=note))
+    return rows
+
+
 def run_experiment(cfg: DictConfig) -> dict[str, Any]:
     """Train and evaluate as configured; returns ``{"metric": value, "rows": [...], ...}``."""
     if cfg.get("threads"):
@@ -250,47 +312,12 @@ def run_experiment(cfg: DictConfig) -> dict[str, Any]:
         filters["oracle"] = oracle
     for name, spec in (_plain(exp.get("baselines")) or {}).items():
         filters[name] = build_filter(spec.get("filter") or cfg.filter, dtype=dtype, params=spec.get("params"))
-    indices = {k: exp.get(k) for k in ("position_index", "truth_position_index", "state_index", "truth_index")}
-    indices = {k: None if v is None else [int(i) for i in v] for k, v in indices.items()}
-    blocks = {str(k): [int(i) for i in v] for k, v in (_plain(exp.get("state_blocks")) or {}).items()} or None
-    truth_blocks = {str(k): [int(i) for i in v] for k, v in (_plain(exp.get("truth_blocks")) or {}).items()} or None
-    per_run: dict[str, dict[str, torch.Tensor]] = {}
-    mean0, cov0 = learner.initial_mean, learner.initial_cov
     learned_names = list(cfg.get("learn") or [])
-    rows = []
-    for name, filt in filters.items():
-        filt = filt.to(dtype).eval()
-        row: dict[str, Any] = {"filter": name}
-        evaluation = evaluate_runs(
-            filt,
-            test,
-            initial_mean=mean0,
-            initial_cov=cov0,
-            batch_size=exp.get("eval_batch_size"),
-            max_jitter=cfg.learner.get("max_jitter"),
-            error_quantiles=None if exp.get("error_quantiles") is None else [float(q) for q in exp.error_quantiles],
-            blocks=blocks,
-            truth_blocks=truth_blocks,
-            **indices,
-        )
-        row.update(evaluation.summary)
-        per_run[name] = evaluation.per_run
-        if learned_names:
-            try:
-                row["parameters"] = _parameter_summary(filt, learned_names)
-            except ValueError:
-                row["parameters"] = ""
-        rows.append(row)
-    note = (
-        f"experiment `{exp.get('name', '')}`: {len(test)} held-out test trajectories x {test.num_steps} steps, "
-        f"loss `{cfg.loss.get('_target_', cfg.loss)}`, learned {learned_names}; rmse in the truth's units; "
-        "anees/nis: run-level means with 95 % t-intervals over runs (_run_ci_lo/hi) and the fraction of steps inside the "
-        "per-step chi-square band (_step_band_frac); nll per observed step (nats); time_per_step_ms for the whole test batch."
-    )
     output_dir = Path(cfg.paths.output_dir)
-    write_results(rows, output_dir, title=f"difffilter results: {exp.get('name', '')}", note=note)
-    write_per_run(per_run, output_dir / PER_RUN_FILE)
-    print(format_results(rows, title=f"results ({output_dir})", note=note))
+    rows = _evaluate_and_write(cfg, filters, test, learner, learned_names, output_dir, print_table=True)
+    for test_name, sim_cfg in (_plain(exp.get("extra_tests")) or {}).items():
+        extra = datamodule.simulate(instantiate(sim_cfg, _convert_="all"), "test")
+        _evaluate_and_write(cfg, filters, extra, learner, learned_names, output_dir / EXTRA_TESTS_DIR / str(test_name), label=str(test_name))
     learned = next(r for r in rows if r["filter"] == "learned")
     metric_name = exp.get("metric", "rmse_pos")
     return {"metric": float(learned.get(metric_name, math.nan)), "rows": rows, "output_dir": str(output_dir), "trainer": trainer}

@@ -147,7 +147,8 @@ def test_extra_test_sets_are_groups_of_their_own(tmp_path):
         _job(tmp_path, s, ["experiment=x", f"seed={s}"], {"hand-tuned": {"rmse_pos": hand}, "learned": {"rmse_pos": learned[s]}}, band=0.9)
         extra = tmp_path / str(s) / "extra_tests" / "scripted"
         extra.mkdir(parents=True)
-        write_per_run({"hand-tuned": {"rmse_pos": torch.tensor(scripted)}, "learned": {"rmse_pos": torch.tensor(scripted - 1.0 - s)}}, extra / "per_run.csv")
+        runs = {"hand-tuned": {"rmse_pos": torch.tensor(scripted)}, "learned": {"rmse_pos": torch.tensor(scripted - 1.0 - s)}}
+        write_per_run(runs, extra / "per_run.csv")
     _, csv_path = summarize_sweep(tmp_path, draws=200)
     rows = _rows(csv_path)
     assert float(rows[("test=main", "learned", "rmse_pos")]["estimate"]) == pytest.approx(learned.mean())

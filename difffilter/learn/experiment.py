@@ -317,7 +317,8 @@ def run_experiment(cfg: DictConfig) -> dict[str, Any]:
     rows = _evaluate_and_write(cfg, filters, test, learner, learned_names, output_dir, print_table=True)
     for test_name, sim_cfg in (_plain(exp.get("extra_tests")) or {}).items():
         extra = datamodule.simulate(instantiate(sim_cfg, _convert_="all"), "test")
-        _evaluate_and_write(cfg, filters, extra, learner, learned_names, output_dir / EXTRA_TESTS_DIR / str(test_name), label=str(test_name))
+        extra_dir = output_dir / EXTRA_TESTS_DIR / str(test_name)
+        _evaluate_and_write(cfg, filters, extra, learner, learned_names, extra_dir, label=str(test_name))
     learned = next(r for r in rows if r["filter"] == "learned")
     metric_name = exp.get("metric", "rmse_pos")
     return {"metric": float(learned.get(metric_name, math.nan)), "rows": rows, "output_dir": str(output_dir), "trainer": trainer}

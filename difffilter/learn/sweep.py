@@ -91,7 +91,8 @@ def load_jobs(sweep_dir: str | Path, *, replicate_key: str = "seed") -> list[Job
             test, job_dir = job_dir.name, job_dir.parent.parent
         elif extra:
             config = job_dir / ".hydra" / "config.yaml"
-            test = str(OmegaConf.select(OmegaConf.load(config), "experiment.test_name", default=None) or "main") if config.exists() else "main"
+            label = OmegaConf.select(OmegaConf.load(config), "experiment.test_name", default=None) if config.exists() else None
+            test = str(label or "main")
         overrides_file = job_dir / ".hydra" / "overrides.yaml"
         overrides = [str(o) for o in OmegaConf.load(overrides_file)] if overrides_file.exists() else []
         rest = sorted(o for o in overrides if _key(o) != replicate_key) + ([f"test={test}"] if test else [])

@@ -3,13 +3,14 @@ statistics, the in-family walks come from the filter's own model with p002's GPS
 
 from __future__ import annotations
 
+import csv
 import math
 
 import pytest
 import torch
 
 from difffilter.models.navigation.pdr import wrap_angle
-from difffilter.papers.p002 import arc_bursts, gps_availability, p002_infamily, pdr_model, simulate_p002, turn_heading_error
+from difffilter.papers.p002 import arc_bursts, gps_availability, p002_infamily, pdr_model, simulate_p002, sweep_table, turn_heading_error
 
 f64 = torch.float64
 
@@ -81,3 +82,25 @@ def test_infamily_walks_come_from_the_filters_model():
     torch.testing.assert_close(d.true_params["measurement.R"].diagonal(), torch.tensor(truth["R"], dtype=f64))
     assert float(d.mask[..., 0].double().mean()) < 0.5 and bool(d.mask[..., 2].all())
     assert float(model.R[0, 0].detach()) == pytest.approx(1.888**2)  # the filter's model is left alone
+
+
+def test_sweep_table_arranges_the_summary(tmp_path):
+    head = ["group", "filter", "quantity", "estimate", "lo", "hi", "seeds", "runs", "reference"]
+    rows = [
+        ["filter=p002_rcukf scenario=p002_pdr test=P=0.8", "hand-tuned", "rmse_pos", "3.0", "2.5", "3.5", "1", "50", ""],
+        ["filter=p002_rcukf scenario=p002_pdr test=P=0.8", "learned", "rmse_pos", "2.0", "1.8", "2.2", "5", "50", ""],
+        ["filter=p002_rcukf scenario=p002_pdr test=P=0.8", "learned", "diff", "-1.0", "-1.2", "-0.8", "5", "50", ""],
+        ["filter=p002_rcukf scenario=p002_pdr test=P=0.8", "learned", "diff_pct", "-33", "-40", "-26", "5", "50", ""],
+        ["filter=p002_ukf scenario=p002_pdr test=P=0.8", "hand-tuned", "rmse_pos", "2.9", "2.4", "3.4", "1", "50", ""],
+        ["filter=p002_rcukf scenario=p002_pdr test=P=0.05", "GPS only", "rmse_pos", "2.7", "2.6", "2.8", "1", "50", ""],
+    ]
+    with (tmp_path / "summary.csv").open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(head)
+        w.writerows(rows)
+    text = sweep_table(tmp_path)
+    assert "### scenario=p002_pdr" in text and "| P=0.8 | P=0.05 |" in text
+    assert "| RC-UKF learned | 2 [1.8, 2.2] | - |" in text
+    assert "| RC-UKF hand-tuned | 3 [2.5, 3.5] [6.78] | - [1.94] |" in text
+    assert "| UKF hand-tuned | 2.9 [2.4, 3.4] [7.38] |" in text and "| GPS only | - [12.17] | 2.7 [2.6, 2.8] [2.67] |" in text
+    assert "| RC-UKF learned - RC-UKF hand-tuned | -1 [-1.2, -0.8]; -33 [-40, -26] % |" in text

@@ -19,6 +19,8 @@ from typing import Any
 import torch
 from omegaconf import OmegaConf
 
+from ...learn.checkpoints import best_checkpoint
+from ...learn.learner import load_filter
 from ...models.navigation.gnss_imu import GnssImuModel
 from ...selection import assign_parameters
 from .experiment import blend_filter, p004_simulator
@@ -61,9 +63,7 @@ def paired_report(
     """
     run_dir = Path(run_dir)
     cfg = OmegaConf.load(run_dir / ".hydra" / "config.yaml")
-    ckpts = sorted((run_dir / "checkpoints").glob("*.ckpt"))
-    if not ckpts:
-        raise FileNotFoundError(f"no checkpoint under {run_dir / 'checkpoints'}")
+    ckpt = best_checkpoint(run_dir)
     runs = int(runs or cfg.data.test_size)
     if runs < 2:
         raise ValueError(f"runs must be at least 2, got {runs}")
@@ -82,13 +82,12 @@ def paired_report(
     hand = _blend(float(cfg.filter.delta), options)
     assign_parameters(hand, OmegaConf.to_container(cfg.experiment.hand_tuned, resolve=True))
     learned = _blend(float(cfg.filter.delta), options)
-    state = torch.load(ckpts[-1], map_location="cpu", weights_only=False)["state_dict"]
-    learned_state = {k.removeprefix("filter."): v for k, v in state.items() if k.startswith("filter.")}
+    learned_state = load_filter(str(ckpt), filter=_blend(float(cfg.filter.delta), options)).state_dict()
     # values overridden by model_options stay as given (they are not learned in p004_blend)
     keep = [n.removeprefix("sigma_") for n in options]
     learned_state = {k: v for k, v in learned_state.items() if not any(n in k for n in keep)}
     learned.load_state_dict({**learned.state_dict(), **learned_state})
-    lines = [f"{run_dir}: {runs} runs, checkpoint {ckpts[-1].name}"]
+    lines = [f"{run_dir}: {runs} runs, checkpoint {ckpt.name}"]
     rows = {"hand-tuned": per_run_errors(hand, data), "learned": per_run_errors(learned, data)}
     for name, r in rows.items():
         nees = r["nees_all"]

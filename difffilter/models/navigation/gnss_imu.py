@@ -23,6 +23,7 @@ absorbed by ``Q``) and attitude the exact rotation by ``(omega - b_g) T``.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import torch
 from torch import Tensor
@@ -31,6 +32,7 @@ from ...linalg import block_diag
 from ...params import Positive, register_constrained, register_covariance
 from ..base import Controls, DynamicsModel, MeasurementModel, StateSpaceModel, wrap_angle
 from ..layout import StateLayout, describe
+from .antenna import antenna_offset, has_antenna, planar_rotation, register_antenna
 from .quaternion import quaternion_multiply, quaternion_to_rotation, rotation_quaternion
 
 __all__ = [
@@ -266,6 +268,9 @@ class GnssMeasurement(MeasurementModel):
         velocity, heading: whether the fix includes velocity / heading.
         sigma_gnss, sigma_gnss_velocity, sigma_heading: noise stds giving a diagonal ``R``,
             learnable with ``R_structure``.
+        lever_arm, latency: optional antenna lever arm (body forward, left, up; m) and receiver
+            time offset (s), learnable by name: the position fix is ``p + C_nb l - latency v``
+            (:mod:`~difffilter.models.navigation.antenna`; the filters then differentiate ``h``).
     """
 
     def __init__(
@@ -278,6 +283,8 @@ class GnssMeasurement(MeasurementModel):
         sigma_gnss_velocity: float = GNSS_IMU_PAPER["sigma_gnss_velocity"],
         sigma_heading: float = GNSS_IMU_PAPER["sigma_heading"],
         R_structure: str = "diagonal",  # noqa: N803
+        lever_arm: Sequence[float] | None = None,
+        latency: float | None = None,
         dtype: torch.dtype | None = None,
     ) -> None:
         super().__init__()
@@ -288,9 +295,22 @@ class GnssMeasurement(MeasurementModel):
         self.measurement_dim = len(sig)
         s = torch.tensor(sig, dtype=dtype or torch.get_default_dtype())
         register_covariance(self, "R", torch.diag(s * s), R_structure)
+        register_antenna(self, lever_arm=lever_arm, latency=latency, dtype=s.dtype)
+
+    def _antenna(self, x: Tensor) -> Tensor:
+        """``C_nb l - latency v`` in the position's components."""
+        if self.planar:
+            rot = planar_rotation(math.pi / 2 - x[..., 4])  # body yaw from east = 90 deg - azimuth
+            vel = torch.cat([x[..., 2:4], torch.zeros_like(x[..., :1])], -1)
+            return antenna_offset(self, rot, vel)[..., :2]  # type: ignore[index]
+        q = x[..., 6:10]
+        return antenna_offset(self, quaternion_to_rotation(q / q.norm(dim=-1, keepdim=True)), x[..., 3:6])  # type: ignore[return-value]
 
     def forward(self, x: Tensor, u: Controls = None) -> Tensor:
         z = x[..., self._lin]
+        if has_antenna(self):
+            d = 2 if self.planar else 3
+            z = torch.cat([z[..., :d] + self._antenna(x), z[..., d:]], -1)
         if not self.heading:
             return z
         if self.planar:
@@ -310,7 +330,7 @@ class GnssMeasurement(MeasurementModel):
         return torch.cat([r[..., :-1], wrap_angle(r[..., -1:])], -1)
 
     def matrix(self, u: Controls = None) -> Tensor | None:
-        if self.heading and not self.planar:
+        if (self.heading and not self.planar) or has_antenna(self):
             return None
         n = 8 if self.planar else 16
         rows = self._lin + ([4] if self.heading else [])
@@ -330,6 +350,8 @@ class GnssImuModel(StateSpaceModel):
         dt: sample interval (s).
         velocity, heading: extra GNSS observations (see :class:`GnssMeasurement`).
         R_structure: learnable structure of ``R``.
+        lever_arm, latency: optional learnable antenna lever arm and receiver time offset
+            (see :class:`GnssMeasurement`).
         **settings: overrides of :data:`GNSS_IMU_PAPER` (noise levels).
 
     Learnable: the four IMU noise levels (``Q``) and ``R``.
@@ -343,6 +365,8 @@ class GnssImuModel(StateSpaceModel):
         velocity: bool = False,
         heading: bool = False,
         R_structure: str = "diagonal",  # noqa: N803
+        lever_arm: Sequence[float] | None = None,
+        latency: float | None = None,
         dtype: torch.dtype | None = None,
         **settings: float,
     ) -> None:
@@ -357,6 +381,8 @@ class GnssImuModel(StateSpaceModel):
             sigma_gnss_velocity=opts["sigma_gnss_velocity"],
             sigma_heading=opts["sigma_heading"],
             R_structure=R_structure,
+            lever_arm=lever_arm,
+            latency=latency,
             dtype=dtype,
         )
         super().__init__(cls(dt=dt, dtype=dtype, **noise), measurement)

@@ -128,7 +128,7 @@ def test_group_scaled_covariance():
 def test_p003_learner_splits_q_of_the_learned_copy_only():
     import copy
 
-    from difffilter.papers.p003 import ModeSwitchReport, p003_learner
+    from difffilter.papers.p003 import learned_from_state, p003_learner
 
     hand = p003_imm(model={"num_satellites": 4})
     q_hand = [f.model.dynamics.Q.detach().clone() for f in hand.filters]
@@ -147,7 +147,7 @@ def test_p003_learner_splits_q_of_the_learned_copy_only():
         torch.testing.assert_close(f.model.dynamics.Q, q0)
     # the report rebuilds the learned IMM from a checkpoint of this layout
     state = {f"filter.{k}": v for k, v in learner.filter.state_dict().items()}
-    rebuilt = ModeSwitchReport._learned_from_state(hand, state, "imu_white")
+    rebuilt = learned_from_state(hand, state, "imu_white")
     torch.testing.assert_close(rebuilt.filters[1].model.dynamics.Q, dyn.Q)
     with pytest.raises(ValueError, match="q_groups"):
         p003_learner(copy.deepcopy(hand), "nll", q_groups="all")
@@ -158,10 +158,9 @@ def test_p003_learner_splits_q_of_the_learned_copy_only():
     ("experiment", "expected"),
     [
         ("p002_pdr", ["hand-tuned", "learned", "UKF", "GPS only", "PDR only"]),
-        (
-            "p003_imm_sins",
-            ["hand-tuned", "learned", "oracle", "IMM standard UKF", "IMM augmented UKF", "single low-noise SUKF", "single high-noise SUKF"],
-        ),
+        ("p003_imm_sins", ["hand-tuned", "learned", "oracle"]),
+        ("p003_modes", ["hand-tuned", "learned", "oracle"]),
+        ("p003_physical", ["hand-tuned", "learned"]),
     ],
 )
 def test_experiment_smoke(tmp_path, experiment, expected):
@@ -174,8 +173,16 @@ def test_experiment_smoke(tmp_path, experiment, expected):
     if experiment == "p002_pdr":
         # the non-filter baselines have no innovation likelihood
         assert all(math.isnan(float(r["nll"])) for r in rows if r["filter"] in ("GPS only", "PDR only"))
-    else:
-        assert "## IMM mode switching" in md
-        switch = read_rows(tmp_path / "mode_switch.csv")
-        assert [r["filter"] for r in switch] == ["hand-tuned", "learned", "oracle", "IMM standard UKF", "IMM augmented UKF"]
-        assert all(0.0 <= float(r["mode_accuracy"]) <= 1.0 for r in switch)
+        return
+    from difffilter.papers.p003 import paper_profile_report
+
+    per_run = read_rows(tmp_path / "per_run.csv")
+    assert {"rmse_velocity", "rmse_attitude", "nees_clock"} <= set(per_run[0])
+    # the cross-family test on the paper's profile and the switching table, from the run's checkpoint
+    md_path = paper_profile_report(tmp_path, out_dir=tmp_path / "paper", runs=3, duration=40)
+    switch = read_rows(tmp_path / "paper" / "switching.csv")
+    imms = ["hand-tuned", "IMM standard UKF"] + (["oracle"] if experiment == "p003_modes" else []) + ["learned"]
+    assert [r["filter"] for r in switch] == imms
+    assert "p003" in md_path.read_text() and (tmp_path / "paper" / "summary_rmse_velocity.md").exists()
+    paired = read_rows(next((tmp_path / "paper").rglob("per_run.csv")))
+    assert {r["filter"] for r in paired} == set(expected) | {"IMM standard UKF"} and len(paired) == 3 * (len(expected) + 1)

@@ -203,8 +203,10 @@ def test_p003_initial_errors_and_noise_levels(flight) -> None:  # type: ignore[n
     expected = sc.initial_cov[0].diagonal().sqrt()
     tol = 4 * expected / math.sqrt(2 * 200)
     assert bool(((sd - expected).abs() < tol).all())
-    # noise = measurement - model(truth): 10x larger in manoeuvres (p003's sigma_R ratio)
+    # noise = measurement - model(truth): 10x larger in manoeuvres with the two-level "modes" family
+    # at p003's sigma_R ratio (the paper-faithful default switches nothing: tests/test_p003_families.py)
     model = make_p003_model(position_in_metres=True)
+    flight = simulate_p003(2, seed=5, duration=120, imu_rate=5, position_in_metres=True, noise="modes", config={"mode_gnss_scale": 10.0})
     res = flight.measurements - model.measurement(flight.truth, flight.controls)
     rate_res = res[..., 8:][flight.mask[..., 8:]].reshape(-1)
     man = flight.manoeuvre[..., None].expand(2, 120, 8)[flight.mask[..., 8:]].reshape(-1)

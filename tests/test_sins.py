@@ -235,9 +235,7 @@ def test_error_model_tracks_the_strapdown_simulation() -> None:
 
 
 def test_filters_run_and_reduce_error_float32_and_float64() -> None:
-    sc = simulate_p003(
-        1, seed=2, duration=25, imu_rate=5, position_in_metres=True, manoeuvre_imu_noise_scale=1.0, manoeuvre_measurement_noise_scale=1.0
-    )
+    sc = simulate_p003(1, seed=2, duration=25, imu_rate=5, position_in_metres=True)  # noise "nominal": nothing switches
     model = make_p003_model(position_in_metres=True)
     res = SimplifiedUKF(model)(sc.measurements, sc.initial_mean, sc.initial_cov, mask=sc.mask, controls=sc.controls)
     err = (res.mean - sc.truth)[0, -5:, :6].abs().mean(0)

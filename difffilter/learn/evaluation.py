@@ -70,7 +70,8 @@ class Evaluation:
     Attributes:
         summary: the pooled table row (module docstring for its columns).
         per_run: ``{metric: [N]}`` float64 values per test run (``rmse_pos``, ``mse_pos``,
-            ``rmse_state``, ``anees``, ``nees_<block>``, ``nis``, ``nis_dof``, ``nll``, ``steps``).
+            ``rmse_state``, ``rmse_<block>``, ``anees``, ``nees_<block>``, ``nis``, ``nis_dof``,
+            ``nll``, ``steps``).
         consistency: ``{"nees": ..., "nees_<block>": ..., "nis": ...}``.
     """
 
@@ -102,9 +103,9 @@ def per_run_metrics(
     the consistency statistics need (``nees``, ``nees_<block>``, ``nis``, ``nis_dof``).
 
     ``rmse_pos`` of a run is ``sqrt(mean_t ||e_t||^2)`` over its steps with a truth (``mse_pos``
-    its square); ``anees``/``nees_<block>``/``nis`` are time averages of the run; ``nll`` is the
-    negative log-likelihood per observed step.  Index arguments as :func:`metric_sums`; blocks as
-    :func:`~difffilter.learn.consistency.block_truth_indices`.
+    its square; ``rmse_<block>`` the same for each state block); ``anees``/``nees_<block>``/``nis``
+    are time averages of the run; ``nll`` is the negative log-likelihood per observed step.  Index
+    arguments as :func:`metric_sums`; blocks as :func:`~difffilter.learn.consistency.block_truth_indices`.
     """
     nis, nis_dof = nis_per_step(result)
     runs: dict[str, Tensor] = {"nis": run_average(nis), "nis_dof": run_average(torch.where(torch.isfinite(nis), nis_dof, nis))}
@@ -121,6 +122,7 @@ def per_run_metrics(
             tblocks = block_truth_indices(blocks, state_index=state_index, truth_index=truth_index, truth_blocks=truth_blocks)
             for name, value in nees_by_block(result.mean, result.cov, truth, blocks, tblocks).items():
                 steps[f"nees_{name}"] = value
+                runs[f"rmse_{name}"] = _errors_per_run(result.mean, truth, blocks[name], tblocks[name])[0].sqrt()
         for key in [k for k in steps if k.startswith("nees")]:
             runs["anees" if key == "nees" else key] = run_average(steps[key])
     return {k: v.detach().to("cpu", torch.float64) for k, v in runs.items()}, {

@@ -11,7 +11,7 @@ module, filter and learner factories), its report helpers and paired comparisons
 
 Papers sit on the top floor: they may import every other part of difffilter, nothing imports
 them (``tests/test_layering.py``).  Import a paper's package explicitly
-(``from difffilter.papers.p003 import ModeSwitchReport``).
+(``from difffilter.papers.p003 import paper_profile_report``).
 """
 
 __all__ = ["p000", "p001", "p002", "p003", "p004", "smartloc"]

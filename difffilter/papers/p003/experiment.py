@@ -1,6 +1,6 @@
 """Experiment set-up for p003 (IMM of simplified UKFs, GPS/SINS ultra-tight): builders, simulator
-wrapper and the empirical transition matrix (the mode-switch report is in
-:mod:`difffilter.papers.p003.report`).
+wrapper, oracles and transition matrices (the paired evaluation with switching delays is in
+:mod:`difffilter.papers.p003.paired`).
 
 * :func:`p003_mode_model` - the 20-state error model of one IMM mode, its ``Q`` (continuous-time PSD)
   and ``R`` learnable as *scales* on the sensor specification (:func:`~difffilter.papers.p003.model.make_p003_model`,
@@ -9,16 +9,20 @@ wrapper and the empirical transition matrix (the mode-switch report is in
 * :func:`p003_imm` / :func:`p003_single` - the IMM of two modes (``filter``: ``"simplified"`` =
   p003's UTCUKF, ``"standard"`` = additive-noise UKF, ``"augmented"`` = augmented UKF) and a
   single-mode filter, from plain config values.
-* :func:`p003_learner` - the learner, optionally with each mode's ``Q`` split into two
-  log-scaled groups (IMU white noises / everything else) on the learned copy only.
+* :func:`p003_learner` - the learner, optionally with each mode's ``Q`` and ``R`` split into
+  log-scaled groups (IMU white noises / everything else; ranges / rates) on the learned copy only;
+  :func:`learned_from_state` rebuilds a learned IMM from a checkpoint.
+* :func:`p003_oracle` - the filter with a scenario family's true parameters.
 * :func:`simulate` - :func:`~difffilter.papers.p003.simulator.simulate_p003` in metres with ``num_steps``
   (what the data module passes for short debug runs) mapped to the duration.
 * :func:`empirical_transition` - the maximum-likelihood Markov matrix of a phase schedule's mode
-  sequence (the oracle's ``Pi``).
+  sequence (the scripted profile's oracle ``Pi``); :func:`sojourn_transition` - the IMM design
+  rule ``p_ii = 1 - T / tau_i`` (the hand-tuned ``Pi``, which p003 does not state).
 """
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 from collections.abc import Mapping, Sequence
 from typing import Any
@@ -38,19 +42,23 @@ from ...models.navigation.sins import SinsErrorDynamics
 from ...models.navigation.sins_measurement import SinsPseudorangeMeasurement
 from ...params import GroupScaledCovariance, register_constrained
 from .flight import PAPER_PHASES, manoeuvre_flags
-from .model import make_p003_model
+from .model import make_p003_model, sojourn_transition
+from .noise import NOISE_DEFAULTS, true_transition
 from .simulator import P003Scenario, simulate_p003
 
 __all__ = [
     "P003Flights",
     "empirical_transition",
     "group_scale_q",
+    "learned_from_state",
     "model_options",
     "p003_imm",
     "p003_learner",
     "p003_mode_model",
+    "p003_oracle",
     "p003_single",
     "simulate",
+    "sojourn_transition",
 ]
 
 _WHITE = slice(3, 9)  # accelerometer and gyro white-noise PSD entries of models.navigation.sins
@@ -107,26 +115,40 @@ class P003Flights:
         return sc.controls
 
 
-def group_scale_q(imm: Filter, q_groups: str | None) -> Filter:
-    """Re-parametrize every mode's ``Q`` of ``imm`` in place as :func:`p003_learner` describes
-    (``q_groups=None``: nothing changes); returns ``imm``."""
-    if q_groups is None:
-        return imm
-    if q_groups != "imu_white":
+def _log_groups(module: torch.nn.Module, name: str, groups: torch.Tensor) -> None:
+    """Re-register ``module.<name>`` (a learnable covariance) as :class:`GroupScaledCovariance`
+    on its current value with log scales for ``groups``, all starting at 1."""
+    if not parametrize.is_parametrized(module, name):
+        raise TypeError(f"log-scaled groups need a learnable {name} (a parametrized {type(module).__name__}.{name})")
+    value = getattr(module, name).detach().clone()
+    register_constrained(module, name, torch.ones((), dtype=value.dtype), GroupScaledCovariance(value, groups.to(value)))
+
+
+def group_scale_q(imm: Filter, q_groups: str | None, r_groups: str | None = None) -> Filter:
+    """Re-parametrize every mode's ``Q`` (``q_groups``) and ``R`` (``r_groups``) of ``imm`` in
+    place as :func:`p003_learner` describes (``None``: that one is left alone); returns ``imm``."""
+    if q_groups not in (None, "imu_white"):
         raise ValueError(f"q_groups must be None or 'imu_white', got {q_groups!r}")
+    if r_groups not in (None, "one", "range_rate"):
+        raise ValueError(f"r_groups must be None, 'one' or 'range_rate', got {r_groups!r}")
+    if q_groups is None and r_groups is None:
+        return imm
     modes = getattr(imm, "filters", None)
     if modes is None:
-        raise TypeError(f"q_groups needs an IMM of SINS mode filters, got {type(imm).__name__}")
+        raise TypeError(f"q_groups/r_groups need an IMM of SINS mode filters, got {type(imm).__name__}")
     for mode in modes:
-        dyn = mode.model.dynamics
-        if not isinstance(dyn, SinsErrorDynamics):
-            raise TypeError(f"q_groups needs SinsErrorDynamics modes, got {type(dyn).__name__}")
-        if not parametrize.is_parametrized(dyn, "Q"):
-            raise TypeError("q_groups needs a learnable Q (a parametrized SinsErrorDynamics.Q)")
-        q = dyn.Q.detach().clone()
-        white = torch.zeros(q.shape[-1], dtype=q.dtype, device=q.device)
-        white[_WHITE] = 1.0
-        register_constrained(dyn, "Q", torch.ones((), dtype=q.dtype), GroupScaledCovariance(q, torch.stack([white, 1.0 - white])))
+        dyn, meas = mode.model.dynamics, mode.model.measurement
+        if not isinstance(dyn, SinsErrorDynamics) or not isinstance(meas, SinsPseudorangeMeasurement):
+            raise TypeError(f"q_groups/r_groups need SINS modes, got {type(dyn).__name__} / {type(meas).__name__}")
+        if q_groups is not None:
+            white = torch.zeros(dyn.Q.shape[-1], dtype=torch.float64)
+            white[_WHITE] = 1.0
+            _log_groups(dyn, "Q", torch.stack([white, 1.0 - white]))
+        if r_groups is not None:
+            ranges = (torch.arange(2 * meas.num_satellites) < meas.num_satellites).to(torch.float64)
+            _log_groups(
+                meas, "R", torch.ones(1, ranges.numel(), dtype=torch.float64) if r_groups == "one" else torch.stack([ranges, 1.0 - ranges])
+            )
     return imm
 
 
@@ -135,20 +157,34 @@ def p003_learner(
     loss: Any,
     *,
     q_groups: str | None = None,
+    r_groups: str | None = None,
     **learner_kwargs: Any,
 ) -> FilterLearner:
     """A :class:`~difffilter.learn.learner.FilterLearner` on ``filter`` (``run_experiment`` hands
     it a copy of the hand-tuned IMM).
 
-    ``q_groups=None``: exactly ``FilterLearner(filter, loss, ...)``.  ``q_groups="imu_white"``:
-    every mode's ``Q`` becomes a :class:`GroupScaledCovariance` on its current (hand-tuned)
-    value with two log-scaled groups, the IMU white-noise PSD entries (accelerometer and gyro)
-    and all other entries (position floors, sensor-bias drivers, clock), both starting at 1; the
-    parameter keeps the name ``Q``.  This is the family that contains the simulator's manoeuvre
-    noise (only the IMU white noises grow), which one scalar per mode cannot express.
+    ``q_groups=None`` and ``r_groups=None``: exactly ``FilterLearner(filter, loss, ...)`` (p003's
+    family: one softplus scale per mode on ``Q`` and on ``R``).  ``q_groups="imu_white"``: every
+    mode's ``Q`` becomes a :class:`GroupScaledCovariance` on its current (hand-tuned) value with
+    two log-scaled groups, the IMU white-noise PSD entries (accelerometer and gyro) and all other
+    entries (position floors, sensor-bias drivers, clock), both starting at 1.  ``r_groups``:
+    ``"one"`` (one log scale per mode) or ``"range_rate"`` (pseudorange and pseudorange-rate
+    variances scaled apart: code and carrier tracking noise need not move together).  The
+    parameters keep their names ``Q``/``R``.  The two-group ``Q`` contains noise that grows only in
+    the IMU white noises, which one scalar per mode cannot express; log space lets a scale move by
+    orders of magnitude at Adam's step size.
     """
-    group_scale_q(filter, q_groups)
+    group_scale_q(filter, q_groups, r_groups)
     return FilterLearner(filter, loss, **learner_kwargs)
+
+
+def learned_from_state(hand: Filter, state: Mapping[str, torch.Tensor], q_groups: str | None = None, r_groups: str | None = None) -> Filter:
+    """A copy of ``hand`` in the learner's layout (``q_groups``/``r_groups``, see
+    :func:`p003_learner`) carrying the ``filter.*`` entries of a learner's ``state`` (a checkpoint's
+    ``state_dict``)."""
+    learned = group_scale_q(copy.deepcopy(hand), q_groups, r_groups)
+    learned.load_state_dict({k.removeprefix("filter."): v for k, v in state.items() if k.startswith("filter.")})
+    return learned
 
 
 def _mode_filter(kind: str, model: torch.nn.Module, alpha: float, beta: float, kappa: float) -> RecursiveFilter:
@@ -253,6 +289,47 @@ def p003_single(
     dt = as_dtype(dtype)
     m = p003_mode_model(q_scale=q_scale, r_scale=r_scale, dtype=dt, **model_options(model))
     return _mode_filter(filter, m, alpha, beta, kappa).to(dt)
+
+
+def p003_oracle(
+    *,
+    noise: str,
+    profile: str,
+    config: Mapping[str, float] | None = None,
+    duration: float = 1800.0,
+    filter: str = "simplified",  # noqa: A002 - config key
+    model: ModelOptions = None,
+    initial_probs: Sequence[float] = (0.9, 0.1),
+    dtype: torch.dtype | str = "float64",
+) -> Filter:
+    """The filter with the simulator's true parameters for a scenario family (see
+    :mod:`~difffilter.papers.p003.noise`):
+
+    * ``noise="nominal"``: nothing switches, so the truth is the single filter at the specification
+      (the IMM family with ``Pi[0, 0] = 1``): :func:`p003_single`;
+    * ``noise="modes"``: the IMM with the true mode levels - high mode = IMU white-noise PSD x
+      ``mode_imu_scale**2`` (the rest of ``Q`` as specified) and ``R`` x ``mode_gnss_scale**2`` - and
+      the true ``Pi``: the generating chain (:func:`~difffilter.papers.p003.noise.true_transition`)
+      for ``profile="markov"``, else the maximum-likelihood matrix of the scripted profile's mode
+      sequence (:func:`empirical_transition`; approximate: scripted switching is not Markov);
+    * ``noise="physical"``: ``ValueError`` (load-dependent, per-satellite noise is outside the
+      family: that family has no oracle).
+    """
+    cfg = {**NOISE_DEFAULTS, **(config or {})}
+    if noise == "nominal":
+        return p003_single(filter=filter, model=model, dtype=dtype)
+    if noise != "modes":
+        raise ValueError(f"no oracle for noise={noise!r}: only 'nominal' and 'modes' put the truth in the filter's family")
+    if profile == "markov":
+        pi: list[list[float]] = true_transition(cfg["markov_enter"], cfg["markov_leave"])
+    elif profile == "paper":
+        pi = empirical_transition(PAPER_PHASES, duration)
+    else:
+        raise ValueError(f"the 'modes' oracle needs profile 'markov' or 'paper' (a Markov or fixed schedule), got {profile!r}")
+    return p003_imm(
+        filter=filter, model=model, q_scales=(1.0, cfg["mode_imu_scale"] ** 2), r_scales=(1.0, cfg["mode_gnss_scale"] ** 2),
+        white_only_high=True, transition=pi, initial_probs=initial_probs, dtype=dtype,
+    )  # fmt: skip
 
 
 def simulate(

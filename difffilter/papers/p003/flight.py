@@ -13,6 +13,7 @@ from torch import Tensor
 from ... import geometry as geo
 
 __all__ = [
+    "LOAD_LIMITS",
     "P003_CONFIG",
     "PAPER_PHASES",
     "attitude_matrix",
@@ -21,6 +22,7 @@ __all__ = [
     "frame_terms",
     "gnss_differences",
     "manoeuvre_flags",
+    "markov_phases",
     "position_step",
     "random_phases",
     "rotation_exp",
@@ -142,7 +144,27 @@ def attitude_matrix(psi: np.ndarray, pitch: np.ndarray, roll: np.ndarray) -> np.
     return rz @ rx @ ry
 
 
+#: Load limits of the randomised schedules (m/s^2): longitudinal 0.5 g, lateral g tan(50 deg) (a
+#: 50 deg coordinated bank, the paper profile's turns reach 47 deg) and normal 0.5 g.  A manoeuvre is
+#: stretched until its ``sin^2`` peak stays inside them.
+LOAD_LIMITS: dict[str, float] = {"accelerate": 0.5 * 9.80665, "turn": 9.80665 * math.tan(math.radians(50.0)), "climb": 0.5 * 9.80665}
+
+
+def _min_duration(kind: str, mag: float, speed: float) -> float:
+    """Shortest duration (s) of a ``sin^2`` manoeuvre of magnitude ``mag`` at ``speed`` within
+    :data:`LOAD_LIMITS`: peaks ``2 dV / d``, ``2 V dpsi / d`` and ``pi V gamma / d``."""
+    if kind == "accelerate":
+        return 2.0 * abs(mag) / LOAD_LIMITS[kind]
+    if kind == "turn":
+        return 2.0 * max(speed, 1.0) * math.radians(abs(mag)) / LOAD_LIMITS[kind]
+    return math.pi * max(speed, 1.0) * math.radians(abs(mag)) / LOAD_LIMITS[kind]
+
+
 def random_phases(rng: np.random.Generator, duration: float) -> list[tuple[float, float, str, float]]:
+    """A random schedule from rest: 10 s static, a take-off acceleration to 50-90 m/s, then level
+    segments of 20-200 s between manoeuvres (speed change, climb/descent of 4-12 deg or turn of
+    30-120 deg) of 10-30 s, each stretched to stay inside :data:`LOAD_LIMITS`.  A manoeuvre that
+    would run past ``duration`` is replaced by level flight, so the schedule ends there."""
     phases: list[tuple[float, float, str, float]] = [(0.0, 10.0, "static", 0.0)]
     speed, t = 0.0, 10.0
     first = True
@@ -165,17 +187,57 @@ def random_phases(rng: np.random.Generator, duration: float) -> list[tuple[float
                 mag = float(rng.choice([-1, 1]) * rng.uniform(4, 12))
             else:
                 mag = float(rng.choice([-1, 1]) * rng.uniform(30, 120))
-        phases.append((t, min(t + d, duration), kind, mag))
+        d = max(d, _min_duration(kind, mag, speed))
+        if t + d > duration:
+            phases.append((t, duration, "level", 0.0))
+            break
+        phases.append((t, t + d, kind, mag))
         speed += mag if kind == "accelerate" else 0.0
         t += d
     return phases
 
 
-def flight_profile(phases: list[tuple[float, float, str, float]], t: np.ndarray, psi0: float) -> dict[str, np.ndarray]:
+def markov_phases(
+    rng: np.random.Generator, duration: float, *, p_enter: float, p_leave: float, speed: float
+) -> list[tuple[float, float, str, float]]:
+    """An airborne schedule (cruise at ``speed`` from ``t = 0``) whose 1 Hz manoeuvre flags are a
+    two-state Markov chain: level segments last ``Geometric(p_enter)`` whole seconds, manoeuvres
+    ``Geometric(p_leave)`` (so ``P(manoeuvre at k+1 | level at k) = p_enter`` and
+    ``P(level at k+1 | manoeuvre at k) = p_leave`` exactly, starting level).  Each manoeuvre
+    (speed change, climb/descent or turn, equally likely) gets a magnitude of 30-100 % of what
+    :data:`LOAD_LIMITS` allow in its duration (speed kept in 60-200 m/s, climbs within 12 deg,
+    turns within 180 deg).  The last phase may end after ``duration``."""
+    for name, p in (("p_enter", p_enter), ("p_leave", p_leave)):
+        if not 0.0 < p <= 1.0:
+            raise ValueError(f"{name} must lie in (0, 1], got {p}")
+    phases: list[tuple[float, float, str, float]] = []
+    t, v = 0.0, float(speed)
+    while t < duration:
+        d = float(rng.geometric(p_enter))
+        phases.append((t, t + d, "level", 0.0))
+        t += d
+        if t >= duration:
+            break
+        d = float(rng.geometric(p_leave))
+        kind, u, sign = str(rng.choice(["accelerate", "climb", "turn"])), float(rng.uniform(0.3, 1.0)), float(rng.choice([-1.0, 1.0]))
+        if kind == "accelerate":
+            mag = float(np.clip(v + sign * u * LOAD_LIMITS[kind] * d / 2.0, 60.0, 200.0) - v)
+        elif kind == "turn":
+            mag = sign * min(180.0, u * math.degrees(LOAD_LIMITS[kind] * d / (2.0 * v)))
+        else:
+            mag = sign * min(12.0, u * math.degrees(LOAD_LIMITS[kind] * d / (math.pi * v)))
+        phases.append((t, t + d, kind, mag))
+        v += mag if kind == "accelerate" else 0.0
+        t += d
+    return phases
+
+
+def flight_profile(phases: list[tuple[float, float, str, float]], t: np.ndarray, psi0: float, speed0: float = 0.0) -> dict[str, np.ndarray]:
     """Truth kinematics on the time grid ``t [N]`` (s) for a phase list like :data:`PAPER_PHASES`:
-    ``speed`` (m/s), ``psi`` heading (rad, clockwise from north, starting at ``psi0``), ``psid``
-    its rate and ``gamma`` flight-path angle (rad).  Each manoeuvre has a ``sin^2`` profile."""
-    speed, psi, psid, gamma = np.zeros_like(t), np.full_like(t, psi0), np.zeros_like(t), np.zeros_like(t)
+    ``speed`` (m/s, starting at ``speed0``), ``psi`` heading (rad, clockwise from north, starting
+    at ``psi0``), ``psid`` its rate and ``gamma`` flight-path angle (rad).  Each manoeuvre has a
+    ``sin^2`` profile."""
+    speed, psi, psid, gamma = np.full_like(t, speed0), np.full_like(t, psi0), np.zeros_like(t), np.zeros_like(t)
     for t0, t1, kind, mag in phases:
         d = t1 - t0
         tau = np.clip((t - t0) / d, 0.0, 1.0)

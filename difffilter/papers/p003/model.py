@@ -5,6 +5,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import torch
 
@@ -15,9 +16,9 @@ from ...models.base import StateSpaceModel
 from ...models.layout import StateLayout, describe
 from ...models.navigation.sins import DEG_PER_HOUR, MILLI_G, SinsErrorDynamics, sins_noise_psd
 from ...models.navigation.sins_measurement import SinsPseudorangeMeasurement
-from .flight import P003_CONFIG
+from .flight import P003_CONFIG, PAPER_PHASES
 
-__all__ = ["SINS_LAYOUT", "make_p003_model", "reference_imm", "sins_layout"]
+__all__ = ["SINS_LAYOUT", "make_p003_model", "reference_imm", "sins_layout", "sojourn_transition"]
 
 _ERRORS = ("dv_E", "dv_N", "dv_U", "phi_E", "phi_N", "phi_U", "eps_bx", "eps_by", "eps_bz")
 _ERRORS += ("eps_rx", "eps_ry", "eps_rz", "nabla_x", "nabla_y", "nabla_z", "dt_u", "dt_ru")
@@ -35,15 +36,33 @@ def sins_layout(position_in_metres: bool = True) -> StateLayout:
 SINS_LAYOUT = sins_layout(True)
 
 
+def sojourn_transition(phases: Sequence[tuple[float, float, str, float]] = PAPER_PHASES, dt: float = 1.0) -> list[list[float]]:
+    """The IMM design rule ``p_ii = 1 - T / tau_i`` (Bar-Shalom, Li & Kirubarajan, *Estimation with
+    Applications to Tracking and Navigation*, 2001, IMM design: ``tau_i`` the expected sojourn time
+    of mode ``i``, ``T`` the sampling interval) with ``tau_i`` the mean length of the level/static
+    (mode 0) and manoeuvre (mode 1) phases of ``phases``: for p003's profile 1675 s / 8 = 209.4 s
+    and 125 s / 7 = 17.9 s."""
+    level = [p[1] - p[0] for p in phases if p[2] in ("static", "level")]
+    manoeuvre = [p[1] - p[0] for p in phases if p[2] not in ("static", "level")]
+    if not level or not manoeuvre:
+        raise ValueError("the schedule must have level and manoeuvre phases")
+    out = []
+    for j, segments in enumerate((level, manoeuvre)):
+        stay = 1.0 - dt / (sum(segments) / len(segments))
+        out.append([stay, 1.0 - stay] if j == 0 else [1.0 - stay, stay])
+    return out
+
+
 def reference_imm(config: dict[str, float] | None = None, num_satellites: int = 8) -> torch.nn.Module:
     """The simulator's closed-loop navigation filter (``feedback="imm"``): p003's hand-tuned IMM of
     two simplified UKFs in metre units, float64 - low mode at the sensor specification, high mode
-    PSD x 1e4 and R x 100 (p003's sigma ratios), ``Pi = diag(0.95)``, initial (0.9, 0.1)."""
+    PSD x 1e4 and R x 100 (p003's sigma ratios), ``Pi`` = :func:`sojourn_transition` of p003's
+    profile, initial (0.9, 0.1)."""
     modes = [
         SimplifiedUKF(make_p003_model(num_satellites=num_satellites, q_scale=qs, r_scale=rs, position_in_metres=True, config=config))
         for qs, rs in ((1.0, 1.0), (1.0e4, 100.0))
     ]
-    pi = torch.tensor([[0.95, 0.05], [0.05, 0.95]], dtype=torch.float64)
+    pi = torch.tensor(sojourn_transition(), dtype=torch.float64)
     return IMM(modes, transition=pi, initial_probs=torch.tensor([0.9, 0.1], dtype=torch.float64)).double()
 
 

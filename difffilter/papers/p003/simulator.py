@@ -18,9 +18,12 @@ How the truth is produced (nothing is sampled from the filter's error model):
    Measurements ``drho = |p_INS - s| - (|p_true - s| + dt_u + v)`` and
    ``drhodot = e_I.(v_INS - s') - (e_G.(v_true - s') + dt_ru + v')``.
 
-Option (default on, the premise of p003's two-mode IMM): during manoeuvres the IMU white noise is
-multiplied by ``manoeuvre_imu_noise_scale`` (100, p003's ``sigma_Q`` ratio) and the GPS noise by
-``manoeuvre_measurement_noise_scale`` (10, the ``sigma_R`` ratio): vibration and tracking-loop stress.
+Sensor noise (``noise``, :mod:`~difffilter.papers.p003.noise`): ``"nominal"`` keeps p003's values
+throughout (the paper-faithful scenario: the paper describes no noise change); ``"modes"`` raises
+the IMU and GNSS noise by fixed factors during manoeuvres (two-level, the IMM's family);
+``"physical"`` scales the IMU noise with the manoeuvre load and each satellite's GNSS noise with
+its C/N0 behind a body-fixed antenna (masking satellites that lose lock).  ``imu_noise_scale`` and
+``gnss_noise_scale`` record the multipliers that were applied.
 
 Option ``feedback="imm"`` (closed-loop integration, as a GPS/SINS navigation computer runs it): at
 every 1 Hz epoch a reference error-state filter inside the simulator (p003's hand-tuned two-mode IMM
@@ -54,12 +57,14 @@ from .flight import (
     frame_terms,
     gnss_differences,
     manoeuvre_flags,
+    markov_phases,
     position_step,
     random_phases,
     rotation_exp,
     rotation_log,
 )
 from .model import reference_imm
+from .noise import NOISE_DEFAULTS, NOISE_FAMILIES, antenna_gain_db, body_elevation, cn0_sigma_scale, vibration_scale
 
 __all__ = ["P003Scenario", "simulate_p003"]
 
@@ -73,7 +78,9 @@ class P003Scenario:
     sat_vel``), ``manoeuvre [B, T]`` (step ``k`` inside a manoeuvre phase), ``initial_mean [B, 20]``
     (zeros), ``initial_cov [20, 20]``, ``initial_truth [B, 20]`` (the error at ``t = 0``),
     ``nav_truth`` (``llh, vel, euler`` ``[B, T, 3]``; euler = heading, pitch, roll), ``phases`` per
-    batch element, ``config``.
+    batch element, ``config``; ``imu_noise_scale [B, T]`` (rms over the step of the IMU white-noise
+    sigma multiplier), ``gnss_noise_scale [B, T, K]`` (sigma multiplier of each satellite's range and
+    rate noise) and ``cn0 [B, T, K]`` (dB-Hz; the nominal value except for ``noise="physical"``).
     """
 
     truth: Tensor
@@ -89,6 +96,9 @@ class P003Scenario:
     dt: float
     phases: list[list[tuple[float, float, str, float]]]
     config: dict[str, float] = field(default_factory=dict)
+    imu_noise_scale: Tensor | None = None
+    gnss_noise_scale: Tensor | None = None
+    cn0: Tensor | None = None
 
 
 def _feed_back(
@@ -141,12 +151,11 @@ def simulate_p003(
     duration: float | None = None,
     imu_rate: int = 10,
     num_satellites: int = 8,
+    noise: str = "nominal",
     sensor_errors: bool = True,
     imu_noise: bool = True,
     initial_errors: bool = True,
     measurement_noise: bool = True,
-    manoeuvre_imu_noise_scale: float = 100.0,
-    manoeuvre_measurement_noise_scale: float = 10.0,
     position_in_metres: bool = False,
     feedback: str = "none",
     config: dict[str, float] | None = None,
@@ -155,9 +164,14 @@ def simulate_p003(
 
     Args:
         profile: ``"paper"`` (:data:`PAPER_PHASES` from 32.0209 N, 118.7667 E, heading 135 deg,
-            fixed satellite geometry) or ``"random"`` (random schedule, start point, heading and
-            satellite geometry per batch element).
+            fixed satellite geometry), ``"random"`` (:func:`~difffilter.papers.p003.flight.random_phases`
+            from rest, random start point, heading and satellite geometry per batch element) or
+            ``"markov"`` (as random, but airborne at 60-150 m/s with the Markov schedule of
+            :func:`~difffilter.papers.p003.flight.markov_phases`, ``config`` keys ``markov_enter``,
+            ``markov_leave``).
         duration: seconds (default 1800); the paper profile is cut there.
+        noise: ``"nominal"``, ``"modes"`` or ``"physical"`` (module docstring; parameters in
+            :data:`~difffilter.papers.p003.noise.NOISE_DEFAULTS`, overridden by ``config``).
         sensor_errors / initial_errors / measurement_noise: switch off for tests (with both error
             switches off the INS equals the truth to rounding); ``imu_noise=False`` keeps the
             biases but drops the white noises and Markov driving noises (deterministic errors).
@@ -167,8 +181,10 @@ def simulate_p003(
     """
     if feedback not in ("none", "imm"):
         raise ValueError(f"feedback must be 'none' or 'imm', got {feedback!r}")
+    if noise not in NOISE_FAMILIES:
+        raise ValueError(f"noise must be one of {NOISE_FAMILIES}, got {noise!r}")
     gen = generator(seed)
-    cfg = {**P003_CONFIG, **(config or {})}
+    cfg = {**P003_CONFIG, **NOISE_DEFAULTS, **(config or {})}
     dur = float(duration if duration is not None else cfg["duration"])
     steps, n_in = int(round(dur)), int(round(dur)) * imu_rate
     dti, bsz, k_sat = 1.0 / imu_rate, batch_size, num_satellites
@@ -183,14 +199,19 @@ def simulate_p003(
         lat0 = np.full(bsz, math.radians(cfg["lat_deg"]))
         lon0 = np.full(bsz, math.radians(cfg["lon_deg"]))
         psi0 = np.full(bsz, math.radians(cfg["heading_deg"]))
-        earth_angle, orbit_phase = np.zeros(bsz), np.zeros(bsz)
-    elif profile == "random":
-        phases = [random_phases(rng, dur) for _ in range(bsz)]
+        earth_angle, orbit_phase, speed0 = np.zeros(bsz), np.zeros(bsz), np.zeros(bsz)
+    elif profile in ("random", "markov"):
+        speed0 = np.zeros(bsz) if profile == "random" else rng.uniform(60.0, 150.0, bsz)
+        if profile == "random":
+            phases = [random_phases(rng, dur) for _ in range(bsz)]
+        else:
+            kw = {"p_enter": cfg["markov_enter"], "p_leave": cfg["markov_leave"]}
+            phases = [markov_phases(rng, dur, speed=float(v), **kw) for v in speed0]
         lat0, lon0 = np.radians(rng.uniform(-60, 60, bsz)), np.radians(rng.uniform(-180, 180, bsz))
         psi0, earth_angle, orbit_phase = rng.uniform(0, 2 * np.pi, (3, bsz))
     else:
-        raise ValueError(f"profile must be 'paper' or 'random', got {profile!r}")
-    prof = [flight_profile(p, tg, float(s)) for p, s in zip(phases, psi0, strict=True)]
+        raise ValueError(f"profile must be 'paper', 'random' or 'markov', got {profile!r}")
+    prof = [flight_profile(p, tg, float(s), float(v)) for p, s, v in zip(phases, psi0, speed0, strict=True)]
     speed, psi, psid, gamma = (np.stack([p[k] for p in prof]) for k in ("speed", "psi", "psid", "gamma"))
     vel = speed[..., None] * np.stack([np.cos(gamma) * np.sin(psi), np.cos(gamma) * np.cos(psi), np.sin(gamma)], -1)
     roll = np.arctan(speed * psid / 9.80665)
@@ -208,9 +229,15 @@ def simulate_p003(
     # sensor errors
     dph, mg = math.radians(1.0) / 3600.0, 9.80665e-3
     on = 1.0 if sensor_errors else 0.0
-    man_in = np.stack([manoeuvre_flags(p, tg[:-1] + 0.5 * dti) for p in phases])[..., None]
+    man_in = np.stack([manoeuvre_flags(p, tg[:-1] + 0.5 * dti) for p in phases])
+    if noise == "modes":
+        imu_scale = np.where(man_in, cfg["mode_imu_scale"], 1.0)
+    elif noise == "physical":
+        imu_scale = vibration_scale((vel[:, 1:] - vel[:, :-1]) / dti, cfg["vibration_gain"])
+    else:
+        imu_scale = np.ones((bsz, n_in))
     noisy = on * float(imu_noise)
-    white_scale = np.where(man_in, manoeuvre_imu_noise_scale, 1.0) * math.sqrt(dti) * noisy
+    white_scale = imu_scale[..., None] * math.sqrt(dti) * noisy
     eps_b = randn(bsz, 3) * cfg["gyro_constant_dph"] * dph * on
     eps_r = randn(bsz, 3) * cfg["gyro_markov_dph"] * dph * on
     nabla = randn(bsz, 3) * cfg["accel_bias_mg"] * mg * on
@@ -247,10 +274,20 @@ def simulate_p003(
     pick = best[:, None, :, None].expand(bsz, steps + 1, k_sat, 3)
     sp, sv, elev = sp.gather(2, pick), sv.gather(2, pick), elev.gather(2, best[:, None].expand(bsz, steps + 1, k_sat))
     man = np.stack([manoeuvre_flags(p, np.arange(1, steps + 1) - 0.5) for p in phases])
-    nscale = torch.from_numpy(np.where(man, manoeuvre_measurement_noise_scale, 1.0))[..., None] * float(measurement_noise)
+    cn0 = np.full((bsz, steps, k_sat), cfg["cn0_nominal"])
+    if noise == "modes":
+        gnss_scale = np.broadcast_to(np.where(man, cfg["mode_gnss_scale"], 1.0)[..., None], cn0.shape).copy()
+    elif noise == "physical":
+        rot = geo.enu_rotation(torch.from_numpy(t_llh[:, 1:, 0]), torch.from_numpy(t_llh[:, 1:, 1])).numpy()
+        los = ((sp[:, 1:] - p_true[:, 1:, None]).numpy()[..., None, :] @ np.swapaxes(rot, -1, -2)[:, :, None])[..., 0, :]
+        gain = antenna_gain_db(body_elevation(los, t_c[:, 1:]), cfg["antenna_knee_deg"], cfg["antenna_slope_db"])
+        cn0, gnss_scale = cn0 + gain, cn0_sigma_scale(gain)
+    else:
+        gnss_scale = np.ones(cn0.shape)
+    nscale = torch.from_numpy(gnss_scale) * float(measurement_noise)
     range_noise = torch.from_numpy(randn(bsz, steps, k_sat)) * cfg["sigma_range"] * nscale
     rate_noise = torch.from_numpy(randn(bsz, steps, k_sat)) * cfg["sigma_rate"] * nscale
-    vis = elev[:, 1:] > math.radians(cfg["elevation_mask_deg"])
+    vis = (elev[:, 1:] > math.radians(cfg["elevation_mask_deg"])) & torch.from_numpy(cn0 >= cfg["cn0_lock"])
     clock = torch.from_numpy(clk)
     closed = feedback == "imm"
     fb = np.zeros((bsz, steps + 1, 20))  # metres layout; fb[:, k] = correction applied at epoch k
@@ -355,4 +392,7 @@ def simulate_p003(
         dt=1.0,
         phases=phases,
         config={**cfg, "imu_rate": float(imu_rate), "num_satellites": float(k_sat)},
+        imu_noise_scale=cast(np.sqrt((imu_scale**2).reshape(bsz, steps, imu_rate).mean(-1))),
+        gnss_noise_scale=cast(gnss_scale),
+        cn0=cast(cn0),
     )

@@ -1,6 +1,6 @@
 """difffilter: batched, differentiable Kalman-family filters in PyTorch."""
 
-from . import linalg, mixers, params
+from . import linalg, mixers, params, smoothers
 from ._util import as_dtype
 from .filters import EKF, RCUKF, UKF, ColoredNoiseUKF, Filter, GaussianFilter, KalmanFilter, RecursiveFilter, SimplifiedUKF, SquareRootUKF
 from .mixers import IMM, Blend
@@ -26,5 +26,6 @@ __all__ = [
     "linalg",
     "mixers",
     "params",
+    "smoothers",
 ]
 __version__ = "0.1.0"

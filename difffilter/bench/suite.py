@@ -13,7 +13,8 @@ from omegaconf import OmegaConf
 from .compiled import compile_experiment
 from .memory import measure_training_memory
 from .report import write_report
-from .runner import BenchSettings, run_benchmark
+from .runner import BenchSettings, _Bench, run_benchmark
+from .smoothers import run_smoother_benchmark
 
 __all__ = ["run_suite", "settings_from_config"]
 
@@ -25,17 +26,18 @@ def _plain(cfg: Any) -> Any:
 
 
 def settings_from_config(cfg: Mapping[str, Any]) -> BenchSettings:
-    """:class:`BenchSettings` from the group's keys (``compile``/``memory`` sections ignored)."""
+    """:class:`BenchSettings` from the group's keys (``compile``/``memory``/``smoothers`` sections ignored)."""
     names = {f.name for f in dataclasses.fields(BenchSettings)}
-    unknown = set(cfg) - names - {"compile", "memory"}
+    sections = {"compile", "memory", "smoothers"}
+    unknown = set(cfg) - names - sections
     if unknown:
-        raise ValueError(f"unknown benchmark settings {sorted(unknown)}; known: {sorted(names | {'compile', 'memory'})}")
+        raise ValueError(f"unknown benchmark settings {sorted(unknown)}; known: {sorted(names | sections)}")
     return BenchSettings(**{k: v for k, v in cfg.items() if k in names})
 
 
 def run_suite(cfg: Mapping[str, Any], outdir: str | os.PathLike[str], *, command: str = "", log: Callable[[str], None] = print) -> str:
-    """Run the throughput cases, then the compile and memory sections if enabled; write the
-    report into ``outdir`` and return its markdown."""
+    """Run the throughput cases, then the compile, smoother and memory sections if enabled; write
+    the report into ``outdir`` and return its markdown."""
     cfg = dict(_plain(cfg))
     settings = settings_from_config(cfg)
     report = run_benchmark(settings, log=log)
@@ -49,6 +51,14 @@ def run_suite(cfg: Mapping[str, Any], outdir: str | os.PathLike[str], *, command
                 mode=comp.get("mode", "default"), seed=settings.seed,
             )  # fmt: skip
         report.extra_tables["compile"] = rows
+    smo = cfg.get("smoothers") or {}
+    if smo.get("enabled"):
+        log("smoothers beside their filters")
+        bench = _Bench(settings, log=lambda s: None)  # the throughput cases' data: same trajectories
+        largest = bench.base.measurements.shape[0]
+        if max(smo.get("batch_sizes", settings.batch_sizes)) > largest:
+            raise ValueError(f"benchmark.smoothers.batch_sizes must not exceed the largest benchmark batch size ({largest})")
+        report.extra_tables["smoothers"] = run_smoother_benchmark(settings, smo, lambda dt, b: bench.data(dt, b), log=log)
     mem = cfg.get("memory") or {}
     if mem.get("enabled"):
         rows = []

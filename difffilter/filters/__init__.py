@@ -5,8 +5,10 @@ from .base import Belief, FilterResult, GaussianFilter, RecursiveFilter, StepInf
 from .colored import ColoredNoiseUKF
 from .ekf import EKF
 from .fused import FusedFilter, fuse
+from .iterated import IteratedEKF
 from .kalman import KalmanFilter
 from .protocol import Filter
+from .sequential import SequentialUpdate
 from .sigma_points import Cubature, Julier, MerweScaled, SigmaPoints
 from .square_root import SquareRootUKF
 from .ukf import UKF, SimplifiedUKF
@@ -22,9 +24,11 @@ __all__ = [
     "FilterResult",
     "FusedFilter",
     "GaussianFilter",
+    "IteratedEKF",
     "Julier",
     "KalmanFilter",
     "MerweScaled",
+    "SequentialUpdate",
     "RecursiveFilter",
     "SigmaPoints",
     "SimplifiedUKF",

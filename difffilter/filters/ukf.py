@@ -52,7 +52,10 @@ class UKF(RecursiveFilter):
         noise: ``"additive"`` (``2n + 1`` points in ``n`` dimensions, the p003 "AUKF") or
             ``"augmented"`` (noise appended to the state: ``[x; w]`` for the prediction and
             ``[x; v]`` for a redrawn update, or ``[x; w; v]`` when reusing points, p003's
-            augmented UKF).
+            augmented UKF).  The noise points pass through the model's ``with_noise``: ``f(x) + w``
+            for additive models, ``f(x, w, u)`` / ``h(x, v, u)`` for models that declare
+            non-additive noise (:class:`~difffilter.models.noise.NonAdditiveModel`), which
+            need ``"augmented"``.
 
     Learnable: the model's parameters (Q, R, ...).
     """
@@ -68,6 +71,8 @@ class UKF(RecursiveFilter):
         super().__init__(model)
         if noise not in ("additive", "augmented"):
             raise ValueError(f"noise must be 'additive' or 'augmented', got {noise!r}")
+        if noise == "additive" and not (model.dynamics.additive_noise and model.measurement.additive_noise):
+            raise ValueError("the model declares non-additive noise (f(x, w, u) or h(x, v, u)): use UKF(..., noise='augmented')")
         self.sigma_points = sigma_points if sigma_points is not None else MerweScaled(alpha=1.0, beta=2.0, kappa=0.0)
         self.redraw_after_predict = bool(redraw_after_predict)
         self.noise = noise
@@ -106,19 +111,20 @@ class UKF(RecursiveFilter):
                 out["sigma_wm"] = torch.cat([wm, torch.zeros_like(wq)])
                 out["sigma_wc"] = torch.cat([wc, wq])
         else:
-            m = r.shape[-1]
+            # noise dimensions q, r: those of Q and R (non-additive models may differ from n, m)
+            qd, m = q.shape[-1], r.shape[-1]
             reuse = not self.redraw_after_predict
             blocks = [cov, q, r] if reuse else [cov, q]
-            aug_mean = torch.cat([mean, mean.new_zeros(*mean.shape[:-1], n + (m if reuse else 0))], -1)
+            aug_mean = torch.cat([mean, mean.new_zeros(*mean.shape[:-1], qd + (m if reuse else 0))], -1)
             chi = self._points(aug_mean, block_diag(*blocks))
             dim = aug_mean.shape[-1]
             wm, wc = self._weights(dim, mean)
-            prop = f(chi[..., :n], u1) + chi[..., n : 2 * n]
+            prop = f.with_noise(chi[..., :n], chi[..., n : n + qd], u1)
             xm, dev, pf = weighted_moments(prop, wm, wc)
             new_cov = symmetrize(pf)
             if reuse:
                 out["sigma_points"] = prop
-                out["sigma_noise"] = chi[..., 2 * n :]
+                out["sigma_noise"] = chi[..., n + qd :]
                 out["sigma_wm"], out["sigma_wc"] = wm, wc
         out["mean"], out["cov"] = xm, new_cov
         return out
@@ -145,9 +151,7 @@ class UKF(RecursiveFilter):
         mean, cov = belief["mean"], belief["cov"]
         chi, vnoise, wm, wc, add_r = self._update_points(belief, u)
         hm = self.model.measurement
-        zeta = hm(chi, expand_controls(u))
-        if vnoise is not None:
-            zeta = zeta + vnoise
+        zeta = hm(chi, expand_controls(u)) if vnoise is None else hm.with_noise(chi, vnoise, expand_controls(u))
         zhat = weighted_mean(zeta, wm)
         dz = hm.residual(zeta, zhat[..., None, :])
         dx = chi - mean[..., None, :]

@@ -11,7 +11,7 @@ from .evaluation import evaluate_runs
 from .experiment import evaluate_filter, run_experiment
 from .intervals import GapClosed, Interval, block_bootstrap_difference, crossed_interval, gap_closed, t_interval
 from .learner import FilterLearner
-from .losses import CompositeLoss, HuberLoss, LogNormalPrior, MSELoss, NEESLoss, NLLLoss, NormalPrior
+from .losses import CompositeLoss, HuberLoss, LogNormalPrior, MSELoss, NEESLoss, NLLLoss, NormalPrior, StateNLLLoss
 from .metrics import (
     anees,
     anis,
@@ -38,6 +38,7 @@ __all__ = [
     "NEESLoss",
     "NLLLoss",
     "NormalPrior",
+    "StateNLLLoss",
     "SweepSummary",
     "TrajectoryDataModule",
     "TrajectorySet",

@@ -39,6 +39,7 @@ import torch
 from torch import Tensor
 
 from ..filters.protocol import Filter, FilterResult
+from ..smoothers import Smoother
 from .consistency import Consistency, block_truth_indices, consistency, nees_by_block, nis_per_step, run_average
 from .metrics import component_error, finalize_metrics, metric_sums, nees, nll_per_step
 from .stability import bounded_jitter
@@ -141,6 +142,7 @@ def evaluate_runs(
     blocks: Blocks | None = None,
     truth_blocks: Blocks | None = None,
     prob: float = 0.95,
+    smoother: Smoother | None = None,
 ) -> Evaluation:
     """Run ``filt`` on every trajectory of ``data`` (a :class:`~difffilter.learn.data.TrajectorySet`)
     and evaluate it: pooled row, per-run metrics and consistency (module docstring).
@@ -149,7 +151,9 @@ def evaluate_runs(
     trajectories (default: all at once); ``pos_err_p{100 q}`` for each ``q`` of
     ``error_quantiles`` the ``q``-quantile of the position error norm over all steps with a truth.
     ``blocks`` (``{name: state indices}``) adds per-block NEES; ``prob`` is the coverage of the
-    consistency bands and intervals.
+    consistency bands and intervals.  With a ``smoother`` (built on ``filt``) every metric but
+    ``nis``/``nll`` (the filter's innovations) is that of the smoothed states, and the time
+    includes the smoother.
     """
     n = len(data)
     size = batch_size or n
@@ -173,6 +177,9 @@ def evaluate_runs(
         tic = time.perf_counter()
         with bounded_jitter(max_jitter):
             res = filt(batch["measurements"], mean0, cov0, mask=batch["mask"], controls=batch["controls"])
+            if smoother is not None:
+                start = smoother.initial_belief(batch["measurements"], mean0, cov0, None)
+                res = smoother.smooth(res, start, batch["controls"])
         elapsed += time.perf_counter() - tic
         batches += 1
         dim = len(state_index) if state_index is not None else res.mean.shape[-1]

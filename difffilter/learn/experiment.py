@@ -36,6 +36,11 @@ The ``experiment`` config node (per-paper overlays set it)::
       error_quantiles: null       # e.g. [0.5, 0.95]: extra columns pos_err_p50, pos_err_p95 =
                                   # quantiles of the position error norm over all test steps
 
+With a smoother configured (``smoother=rts``, ``cfg.smoother.evaluate``), every filter that a
+smoother supports gets a second row ``"<name> (smoothed)"``: the same metrics of the smoothed
+states ``x_{t|T}`` over each whole test trajectory (``nis``/``nll`` are the filter's, and
+``time_per_step_ms`` covers filter and smoother).
+
 Names in ``hand_tuned``/``params`` follow :func:`difffilter.selection.assign_parameters`
 (a vector sets a covariance's diagonal; a scalar sets ``s I`` or a ScaledMatrix's scale).
 
@@ -63,6 +68,7 @@ from .._util import as_dtype
 from ..filters.protocol import Filter
 from ..models.layout import model_defaults
 from ..selection import assign_parameters, match_parameters, parameter_owners
+from ..smoothers import Smoother, make_smoother, smoother_spec
 from .data import TrajectorySet
 from .evaluation import PER_RUN_FILE, consistency_table, evaluate_runs, write_per_run
 
@@ -118,9 +124,11 @@ def evaluate_filter(
     error_quantiles: list[float] | None = None,
     blocks: Mapping[str, list[int]] | None = None,
     truth_blocks: Mapping[str, list[int]] | None = None,
+    smoother: Smoother | None = None,
 ) -> dict[str, float]:
     """The pooled results row of ``filt`` on every trajectory of ``data``: the ``summary`` of
-    :func:`difffilter.learn.evaluation.evaluate_runs` (same arguments; its per-run metrics too)."""
+    :func:`difffilter.learn.evaluation.evaluate_runs` (same arguments; its per-run metrics too;
+    with a ``smoother`` built on ``filt``, of the smoothed states)."""
     return evaluate_runs(
         filt,
         data,
@@ -135,6 +143,7 @@ def evaluate_filter(
         error_quantiles=error_quantiles,
         blocks=blocks,
         truth_blocks=truth_blocks,
+        smoother=smoother,
     ).summary
 
 
@@ -257,22 +266,23 @@ def run_experiment(cfg: DictConfig) -> dict[str, Any]:
     per_run: dict[str, dict[str, torch.Tensor]] = {}
     mean0, cov0 = learner.initial_mean, learner.initial_cov
     learned_names = list(cfg.get("learn") or [])
+    spec = smoother_spec(_plain(cfg.get("smoother")))
+    smoothed_rows = spec is not None and bool(spec.get("evaluate", True))
+    kwargs = {
+        "initial_mean": mean0,
+        "initial_cov": cov0,
+        "batch_size": exp.get("eval_batch_size"),
+        "max_jitter": cfg.learner.get("max_jitter"),
+        "error_quantiles": None if exp.get("error_quantiles") is None else [float(q) for q in exp.error_quantiles],
+        "blocks": blocks,
+        "truth_blocks": truth_blocks,
+        **indices,
+    }
     rows = []
     for name, filt in filters.items():
         filt = filt.to(dtype).eval()
         row: dict[str, Any] = {"filter": name}
-        evaluation = evaluate_runs(
-            filt,
-            test,
-            initial_mean=mean0,
-            initial_cov=cov0,
-            batch_size=exp.get("eval_batch_size"),
-            max_jitter=cfg.learner.get("max_jitter"),
-            error_quantiles=None if exp.get("error_quantiles") is None else [float(q) for q in exp.error_quantiles],
-            blocks=blocks,
-            truth_blocks=truth_blocks,
-            **indices,
-        )
+        evaluation = evaluate_runs(filt, test, **kwargs)
         row.update(evaluation.summary)
         per_run[name] = evaluation.per_run
         if learned_names:
@@ -281,12 +291,31 @@ def run_experiment(cfg: DictConfig) -> dict[str, Any]:
             except ValueError:
                 row["parameters"] = ""
         rows.append(row)
+        if smoothed_rows:
+            assert spec is not None
+            try:
+                smoother = make_smoother(filt, spec["kind"], lag=spec.get("lag"), time_chunk=spec.get("time_chunk"))
+            except (TypeError, ValueError) as exc:  # e.g. a Blend baseline: no smoother, say so
+                print(f"no smoothed row for {name}: {exc}")
+                continue
+            smoothed = evaluate_runs(filt, test, smoother=smoother, **kwargs)
+            rows.append({"filter": f"{name} (smoothed)", **smoothed.summary})
+            per_run[f"{name} (smoothed)"] = smoothed.per_run
+            if "parameters" in row:
+                rows[-1]["parameters"] = row["parameters"]
     note = (
         f"experiment `{exp.get('name', '')}`: {len(test)} held-out test trajectories x {test.num_steps} steps, "
         f"loss `{cfg.loss.get('_target_', cfg.loss)}`, learned {learned_names}; rmse in the truth's units; "
         "anees/nis: run-level means with 95 % t-intervals over runs (_run_ci_lo/hi) and the fraction of steps inside the "
         "per-step chi-square band (_step_band_frac); nll per observed step (nats); time_per_step_ms for the whole test batch."
     )
+    if smoothed_rows:
+        assert spec is not None
+        kind = spec["kind"] if spec["kind"] == "rts" else f"fixed-lag (L = {spec.get('lag')})"
+        note += (
+            f" '(smoothed)' rows: the same filter followed by the {kind} smoother over each whole test trajectory "
+            f"(training {'on smoothed' if spec.get('train', True) else 'on filtered'} states); their nis/nll are the filter's."
+        )
     output_dir = Path(cfg.paths.output_dir)
     write_results(rows, output_dir, title=f"difffilter results: {exp.get('name', '')}", note=note)
     write_per_run(per_run, output_dir / PER_RUN_FILE)

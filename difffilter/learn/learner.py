@@ -17,6 +17,13 @@ Stability kit:
   counted (``stability/skipped_steps``).  Each kind warns once;
 * gradient clipping is the Trainer's ``gradient_clip_val``.
 
+Smoothing (``smoother="rts"`` or a mapping ``{kind, lag, time_chunk, train, evaluate}``, see
+:func:`difffilter.smoothers.smoother_spec`): with ``train`` (default) every window is smoothed
+after filtering and the loss receives the :class:`~difffilter.smoothers.SmootherResult` (state
+losses then score ``x_{t|T}``); the belief carried to the next window is still the filter's.
+Validation and test also log the smoothed ``smoothed_rmse_pos``, ``smoothed_rmse_state`` and
+``smoothed_anees``.
+
 Logged to every logger: ``train/loss``, ``val/loss`` and ``val/{rmse_pos, rmse_state, anees,
 nis, nll}`` (``test/...`` likewise), every element of every learnable constrained value each
 epoch (``params/model.measurement.R[0,0]``...), and, to loggers that can, figures: truth vs
@@ -40,7 +47,8 @@ from ..filters.base import detach_belief
 from ..filters.fused import FusedFilter
 from ..filters.protocol import Belief, Filter, FilterResult
 from ..selection import learnable_values, match_parameters, parameter_owners, select_parameters
-from .losses import FilterLoss, MSELoss, NEESLoss, NLLLoss, Prior
+from ..smoothers import Smoother, SmootherResult, make_smoother, smoother_spec
+from .losses import FilterLoss, MSELoss, NEESLoss, NLLLoss, Prior, StateNLLLoss
 from .metrics import finalize_metrics, metric_sums
 from .plots import plot_errors, plot_mode_probs, plot_trajectory
 from .replicates import perturb_initial_values
@@ -48,11 +56,12 @@ from .stability import OnceWarner, bounded_jitter
 
 __all__ = ["FilterLearner", "make_loss", "parameter_scalars"]
 
-_LOSSES: dict[str, Callable[[], FilterLoss]] = {"mse": MSELoss, "nll": NLLLoss, "nees": NEESLoss}
+_LOSSES: dict[str, Callable[[], FilterLoss]] = {"mse": MSELoss, "nll": NLLLoss, "nees": NEESLoss, "state_nll": StateNLLLoss}
+_SMOOTHED_METRICS = ("rmse_pos", "rmse_state", "anees")
 
 
 def make_loss(loss: FilterLoss | str) -> FilterLoss:
-    """A loss object from a name (``"mse"``, ``"nll"``, ``"nees"``) or a callable."""
+    """A loss object from a name (``"mse"``, ``"nll"``, ``"nees"``, ``"state_nll"``) or a callable."""
     if isinstance(loss, str):
         if loss not in _LOSSES:
             raise ValueError(f"loss must be one of {sorted(_LOSSES)} or a callable, got {loss!r}")
@@ -117,6 +126,8 @@ class FilterLearner(pl.LightningModule):
             batch-last step; same results, faster for UKF/EKF/KF): ``True`` compiles,
             ``"eager"`` runs the fused step uncompiled, ``False`` (default) the filter itself.
             Parameters, their names and checkpoints are the filter's either way.
+        smoother: ``None``, ``"rts"``, ``"fixed_lag"`` or a mapping (see the module docstring);
+            the smoother runs on the filter's result (also a fused one).
         init_perturbation: log-scale standard deviation of a seeded perturbation of the learned
             parameters' initial values (:func:`~difffilter.learn.replicates.perturb_initial_values`);
             0 (default) starts from the given values exactly.
@@ -146,6 +157,7 @@ class FilterLearner(pl.LightningModule):
         figure_every_n_epochs: int = 1,
         max_logged_elements: int = 64,
         fused: bool | str = False,
+        smoother: str | Mapping[str, Any] | None = None,
         init_perturbation: float = 0.0,
         init_seed: int = 0,
     ) -> None:
@@ -157,7 +169,7 @@ class FilterLearner(pl.LightningModule):
             )
         if scheduler_interval not in ("epoch", "step"):
             raise ValueError(f"scheduler_interval must be 'epoch' or 'step', got {scheduler_interval!r}")
-        self.save_hyperparameters(ignore=["filter", "loss", "optimizer", "scheduler", "log_prior"])
+        self.save_hyperparameters(ignore=["filter", "loss", "optimizer", "scheduler", "log_prior", "smoother"])
         self.filter = filter if dtype is None else filter.to(as_dtype(dtype))
         self.loss_fn = make_loss(loss)
         self.learned_names = select_parameters(self.filter, None if learn is None else list(learn))
@@ -181,6 +193,10 @@ class FilterLearner(pl.LightningModule):
         # kept outside the module tree: parameter names and state_dict stay the filter's own
         runner = FusedFilter(self.filter, compile=fused is True) if fused else self.filter
         object.__setattr__(self, "_runner", runner)
+        spec = smoother_spec(smoother)
+        built = None if spec is None else make_smoother(self.filter, spec["kind"], lag=spec.get("lag"), time_chunk=spec.get("time_chunk"))
+        object.__setattr__(self, "_smoother", built)  # shares self.filter; kept out of the module tree
+        self.smooth_training = spec is not None and bool(spec.get("train", True))
         idx = lambda v: None if v is None else [int(i) for i in v]  # noqa: E731
         self.indices = {
             "position_index": idx(position_index),
@@ -209,8 +225,14 @@ class FilterLearner(pl.LightningModule):
             raise ValueError("no initial belief: the batches carry none, so give FilterLearner initial_mean= and initial_cov=")
         return mean, cov
 
-    def forward(self, batch: Mapping[str, Any], belief: Belief | None = None) -> FilterResult:  # type: ignore[override]
-        """Run the filter on a batch dict (from ``belief`` if given, else the initial belief)."""
+    def forward(self, batch: Mapping[str, Any], belief: Belief | None = None) -> FilterResult | SmootherResult:  # type: ignore[override]
+        """Run the filter on a batch dict (from ``belief`` if given, else the initial belief), then
+        the smoother when it is configured for training."""
+        result = self.run_filter(batch, belief)
+        return self.smooth(result, batch, belief) if self.smooth_training else result
+
+    def run_filter(self, batch: Mapping[str, Any], belief: Belief | None = None) -> FilterResult:
+        """The filter's result on a batch dict (from ``belief`` if given, else the initial belief)."""
         mean, cov = self.initial_belief(batch)
         with bounded_jitter(self.max_jitter):
             return self._runner(
@@ -221,6 +243,21 @@ class FilterLearner(pl.LightningModule):
                 controls=batch.get("controls"),
                 belief=belief,
             )
+
+    @property
+    def smoother(self) -> Smoother | None:
+        """The configured smoother (sharing :attr:`filter`), or ``None``."""
+        return self._smoother
+
+    def smooth(self, result: FilterResult, batch: Mapping[str, Any], belief: Belief | None = None) -> SmootherResult:
+        """The configured smoother's backward pass over the filter ``result`` of ``batch``."""
+        if self._smoother is None:
+            raise ValueError("FilterLearner has no smoother: pass smoother='rts' (or a mapping)")
+        if belief is None:
+            mean, cov = self.initial_belief(batch)
+            belief = self.filter.initial_belief(mean, cov, batch_size=int(batch["measurements"].shape[0]))
+        with bounded_jitter(self.max_jitter):
+            return self._smoother.smooth(result, belief, batch.get("controls"))
 
     def log_prior(self) -> Tensor | None:
         """Sum of the configured parameter log-priors (``None`` without priors)."""
@@ -315,7 +352,12 @@ class FilterLearner(pl.LightningModule):
         loss, bad = self._reduce_loss(self.loss_fn(result, batch), stage)
         n = int(batch["measurements"].shape[0])
         f64 = torch.float64
-        sums = metric_sums(result, batch.get("truth"), **self.indices)
+        filtered = result.filtered if isinstance(result, SmootherResult) else result
+        sums = metric_sums(filtered, batch.get("truth"), **self.indices)
+        if self._smoother is not None and batch.get("truth") is not None:
+            smoothed = result if isinstance(result, SmootherResult) else self.smooth(result, batch)
+            sums.update({f"smoothed/{k}": v for k, v in metric_sums(smoothed, batch["truth"], **self.indices).items()})
+        result = filtered
         sums["loss_sum"] = (loss.detach() if loss is not None else torch.zeros((), device=self.device)).to(f64) * (n - bad)
         sums["loss_count"] = torch.tensor(float(n - bad), dtype=f64, device=self.device)
         for k, v in sums.items():
@@ -337,7 +379,9 @@ class FilterLearner(pl.LightningModule):
             packed = self.trainer.strategy.reduce(packed, reduce_op="sum")
         sums = dict(zip(keys, packed, strict=True))
         self._sums = {}
-        metrics = finalize_metrics(sums)
+        metrics = finalize_metrics({k: v for k, v in sums.items() if not k.startswith("smoothed/")})
+        smoothed = finalize_metrics({k.removeprefix("smoothed/"): v for k, v in sums.items() if k.startswith("smoothed/")})
+        metrics.update({f"smoothed_{k}": smoothed[k] for k in _SMOOTHED_METRICS if k in smoothed})
         count = float(sums["loss_count"])
         metrics["loss"] = float(sums["loss_sum"]) / count if count > 0 else float("nan")
         # Already summed over processes above; sync_dist only averages identical values.

@@ -17,8 +17,15 @@ rest.  ``batch`` holds at least ``truth [B, T, n_t]`` for the supervised losses.
   the maximum-likelihood criterion that identifies ``Q`` and ``R`` themselves.
 * :class:`NEESLoss` - ``(log(ANEES_b / d))^2``: penalises per-trajectory average NEES away from
   the number of compared components ``d`` (covariance consistency).
+* :class:`StateNLLLoss` - negative log-density of the truth under the estimate's Gaussian,
+  ``-log N(x_t; x_hat_t, P_t)`` per step: accuracy and consistency in one proper scoring rule.
 * :class:`CompositeLoss` - weighted sum, e.g. ``mse + 0.1 nees`` to get accurate *and*
   consistent estimates.
+
+Every loss reads ``result.mean``/``result.cov``: given a
+:class:`~difffilter.smoothers.SmootherResult` (``FilterLearner(..., smoother="rts")``) the
+state losses score the *smoothed* states ``x_{t|T}``, ``P_{t|T}`` (the innovation ``nll`` stays
+the filter's likelihood).
 """
 
 from __future__ import annotations
@@ -31,7 +38,8 @@ import torch
 from torch import Tensor
 
 from ..filters.base import FilterResult
-from .metrics import Index, component_error, nees, nll_per_step
+from ..linalg import gaussian_log_density, safe_cholesky
+from .metrics import Index, component_error, nees, nll_per_step, select
 
 __all__ = [
     "CompositeLoss",
@@ -43,6 +51,7 @@ __all__ = [
     "NLLLoss",
     "NormalPrior",
     "Prior",
+    "StateNLLLoss",
 ]
 
 
@@ -143,6 +152,28 @@ class NEESLoss:
         ok = torch.isfinite(ne)
         avg = torch.where(ok, ne, torch.zeros_like(ne)).sum(-1) / ok.sum(-1).clamp_min(1)
         return torch.log(avg / d) ** 2
+
+
+class StateNLLLoss:
+    """Per-trajectory mean of ``-log N(x_t[truth_index]; x_hat_t[index], P_t[index, index])`` over
+    the steps with a finite truth: the negative log-likelihood of the truth under the filtered (or
+    smoothed) posterior, which rewards small errors and covariances that match them.
+
+    Args:
+        state_index, truth_index: as :class:`MSELoss`.
+    """
+
+    def __init__(self, *, state_index: Index = None, truth_index: Index = None) -> None:
+        self.state_index = _index(state_index)
+        self.truth_index = _index(truth_index)
+
+    def __call__(self, result: FilterResult, batch: Mapping[str, Any]) -> Tensor:
+        err, valid = component_error(result.mean, _truth(batch, "state_nll"), self.state_index, self.truth_index)
+        cov = result.cov
+        if self.state_index is not None:
+            cov = select(select(cov, self.state_index).mT, self.state_index)
+        logp, _ = gaussian_log_density(err, safe_cholesky(cov).factor)
+        return _mean_over_valid(torch.where(valid, -logp, torch.zeros_like(logp)), valid)
 
 
 class CompositeLoss:

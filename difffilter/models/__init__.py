@@ -6,6 +6,8 @@ from .layout import ModelDefaults, StateLayout, describe, model_defaults
 from .motion import ConstantAcceleration, ConstantVelocity, CurrentStatistical, Singer, singer_process_noise, singer_transition
 from .navigation import *  # noqa: F403
 from .navigation import __all__ as _navigation_all
+from .noise import NonAdditiveModel
+from .sensors import MultiSensorMeasurement, SensorGrid, align_streams, event_times
 from .tracking import TimeInvariantDynamics, linear_measurement, tracking_model
 
 __all__ = [
@@ -17,10 +19,15 @@ __all__ = [
     "FunctionalModel",
     "LinearModel",
     "MeasurementModel",
+    "MultiSensorMeasurement",
+    "NonAdditiveModel",
+    "SensorGrid",
     "ModelDefaults",
     "Singer",
     "StateLayout",
     "StateSpaceModel",
+    "align_streams",
+    "event_times",
     "TimeInvariantDynamics",
     "describe",
     "linear_measurement",

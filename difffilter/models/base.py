@@ -68,6 +68,20 @@ class DynamicsModel(nn.Module):
         """Process-noise covariance ``[n, n]`` or ``[..., n, n]`` for prior mean ``x``."""
         return self.Q
 
+    #: ``False`` when the model declares non-additive process noise ``x_k = f(x, w, u)``: it then
+    #: implements :meth:`with_noise`, and ``forward(x, u)`` is ``f(x, 0, u)``.
+    additive_noise: bool = True
+
+    def with_noise(self, x: Tensor, w: Tensor, u: Controls = None) -> Tensor:
+        """``f(x, w, u)`` for noise samples ``w [..., q]`` (``Q`` is ``[q, q]``); additive models
+        return ``f(x, u) + w``."""
+        return self(x, u) + w
+
+    def noise_jacobian(self, x: Tensor, u: Controls = None) -> Tensor | None:
+        """Analytic ``df/dw [..., n, q]`` at ``w = 0``, or ``None`` (identity for additive noise,
+        else the filter differentiates :meth:`with_noise`)."""
+        return None
+
 
 class MeasurementModel(nn.Module):
     """Measurement ``h`` with noise ``R``; the counterpart of :class:`DynamicsModel`."""
@@ -92,6 +106,19 @@ class MeasurementModel(nn.Module):
     def residual(self, z: Tensor, z_ref: Tensor) -> Tensor:
         """Difference ``z - z_ref`` of measurements ``[..., m]``; override to wrap angles."""
         return z - z_ref
+
+    #: ``False`` when the model declares non-additive measurement noise ``z = h(x, v, u)``: it
+    #: then implements :meth:`with_noise`, and ``forward(x, u)`` is ``h(x, 0, u)``.
+    additive_noise: bool = True
+
+    def with_noise(self, x: Tensor, v: Tensor, u: Controls = None) -> Tensor:
+        """``h(x, v, u)`` for noise samples ``v [..., r]`` (``R`` is ``[r, r]``); additive models
+        return ``h(x, u) + v``."""
+        return self(x, u) + v
+
+    def noise_jacobian(self, x: Tensor, u: Controls = None) -> Tensor | None:
+        """Analytic ``dh/dv [..., m, r]`` at ``v = 0``, or ``None`` (see :meth:`DynamicsModel.noise_jacobian`)."""
+        return None
 
 
 class StateSpaceModel(nn.Module):

@@ -7,6 +7,8 @@ For a model ``(f, h, Q, R)`` and an initial belief ``N(m_0, P_0)``
     x_k = f(x_{k-1}, u_k) + w_k,\\ w_k \\sim N(0, Q(x_{k-1}, u_k)), \\quad
     z_k = h(x_k, u_k) + v_k,\\ v_k \\sim N(0, R(x_k, u_k)),
 
+(``f(x_{k-1}, w_k, u_k)`` / ``h(x_k, v_k, u_k)`` for models that declare non-additive noise),
+
 for ``k = 1..T``.  ``truth[:, t]`` is ``x_{t+1}`` and ``measurements[:, t]`` is ``z_{t+1}``, so
 ``(m_0, P_0)`` is exactly the belief *before* the first measurement that every difffilter filter
 expects, and a filter run with the sampling model's own parameters is the optimal (oracle)
@@ -136,7 +138,7 @@ def sample_trajectories(
     f64 = torch.float64
     gen = generator(seed)
     sim = copy.deepcopy(model).to(f64)
-    n, m = sim.state_dim, sim.measurement_dim
+    n = sim.state_dim
     mean0 = torch.as_tensor(initial_mean, dtype=f64)
     cov0 = torch.as_tensor(initial_cov, dtype=f64)
     if cov0.ndim == 1:
@@ -156,10 +158,13 @@ def sample_trajectories(
     with parametrize.cached():
         for t in range(num_steps):
             u = slice_controls(u_all, t)
-            lq = _noise_factor(sim.dynamics.process_noise(x, u), batch_size, n)
-            x = sim.dynamics(x, u) + (lq @ torch.randn(batch_size, n, 1, generator=gen, dtype=f64))[..., 0]
-            lr = _noise_factor(sim.measurement.measurement_noise(x, u), batch_size, m)
-            z = sim.measurement(x, u) + (lr @ torch.randn(batch_size, m, 1, generator=gen, dtype=f64))[..., 0]
+            # with_noise is f(x, u) + w for additive models and f(x, w, u) otherwise (noise of Q's size)
+            q = sim.dynamics.process_noise(x, u)
+            lq = _noise_factor(q, batch_size, q.shape[-1])
+            x = sim.dynamics.with_noise(x, (lq @ torch.randn(batch_size, q.shape[-1], 1, generator=gen, dtype=f64))[..., 0], u)
+            r = sim.measurement.measurement_noise(x, u)
+            lr = _noise_factor(r, batch_size, r.shape[-1])
+            z = sim.measurement.with_noise(x, (lr @ torch.randn(batch_size, r.shape[-1], 1, generator=gen, dtype=f64))[..., 0], u)
             states.append(x)
             meas.append(z)
     truth = torch.stack(states, 1)

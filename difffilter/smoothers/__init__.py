@@ -1,0 +1,20 @@
+"""Batched, differentiable smoothers on top of the filters: RTS (extended and unscented),
+fixed-lag and IMM smoothing, with the filters' conventions (masks, controls, belief carry-over)."""
+
+from .base import Smoother
+from .factory import make_smoother, smoother_spec
+from .fixed_lag import FixedLagSmoother
+from .imm import IMMSmoother
+from .result import SmootherResult
+from .rts import RTSSmoother, UnscentedRTSSmoother
+
+__all__ = [
+    "FixedLagSmoother",
+    "IMMSmoother",
+    "RTSSmoother",
+    "Smoother",
+    "SmootherResult",
+    "UnscentedRTSSmoother",
+    "make_smoother",
+    "smoother_spec",
+]

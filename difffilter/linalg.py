@@ -24,6 +24,7 @@ __all__ = [
     "chol_rank1_update",
     "joseph_update",
     "psd_solve",
+    "psd_sqrt",
     "safe_cholesky",
     "symmetrize",
     "tria",
@@ -123,6 +124,66 @@ def safe_cholesky(a: Tensor, *, max_jitter: float | None = None) -> CholeskyResu
     safe_a = torch.where(usable[..., None, None], a + jitter.where(usable, 0.0)[..., None, None] * eye, eye)
     chol = torch.linalg.cholesky_ex(safe_a)[0]
     return CholeskyResult(chol, jitter)
+
+
+def _semidefinite_factor(a: Tensor) -> tuple[Tensor, Tensor]:
+    """Lower factor ``L`` with ``L L^T = a`` for symmetric positive *semi*-definite ``a``, and
+    per element the largest negative pivot relative to its row's diagonal entry (0 when ``a``
+    is semi-definite to rounding).
+
+    A Cholesky recursion whose pivots at or below ``n * eps`` times their own diagonal entry
+    ``a_jj`` count as zero (the row depends linearly on the previous ones up to rounding, in
+    any units: a variance of 1e-8 next to one of 1 is not a zero pivot): their column is set to
+    zero, which is the exact factor of a semi-definite matrix (its column below a zero pivot is
+    zero too) and never divides by zero.  Branch-free with ``where`` on safe operands, so the
+    gradient is finite (zero through the zero columns).
+    """
+    n = a.shape[-1]
+    eps = torch.finfo(a.dtype).eps
+    diag = torch.diagonal(a, dim1=-2, dim2=-1)
+    floor = (n * eps) * diag.abs() + torch.finfo(a.dtype).tiny
+    rows = torch.arange(n, device=a.device)
+    cols: list[Tensor] = []
+    deficit = torch.zeros_like(diag[..., 0])
+    for j in range(n):
+        col = a[..., :, j]
+        for ck in cols:
+            col = col - ck * ck[..., j : j + 1]
+        pivot = col[..., j]
+        ok = pivot > floor[..., j]
+        ref = diag[..., j].abs()
+        deficit = torch.maximum(deficit, (-pivot).clamp_min(0.0) / torch.where(ref > 0, ref, torch.ones_like(ref)))
+        root = torch.sqrt(torch.where(ok, pivot, torch.ones_like(pivot)))
+        new = torch.where(rows > j, col / root[..., None], torch.zeros_like(col))
+        new = torch.where(rows == j, root[..., None], new)
+        cols.append(torch.where(ok[..., None], new, torch.zeros_like(new)))
+    return torch.stack(cols, -1), deficit
+
+
+def psd_sqrt(a: Tensor) -> CholeskyResult:
+    """Lower-triangular square root ``L`` (``L L^T = a``) of symmetric positive semi-definite
+    ``a [..., n, n]``: what sigma points and square-root filters need from a covariance that
+    may be singular (a rank-deficient process noise, the zero finite part of a diffuse prior).
+
+    The common case is one ``cholesky_ex`` (identical to :func:`safe_cholesky`).  Elements whose
+    factorisation fails get the exact semi-definite factor (zero columns for zero pivots, no
+    jitter, ``jitter`` entry 0) when they are semi-definite to rounding (no pivot below
+    ``-sqrt(eps)`` times its diagonal entry); genuinely indefinite or non-finite
+    elements fall back to :func:`safe_cholesky`'s bounded jitter.
+    """
+    chol, info = torch.linalg.cholesky_ex(a)
+    if not bool(info.any()) and bool(torch.isfinite(torch.diagonal(chol, dim1=-2, dim2=-1).sum())):
+        return CholeskyResult(chol, torch.zeros(info.shape, dtype=a.dtype, device=a.device))
+    a = symmetrize(a)
+    finite = torch.isfinite(a).flatten(-2).all(-1)
+    clean = torch.where(finite[..., None, None], a, torch.zeros_like(a))
+    semi, deficit = _semidefinite_factor(clean)
+    semi_ok = finite & (deficit <= torch.finfo(a.dtype).eps ** 0.5)
+    if bool(semi_ok.all()):
+        return CholeskyResult(semi, torch.zeros(info.shape, dtype=a.dtype, device=a.device))
+    fallback = safe_cholesky(torch.where(semi_ok[..., None, None], torch.eye(a.shape[-1], dtype=a.dtype, device=a.device), a))
+    factor = torch.where(semi_ok[..., None, None], semi, fallback.factor)
+    return CholeskyResult(factor, torch.where(semi_ok, torch.zeros_like(fallback.jitter), fallback.jitter))
 
 
 def psd_solve(a: Tensor, b: Tensor, *, chol: Tensor | None = None) -> Tensor:

@@ -19,7 +19,7 @@ PACKAGE = ROOT / "difffilter"
 #: Floors from the bottom up.  Modules of one floor may import each other; ``smoothers`` is the
 #: floor a smoother package takes when it exists.
 FLOORS: list[set[str]] = [
-    {"_util", "geometry", "linalg", "params", "selection"},
+    {"_util", "constraints", "geometry", "linalg", "params", "selection"},
     {"models"},
     {"filters"},
     {"mixers"},
@@ -33,7 +33,7 @@ FLOORS: list[set[str]] = [
 ABOVE_ALL_BUT_PAPERS = {"__init__", "bench"}
 #: Third-party packages that are optional (extras ``test``/``bench``): importing them lazily,
 #: inside the function that needs them, is how their absence stays harmless.
-OPTIONAL = {"dynamax", "filterpy", "jax", "scipy"}
+OPTIONAL = {"dynamax", "filterpy", "jax", "mpmath", "scipy"}
 
 
 def _rank(unit: str) -> float:

@@ -171,10 +171,10 @@ def test_simplified_ukf_builds_F_once_per_predict_with_unchanged_results(monkeyp
     kw = {"mask": sc.mask, "controls": sc.controls}
     model = make_p003_model(position_in_metres=True)
     new = SimplifiedUKF(model)(*args, **kw)
-    assert len(calls) == 30  # one F per predict
+    assert len(calls) == 31  # one F per predict, and one for the diffuse-prior check before the first step
     calls.clear()
     old = ThreeCallSUKF(model)(*args, **kw)
-    assert len(calls) == 90
+    assert len(calls) == 91
     torch.testing.assert_close(new.mean, old.mean, rtol=0, atol=0)
     torch.testing.assert_close(new.cov, old.cov, rtol=0, atol=0)
     torch.testing.assert_close(new.log_likelihood, old.log_likelihood, rtol=0, atol=0)
@@ -183,7 +183,7 @@ def test_simplified_ukf_builds_F_once_per_predict_with_unchanged_results(monkeyp
     high = make_p003_model(q_scale=1e4, position_in_metres=True)
     imm = IMM([SimplifiedUKF(model), SimplifiedUKF(high)], pi, torch.tensor([0.9, 0.1], dtype=F64))
     imm(*args, **kw)
-    assert len(calls) == 60  # one per mode and step
+    assert len(calls) == 62  # one per mode and step, and one per mode for the diffuse-prior check
 
 
 def test_schuler_oscillation_of_a_stationary_ins() -> None:

@@ -10,8 +10,10 @@ from ..models.base import Controls, StateSpaceModel
 from ..params import Bounded, Positive, register_constrained
 from ._common import expand_controls
 from .base import Belief, StepInfo
+from .diffuse import DIFFUSE_COV, DIFFUSE_SCALE
+from .jacobians import measurement_matrix
 from .sigma_points import SigmaPoints
-from .ukf import UKF, weighted_mean
+from .ukf import UKF, deviations, weighted_mean
 
 __all__ = ["RCUKF"]
 
@@ -120,10 +122,10 @@ class RCUKF(UKF):
         wm, wc = self._weights(n, mean)
         chi = self._points(mean, cov)
         zeta = hm(chi, expand_controls(u))
-        zhat = weighted_mean(zeta, wm)
+        zhat = weighted_mean(zeta, wm, hm)
         dz = hm.residual(zeta, zhat[..., None, :])
         spread_zz = (dz * wc[:, None]).mT @ dz
-        pxz = (wc[:, None] * (chi - mean[..., None, :])).mT @ dz
+        pxz = (wc[:, None] * deviations(chi, mean, self.model.dynamics)).mT @ dz
         r = hm.measurement_noise(mean, u)
         r = r.expand(*mean.shape[:-1], *r.shape[-2:])
         eps = hm.residual(z, zhat)
@@ -132,12 +134,17 @@ class RCUKF(UKF):
         c_new = (rho * c_prev + eps[..., :, None] * eps[..., None, :]) / (1.0 + rho)
         if mask is not None:
             c_new = torch.where(mask[..., :, None] & mask[..., None, :], c_new, c_prev)
-        eta = self.fading_factor(c_new, spread_zz, r, pxz, cov, mask)
-        if self.per_state:
-            root = eta.sqrt()
-            faded = cov + (root[..., :, None] * root[..., None, :] - 1.0) * spread
+        if DIFFUSE_COV in belief:
+            # the diffuse part is all spread: it enters the ratios at its full size and is faded too
+            p_inf, kappa = belief[DIFFUSE_COV], belief[DIFFUSE_SCALE][..., None, None]
+            h = measurement_matrix(hm, mean, u)
+            eta = self.fading_factor(c_new, spread_zz + kappa * h @ p_inf @ h.mT, r, pxz + kappa * p_inf @ h.mT, cov + kappa * p_inf, mask)
         else:
-            faded = cov + (eta - 1.0)[..., None, None] * spread
+            eta = self.fading_factor(c_new, spread_zz, r, pxz, cov, mask)
+        scale = (eta.sqrt()[..., :, None] * eta.sqrt()[..., None, :]) if self.per_state else eta[..., None, None]
+        faded = cov + (scale - 1.0) * spread
+        if DIFFUSE_COV in belief:
+            belief[DIFFUSE_COV] = symmetrize(scale * belief[DIFFUSE_COV])
         post, info = super().update({**belief, "cov": symmetrize(faded)}, z, mask, u)
         post["residual_cov"] = c_new
         post["fading_factor"] = eta

@@ -15,6 +15,10 @@ per-step bookkeeping and result assembly, so every filter shares the same semant
   missing step is predict-only with log-likelihood 0.  Values under a False mask (NaN allowed)
   are replaced by zeros before any arithmetic, so they reach neither outputs nor gradients.
 
+A dangerously wide initial covariance starts in the exact two-part form of
+:mod:`difffilter.filters.diffuse` (:meth:`RecursiveFilter.start_belief`); every result carries
+``extras["untrusted"] [B, T]`` (:func:`~difffilter.filters.update.untrusted_steps`).
+
 ``GaussianFilter`` is the former name of :class:`RecursiveFilter`, kept as an alias.  The shared
 vocabulary (:class:`~difffilter.filters.protocol.FilterResult`, ``Belief``, :class:`StepInfo`,
 :func:`gaussian_update`...) is re-exported here for the filters built on the loop.
@@ -22,6 +26,7 @@ vocabulary (:class:`~difffilter.filters.protocol.FilterResult`, ``Belief``, :cla
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import torch
@@ -29,8 +34,10 @@ from torch import Tensor
 from torch.nn.utils import parametrize
 
 from ..models.base import Controls
-from ._common import StepInfo, detach_belief, gaussian_update, mask_measurement_system, slice_controls
+from ._common import StepInfo, detach_belief, mask_measurement_system, slice_controls
+from .diffuse import DIFFUSE_COV, DIFFUSE_SCALE, drop_resolved, measurement_sensitivity, split_prior, total_cov
 from .protocol import Belief, Filter, FilterResult
+from .update import diffuse_gaussian_update, gaussian_update, square_root_deviations, untrusted_steps
 
 __all__ = [
     "Belief",
@@ -38,10 +45,15 @@ __all__ = [
     "GaussianFilter",
     "RecursiveFilter",
     "StepInfo",
+    "concat_results",
     "detach_belief",
+    "diffuse_gaussian_update",
     "gaussian_update",
     "mask_measurement_system",
     "slice_controls",
+    "slice_steps",
+    "square_root_deviations",
+    "through_diffuse_phase",
 ]
 
 
@@ -56,6 +68,10 @@ class RecursiveFilter(Filter):
 
     #: Belief entries that :meth:`step` / ``forward`` record per step besides mean/cov.
     record_keys: tuple[str, ...] = ()
+    #: Split an initial covariance that is dangerously wide against the measurement noise into
+    #: an exact diffuse part (:mod:`difffilter.filters.diffuse`); set False on an instance to
+    #: run every step in plain covariance form.
+    diffuse_prior: bool = True
 
     # -- to implement -----------------------------------------------------------------------
     def init_belief(self, mean: Tensor, cov: Tensor) -> Belief:
@@ -75,6 +91,36 @@ class RecursiveFilter(Filter):
     def finalize_belief(self, belief: Belief) -> Belief:
         """Hook after each update (e.g. to drop predict-only entries)."""
         return belief
+
+    # -- diffuse priors -----------------------------------------------------------------------
+    def sensitivity(self, mean: Tensor, u: Controls) -> Tensor:
+        """Rows ``g [B, k, n]`` that tell which prior directions the measurements resolve, and
+        how sharply (:func:`~difffilter.filters.diffuse.measurement_sensitivity`)."""
+        return measurement_sensitivity(self.model, mean, u)
+
+    def attach_diffuse(self, belief: Belief, diffuse_cov: Tensor, scale: Tensor) -> Belief:
+        """Add a diffuse part ``scale * diffuse_cov`` to a belief built by :meth:`init_belief`."""
+        return {**belief, DIFFUSE_COV: diffuse_cov, DIFFUSE_SCALE: scale}
+
+    def start_belief(self, mean: Tensor, cov: Tensor, u: Controls = None) -> Belief:
+        """The belief before the first step: :meth:`init_belief`, with the dangerously wide
+        directions of ``cov`` moved to an exact diffuse part when :attr:`diffuse_prior` is set.
+
+        ``u`` are the first step's inputs, with which the model is evaluated at ``mean``; a
+        model that cannot be evaluated without them keeps ``cov`` whole when ``u`` is None.
+        """
+        if self.diffuse_prior:
+            try:
+                rows = self.sensitivity(mean, u)
+            except (KeyError, TypeError):
+                if u is not None:
+                    raise
+                rows = None
+            split = None if rows is None else split_prior(cov, rows)
+            if split is not None:
+                p_fin, p_inf, kappa = split
+                return self.attach_diffuse(self.init_belief(mean, p_fin), p_inf, kappa)
+        return self.init_belief(mean, cov)
 
     # -- running ----------------------------------------------------------------------------
     def step(
@@ -96,14 +142,18 @@ class RecursiveFilter(Filter):
         with parametrize.cached():
             prior = self.predict(belief, controls)
             post, info = self.update(prior, z[:, 0], None if mk is None else mk[:, 0], controls)
-            return self.finalize_belief(post), prior, info
+            return drop_resolved(self.finalize_belief(post)), prior, info
 
-    def initial_belief(self, initial_mean: Tensor, initial_cov: Tensor, batch_size: int | None = None) -> Belief:
-        """Validated starting belief for :meth:`step` (broadcast to ``batch_size``)."""
+    def initial_belief(
+        self, initial_mean: Tensor, initial_cov: Tensor, batch_size: int | None = None, *, controls: Controls = None
+    ) -> Belief:
+        """Validated starting belief for :meth:`step` (broadcast to ``batch_size``); ``controls``
+        (``[B, ...]``, the first step's inputs) for the diffuse-prior check of a model that needs
+        them (:meth:`start_belief`)."""
         bsz = batch_size if batch_size is not None else (initial_mean.shape[0] if initial_mean.ndim == 2 else 1)
         mean = self._check_mean(initial_mean, bsz, self.state_dim, initial_mean.dtype)
         cov = self._check_cov(initial_cov, bsz, self.state_dim, initial_cov.dtype)
-        return self.init_belief(mean, cov)
+        return self.start_belief(mean, cov, controls)
 
     def forward(
         self,
@@ -128,30 +178,33 @@ class RecursiveFilter(Filter):
                 window in truncated back-propagation); replaces ``initial_mean``/``initial_cov``.
         """
         z, mask3, mean0, cov0 = self.check_inputs(measurements, initial_mean, initial_cov, mask, controls)
-        if belief is None:
-            if mean0 is None or cov0 is None:
-                raise ValueError("initial_mean and initial_cov are required unless belief= is given")
-            belief = self.init_belief(mean0, cov0)
+        if belief is None and (mean0 is None or cov0 is None):
+            raise ValueError("initial_mean and initial_cov are required unless belief= is given")
         steps = z.shape[1]
         means, covs, pmeans, pcovs, lls, nis, nobs = [], [], [], [], [], [], []
         extras: dict[str, list[Tensor]] = {}
+        flags: list[tuple[Tensor | None, Tensor | None, bool]] = []
         with parametrize.cached():
+            if belief is None:
+                belief = self.start_belief(mean0, cov0, slice_controls(controls, 0))
             for t in range(steps):
                 u = slice_controls(controls, t)
                 prior = self.predict(belief, u)
                 post, info = self.update(prior, z[:, t], None if mask3 is None else mask3[:, t], u)
                 belief = self.finalize_belief(post)
                 means.append(belief["mean"])
-                covs.append(belief["cov"])
+                covs.append(total_cov(belief))
                 pmeans.append(prior["mean"])
-                pcovs.append(prior["cov"])
+                pcovs.append(total_cov(prior))
                 lls.append(info.log_likelihood)
                 nis.append(info.nis)
                 nobs.append(info.num_observed)
                 for k, v in self.record(belief).items():
                     extras.setdefault(k, []).append(v)
+                flags.append((info.untrusted, info.jitter, DIFFUSE_COV in prior))
+                belief = drop_resolved(belief)
         stack: Any = lambda xs: torch.stack(xs, 1)  # noqa: E731
-        return FilterResult(
+        result = FilterResult(
             mean=stack(means),
             cov=stack(covs),
             prior_mean=stack(pmeans),
@@ -162,7 +215,80 @@ class RecursiveFilter(Filter):
             final_belief=belief,
             extras={k: stack(v) for k, v in extras.items()},
         )
+        result.extras["untrusted"] = _untrusted(result, flags)
+        return result
 
 
 #: The former name of :class:`RecursiveFilter` (kept for existing code and configs).
 GaussianFilter = RecursiveFilter
+
+
+def _untrusted(result: FilterResult, flags: list[tuple[Tensor | None, Tensor | None, bool]]) -> Tensor:
+    """``[B, T]``: the run-wide check of :func:`~difffilter.filters.update.untrusted_steps` and
+    the steps' own flags (an innovation covariance that needed jitter, a flagged update)."""
+    exact = torch.tensor([d for _, _, d in flags], dtype=torch.bool, device=result.mean.device)
+    out = untrusted_steps(result.mean, result.cov, result.prior_cov, result.log_likelihood, exact)
+    for i in (0, 1):
+        own = [f[i] for f in flags]
+        if any(v is not None for v in own):
+            like = next(v for v in own if v is not None)
+            zero = torch.zeros_like(like)
+            out = out | (torch.stack([zero if v is None else v for v in own], 1) != 0)
+    return out
+
+
+def slice_steps(controls: Controls, start: int, stop: int) -> Controls:
+    """Steps ``start:stop`` of per-step inputs ``[B, T, ...]`` (tensor or dict of tensors)."""
+    if controls is None:
+        return None
+    if isinstance(controls, Tensor):
+        return controls[:, start:stop]
+    return {k: v[:, start:stop] for k, v in controls.items()}
+
+
+def concat_results(parts: list[FilterResult]) -> FilterResult:
+    """One :class:`FilterResult` from consecutive runs (along time); an extra missing from a
+    part is filled with zeros of its shape."""
+    if len(parts) == 1:
+        return parts[0]
+    cat = lambda name: torch.cat([getattr(r, name) for r in parts], 1)  # noqa: E731
+    keys = dict.fromkeys(k for r in parts for k in r.extras)
+    extras = {}
+    for k in keys:
+        like = next(r.extras[k] for r in parts if k in r.extras)
+        extras[k] = torch.cat(
+            [r.extras[k] if k in r.extras else like.new_zeros(like.shape[0], r.mean.shape[1], *like.shape[2:]) for r in parts], 1
+        )
+    fields = ("mean", "cov", "prior_mean", "prior_cov", "log_likelihood", "nis", "num_observed")
+    return FilterResult(**{f: cat(f) for f in fields}, final_belief=parts[-1].final_belief, extras=extras)
+
+
+def through_diffuse_phase(
+    filt: RecursiveFilter,
+    rest: Callable[..., FilterResult],
+    measurements: Tensor,
+    mask: Tensor | None,
+    controls: Controls,
+    belief: Belief,
+) -> FilterResult:
+    """Run ``filt`` step by step while ``belief`` has a diffuse part, then ``rest(measurements,
+    mask=..., controls=..., belief=...)`` (e.g. a compiled twin of ``filt``) on the remaining
+    steps; the results concatenated.  For engines that run the ordinary recursion only."""
+    parts = []
+    steps = measurements.shape[1]
+    t = 0
+    while t < steps and DIFFUSE_COV in belief:
+        part = filt(
+            measurements[:, t : t + 1],
+            mask=None if mask is None else mask[:, t : t + 1],
+            controls=slice_steps(controls, t, t + 1),
+            belief=belief,
+        )
+        parts.append(part)
+        belief = part.final_belief
+        t += 1
+    if t < steps:
+        parts.append(
+            rest(measurements[:, t:], mask=None if mask is None else mask[:, t:], controls=slice_steps(controls, t, steps), belief=belief)
+        )
+    return concat_results(parts)

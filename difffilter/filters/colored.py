@@ -5,13 +5,15 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ..linalg import safe_cholesky, symmetrize
+from ..linalg import psd_sqrt, symmetrize
 from ..models.base import Controls, StateSpaceModel
 from ..params import Bounded, register_constrained
 from ._common import expand_controls
-from .base import Belief, StepInfo, gaussian_update
+from .base import Belief, StepInfo, diffuse_gaussian_update, gaussian_update
+from .diffuse import DIFFUSE_COV, propagate_diffuse
+from .jacobians import measurement_matrix, transition_matrix
 from .sigma_points import SigmaPoints
-from .ukf import UKF, weighted_mean, weighted_moments
+from .ukf import UKF, deviations, state_add, weighted_mean, weighted_moments
 
 __all__ = ["ColoredNoiseUKF"]
 
@@ -104,10 +106,17 @@ class ColoredNoiseUKF(UKF):
         wm, wc = self._weights(n, mean)
         chi = self._points(mean, cov)
         prop = self.model.dynamics(chi, expand_controls(u))
-        xm, dev, pf = weighted_moments(prop, wm, wc)
+        dyn = self.model.dynamics
+        xm, dev, pf = weighted_moments(prop, wm, wc, dyn)
         q, _ = self._noise_matrices(mean, u)
-        cross = (dev * wc[:, None]).mT @ (chi - mean[..., None, :])
-        return {**belief, "mean": xm, "cov": symmetrize(pf + q), "cross_cov": cross, "prev_mean": mean, "prev_cov": cov}
+        cross = (dev * wc[:, None]).mT @ deviations(chi, mean, dyn)
+        out = {**belief, "mean": xm, "cov": symmetrize(pf + q), "cross_cov": cross, "prev_mean": mean, "prev_cov": cov}
+        if DIFFUSE_COV in belief:
+            jac = transition_matrix(self.model.dynamics, mean, u)
+            out["prev_diffuse_cov"] = belief[DIFFUSE_COV]
+            out["diffuse_cross"] = jac @ belief[DIFFUSE_COV]  # Cov_inf(x_{k+1}, x_k)
+            propagate_diffuse(belief, out, jac, self.model, u)
+        return out
 
     @staticmethod
     def _previous_controls(belief: Belief, u: Controls) -> Controls:
@@ -129,7 +138,7 @@ class ColoredNoiseUKF(UKF):
         """Points ``[B, 4n+1, 2n]`` of the joint ``[a; b]`` and their weights (see class doc)."""
         n = mean_a.shape[-1]
         joint = symmetrize(torch.cat([torch.cat([cov_a, cross], -1), torch.cat([cross.mT, cov_b], -1)], -2))
-        offsets = self.sigma_points.gamma(n) * safe_cholesky(joint).factor.mT
+        offsets = self.sigma_points.gamma(n) * psd_sqrt(joint).factor.mT
         centre = torch.cat([mean_a, mean_b], -1)[..., None, :]
         points = torch.cat([centre, centre + offsets, centre - offsets], -2)
         wm_n, wc_n = self._weights(n, mean_a)
@@ -147,7 +156,7 @@ class ColoredNoiseUKF(UKF):
         pts_a, pts_b = points[..., :n], points[..., n:]
         za = hm(pts_a, expand_controls(u))
         zb = hm(pts_b, expand_controls(self._previous_controls(belief, u)))
-        za_hat, zb_hat = weighted_mean(za, wm), weighted_mean(zb, wm)
+        za_hat, zb_hat = weighted_mean(za, wm, hm), weighted_mean(zb, wm, hm)
         diff = belief["prev_observed"].to(mean.dtype)
         psi = self.ar_coefficients(u)
         coef = diff * psi  # [B, m], zero for undifferenced components
@@ -158,13 +167,43 @@ class ColoredNoiseUKF(UKF):
         pp = psi[..., :, None] * psi[..., None, :]
         r_eff = r / (1.0 - undiff[..., :, None] * undiff[..., None, :] * pp)
         pzz = (dg * wc[:, None]).mT @ dg + r_eff
-        pxz = (wc[:, None] * (pts_a - mean[..., None, :])).mT @ dg
-        new_mean, new_cov, info = gaussian_update(mean, cov, innovation, pzz, pxz, mask)
-        drop = ("mean", "cov", "cross_cov", "prev_mean", "prev_cov", "prev_measurement", "prev_observed")
+        dyn = self.model.dynamics
+        dx = deviations(pts_a, mean, dyn)
+        pxz = (wc[:, None] * dx).mT @ dg
+        r_full = r_eff.expand(*mean.shape[:-1], *r_eff.shape[-2:])
+        if DIFFUSE_COV in belief:
+            post, info = self._diffuse_update(belief, innovation, (dx, dg, wc, r_full), coef, mask, u)
+        else:
+            new_mean, new_cov, info = gaussian_update(
+                mean, cov, innovation, pzz, pxz, mask, sigma_fallback=(dx, dg, wc, r_full), add=state_add(dyn)
+            )
+            post = {"mean": new_mean, "cov": new_cov}
+        drop = ("cross_cov", "prev_mean", "prev_cov", "prev_measurement", "prev_observed", "prev_diffuse_cov", "diffuse_cross")
         out = {k: v for k, v in belief.items() if k not in drop and not k.startswith(_PREV_U) and not k.startswith("sigma_")}
         observed = torch.ones_like(z, dtype=torch.bool) if mask is None else mask
         out.update(self._store_controls(u))
-        out.update(
-            {"mean": new_mean, "cov": new_cov, "prev_measurement": torch.where(observed, z, torch.zeros_like(z)), "prev_observed": observed}
-        )
+        out.update(post)
+        out.update({"prev_measurement": torch.where(observed, z, torch.zeros_like(z)), "prev_observed": observed})
         return out, info
+
+    def _diffuse_update(
+        self,
+        belief: Belief,
+        innovation: Tensor,
+        devs: tuple[Tensor, Tensor, Tensor, Tensor | None],
+        coef: Tensor,
+        mask: Tensor | None,
+        u: Controls,
+    ) -> tuple[Belief, StepInfo]:
+        """Exact update of a two-part belief: the diffuse part of the differenced measurement
+        ``g = h(a) - coef h(b)`` through the Jacobians of ``h`` at ``x-`` and ``x_k``."""
+        hm = self.model.measurement
+        mean = belief["mean"]
+        h_a = measurement_matrix(hm, mean, u)
+        h_b = measurement_matrix(hm, belief["prev_mean"], self._previous_controls(belief, u)) * coef[..., :, None]
+        p_a, cross, p_b = belief[DIFFUSE_COV], belief["diffuse_cross"], belief["prev_diffuse_cov"]
+        m_inf = p_a @ h_a.mT - cross @ h_b.mT  # Cov_inf(a, g) [B, n, m]
+        f_inf = h_a @ m_inf - h_b @ (cross.mT @ h_a.mT - p_b @ h_b.mT)
+        return diffuse_gaussian_update(
+            belief, innovation, devs, mask, diffuse_cross=m_inf, diffuse_innovation=symmetrize(f_inf), add=state_add(self.model.dynamics)
+        )

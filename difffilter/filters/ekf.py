@@ -2,55 +2,16 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
-
-import torch
 from torch import Tensor
-from torch.func import jacrev, jvp, vmap
 
 from ..linalg import symmetrize
 from ..models.base import Controls, StateSpaceModel
-from ._common import expand_controls
-from .base import Belief, RecursiveFilter, StepInfo, gaussian_update
+from .base import Belief, RecursiveFilter, StepInfo, diffuse_gaussian_update, gaussian_update, square_root_deviations
+from .diffuse import DIFFUSE_COV, propagate_diffuse
+from .jacobians import autodiff_jacobian, measurement_noise_cov, noise_jacobian
+from .ukf import state_add
 
 __all__ = ["EKF", "autodiff_jacobian", "noise_jacobian"]
-
-
-def autodiff_jacobian(fn: Callable[[Tensor, Controls], Tensor], x: Tensor, u: Controls, *, mode: str = "fwd") -> Tensor:
-    """Per-batch-element Jacobian ``d fn / d x`` ``[B, out, n]`` of ``fn(x [B, n], u)``.
-
-    ``mode="fwd"``: one forward-mode ``torch.func.jvp`` on ``x`` repeated along a new axis with
-    the identity as tangents (``[B, n, n]``): every model accepts arbitrary leading dimensions,
-    so the whole batch's Jacobian costs one evaluation of ``fn`` on ``B * n`` states.
-    ``mode="rev"``: ``vmap`` over the batch of ``jacrev`` (``u`` mapped along its first
-    dimension).  Both stay differentiable for the outer backward pass.
-    """
-    if mode == "fwd":
-        n = x.shape[-1]
-        basis = torch.eye(n, dtype=x.dtype, device=x.device).expand(*x.shape[:-1], n, n).contiguous()
-        rep = x[..., None, :].expand(*x.shape[:-1], n, n).contiguous()
-        u1 = expand_controls(u, x.ndim - 1)
-        _, tangents = jvp(lambda xx: fn(xx, u1), (rep,), (basis,))
-        out = tangents.mT  # tangents [..., n (direction), out]
-    elif u is None:
-        out = vmap(jacrev(lambda xi: fn(xi, None)))(x)
-    else:
-        out = vmap(jacrev(fn, argnums=0), in_dims=(0, 0))(x, u)
-    # Forward-mode AD can promote tangents of float32 inputs to float64 when a Python scalar
-    # is added (seen in torch 2.13): keep the state's dtype.
-    return out.to(x.dtype)
-
-
-def noise_jacobian(fn: Callable[[Tensor, Tensor, Controls], Tensor], x: Tensor, noise_dim: int, u: Controls) -> Tensor:
-    """``d fn(x, w, u) / d w`` at ``w = 0``, ``[B, out, q]`` for ``x [B, n]`` (forward mode: one
-    evaluation of ``fn`` on ``B * q`` points, differentiable for the outer backward pass)."""
-    n = x.shape[-1]
-    lead = x.shape[:-1]
-    basis = torch.eye(noise_dim, dtype=x.dtype, device=x.device).expand(*lead, noise_dim, noise_dim).contiguous()
-    rep = x[..., None, :].expand(*lead, noise_dim, n)
-    u1 = expand_controls(u, x.ndim - 1)
-    _, tangents = jvp(lambda w: fn(rep, w, u1), (torch.zeros_like(basis),), (basis,))
-    return tangents.mT.to(x.dtype)
 
 
 class EKF(RecursiveFilter):
@@ -59,7 +20,9 @@ class EKF(RecursiveFilter):
     Predict: ``x- = f(x, u)``, ``P- = F P F^T + Q`` with ``F = df/dx`` at the posterior mean.
     Update: ``S = H P- H^T + R``, ``K = P- H^T S^{-1}``, Joseph-form covariance, ``H = dh/dx`` at
     the prior mean.  Jacobians come from the model's analytic ``jacobian`` when it provides one,
-    else from ``torch.func`` (``jacobian_mode="fwd"`` or ``"rev"``).
+    else from ``torch.func`` (``jacobian_mode="fwd"`` or ``"rev"``).  ``joseph=False`` uses
+    ``P - K S K^T`` and switches to the Joseph form where that cancels (see
+    :func:`~difffilter.filters.base.gaussian_update`).
 
     Non-additive noise (``dynamics.additive_noise`` / ``measurement.additive_noise`` False, e.g.
     :class:`~difffilter.models.noise.NonAdditiveModel`): ``x- = f(x, 0, u)``,
@@ -101,20 +64,16 @@ class EKF(RecursiveFilter):
 
     def measurement_noise_cov(self, x: Tensor, u: Controls) -> Tensor:
         """``R`` expanded to ``[B, m, m]``, or ``H_v R H_v^T`` at ``x`` for non-additive noise."""
-        hm = self.model.measurement
-        r = hm.measurement_noise(x, u)
-        if not hm.additive_noise:
-            hv = hm.noise_jacobian(x, u)
-            hv = noise_jacobian(hm.with_noise, x, r.shape[-1], u) if hv is None else hv
-            r = hv @ r @ hv.mT
-        return r.expand(*x.shape[:-1], *r.shape[-2:])
+        return measurement_noise_cov(self.model.measurement, x, u)
 
     def predict(self, belief: Belief, u: Controls) -> Belief:
         mean, cov = belief["mean"], belief["cov"]
         jac = self.transition_jacobian(mean, u)
         q = self.process_noise_cov(mean, u)
         new_mean = self.model.dynamics(mean, u)
-        return {**belief, "mean": new_mean, "cov": symmetrize(jac @ cov @ jac.mT + q)}
+        out = {**belief, "mean": new_mean, "cov": symmetrize(jac @ cov @ jac.mT + q)}
+        propagate_diffuse(belief, out, jac, self.model, u)
+        return out
 
     def update(self, belief: Belief, z: Tensor, mask: Tensor | None, u: Controls) -> tuple[Belief, StepInfo]:
         mean, cov = belief["mean"], belief["cov"]
@@ -124,5 +83,13 @@ class EKF(RecursiveFilter):
         pht = cov @ h.mT
         s = h @ pht + r
         e = self.model.measurement.residual(z, zhat)
-        new_mean, new_cov, info = gaussian_update(mean, cov, e, s, pht, mask, joseph=(h, r) if self.joseph else None)
+        if DIFFUSE_COV in belief:
+            h = h.expand(*mean.shape[:-1], *h.shape[-2:])
+            add = state_add(self.model.dynamics)
+            post, info = diffuse_gaussian_update(belief, e, (*square_root_deviations(cov, h), r), mask, obs_matrix=h, add=add)
+            return {**belief, **post}, info
+        joseph = (h, r) if self.joseph else None
+        new_mean, new_cov, info = gaussian_update(
+            mean, cov, e, s, pht, mask, joseph=joseph, joseph_fallback=None if self.joseph else (h, r), add=state_add(self.model.dynamics)
+        )
         return {**belief, "mean": new_mean, "cov": new_cov}, info

@@ -34,7 +34,8 @@ from torch import Tensor, nn
 from torch.nn.utils import parametrize
 
 from ..models.base import Controls, DynamicsModel, MeasurementModel
-from .base import Belief, FilterResult, GaussianFilter, slice_controls
+from .base import Belief, FilterResult, GaussianFilter, slice_controls, through_diffuse_phase
+from .diffuse import DIFFUSE_COV
 from .ekf import EKF
 from .ukf import UKF, SimplifiedUKF
 
@@ -253,6 +254,13 @@ class FusedFilter(nn.Module):
             )
         if kind == "ukf" and filt.noise != "additive":
             raise ValueError(f"FusedFilter supports UKF(noise='additive') only, got noise={filt.noise!r}")
+        # reliability: the fused step has no circular means or state addition (angular models run the reference filter)
+        if filt.model.dynamics.angular or (kind != "ekf" and filt.model.measurement.angular):
+            states, meas = list(filt.model.dynamics.angular), list(filt.model.measurement.angular)
+            raise TypeError(
+                "FusedFilter does not compute wrap-aware unscented means: the model declares angular components "
+                f"(states {states}, measurements {meas}); run the filter directly"
+            )
         self.kind = kind
         self.filter = filt
         self.use_compile = bool(compile)
@@ -428,7 +436,11 @@ class FusedFilter(nn.Module):
         if belief is None:
             if mean0 is None or cov0 is None:
                 raise ValueError("initial_mean and initial_cov are required unless belief= is given")
-            belief = {"mean": mean0, "cov": cov0}
+            with parametrize.cached():
+                belief = filt.start_belief(mean0, cov0, slice_controls(controls, 0))
+        # reliability: a diffuse prior's first steps run in the reference filter's exact two-part form
+        if DIFFUSE_COV in belief:
+            return through_diffuse_phase(filt, self.forward, z, mask3, controls, belief)
         bsz, steps, _ = z.shape
         n = filt.state_dim
         if belief["mean"].shape != (bsz, n) or belief["cov"].shape != (bsz, n, n):

@@ -6,7 +6,9 @@ from torch import Tensor
 
 from ..models.base import Controls, StateSpaceModel
 from .base import Belief, StepInfo, gaussian_update
+from .diffuse import DIFFUSE_COV
 from .ekf import EKF
+from .ukf import state_add
 
 __all__ = ["IteratedEKF"]
 
@@ -25,8 +27,9 @@ class IteratedEKF(EKF):
     (z - h(x))``, so the mean approaches the maximum a-posteriori state; ``iterations=1`` is the
     EKF exactly.  The count is fixed (no data-dependent stopping), so the filter stays
     differentiable and batched.  The step's log-likelihood is ``log N(e; 0, S)`` of the last
-    linearisation (the EKF's for one iteration).  Masks and non-additive measurement noise
-    (``H_v R H_v^T`` at the current iterate) as in :class:`EKF`.
+    linearisation (the EKF's for one iteration).  Masks, non-additive measurement noise
+    (``H_v R H_v^T`` at the current iterate), angular states and a diffuse prior (whose updates
+    are the EKF's) as in :class:`EKF`.
 
     Args:
         model: the state-space model.
@@ -43,6 +46,8 @@ class IteratedEKF(EKF):
         self.iterations = iterations
 
     def update(self, belief: Belief, z: Tensor, mask: Tensor | None, u: Controls) -> tuple[Belief, StepInfo]:
+        if DIFFUSE_COV in belief:  # a diffuse prior's first updates: the EKF's exact two-part update
+            return super().update(belief, z, mask, u)
         mean, cov = belief["mean"], belief["cov"]
         hm = self.model.measurement
         x = mean
@@ -50,6 +55,10 @@ class IteratedEKF(EKF):
             h = self.measurement_jacobian(x, u)
             r = self.measurement_noise_cov(x, u)
             pht = cov @ h.mT
-            e = hm.residual(z, hm(x, u)) + (h @ (x - mean)[..., None])[..., 0]
-            x, new_cov, info = gaussian_update(mean, cov, e, h @ pht + r, pht, mask, joseph=(h, r) if self.joseph else None)
+            e = hm.residual(z, hm(x, u)) + (h @ self.model.dynamics.residual(x, mean)[..., None])[..., 0]
+            joseph = (h, r) if self.joseph else None
+            x, new_cov, info = gaussian_update(
+                mean, cov, e, h @ pht + r, pht, mask, joseph=joseph, joseph_fallback=None if self.joseph else (h, r),
+                add=state_add(self.model.dynamics),
+            )  # fmt: skip
         return {**belief, "mean": x, "cov": new_cov}, info

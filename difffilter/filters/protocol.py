@@ -15,7 +15,9 @@ and reject ``belief=``.
 Shared input rules (:meth:`Filter.check_inputs`): ``initial_mean [n]|[B, n]`` and
 ``initial_cov [n, n]|[B, n, n]`` broadcast over the batch; ``mask [B, T]|[B, T, m]`` False marks
 a missing value, which may be NaN and is replaced by zero before any arithmetic; bad input
-raises ``TypeError``/``ValueError`` naming the argument and the expected shape.
+raises ``TypeError``/``ValueError`` naming the argument and the expected shape (and, for
+per-trajectory inputs, the failing batch elements); a non-finite raw parameter is refused before
+it reaches the batch.
 """
 
 from __future__ import annotations
@@ -26,8 +28,8 @@ from typing import ClassVar
 import torch
 from torch import Tensor, nn
 
-from ..linalg import symmetrize
-from ..models.base import Controls, StateSpaceModel
+from ..models.base import Controls, DynamicsModel, MeasurementModel, StateSpaceModel
+from ..params import check_covariance
 
 __all__ = ["Belief", "Filter", "FilterResult"]
 
@@ -46,7 +48,10 @@ class FilterResult:
             freedom (observed measurement components).
         final_belief: the full belief after the last step, to continue filtering (TBPTT).
         extras: filter-specific per-step outputs (IMM: ``mode_probs [B, T, M]``...), also
-            reachable as attributes (``result.mode_probs``).
+            reachable as attributes (``result.mode_probs``).  The recursive filters add
+            ``untrusted [B, T]`` (bool): steps whose update could not be vouched for to ``1e-2``
+            relative (a repaired innovation covariance, a variance reduction beyond what the
+            update's form resolves in this dtype, a non-finite or negative posterior variance).
     """
 
     mean: Tensor
@@ -138,10 +143,15 @@ class Filter(nn.Module):
         if measurements.ndim != 3 or measurements.shape[-1] != m:
             raise ValueError(f"measurements must have shape [B, T, {m}], got {tuple(measurements.shape)}")
         bsz, steps = measurements.shape[:2]
+        if bsz == 0 or steps == 0:
+            raise ValueError(
+                f"measurements must hold at least one trajectory and one step (B >= 1, T >= 1), got shape {tuple(measurements.shape)}"
+            )
         dtype = measurements.dtype
         pdt = self._param_dtype()
         if pdt is not None and pdt != dtype:
             raise TypeError(f"measurements dtype {dtype} differs from the filter's parameter dtype {pdt}; convert one with .to()")
+        self.check_parameters()
         if mask is not None:
             if not isinstance(mask, Tensor):
                 raise TypeError("mask must be a bool tensor [B, T] or [B, T, m]")
@@ -152,8 +162,8 @@ class Filter(nn.Module):
                     f"mask must have shape [B, T] = [{bsz}, {steps}] or [B, T, m] = [{bsz}, {steps}, {m}], got {tuple(mask.shape)}"
                 )
             if mask.dtype != torch.bool:
-                if mask.is_floating_point() and not bool(((mask == 0) | (mask == 1)).all()):
-                    raise ValueError("mask must be boolean (True = observed)")
+                if mask.is_complex() or not bool(((mask == 0) | (mask == 1)).all()):
+                    raise ValueError("mask must be boolean (True = observed) or hold only 0 and 1")
                 mask = mask.to(torch.bool)
         finite = torch.isfinite(measurements)
         bad = ~finite if mask is None else (~finite & mask)
@@ -172,6 +182,17 @@ class Filter(nn.Module):
         self._check_controls(controls, bsz, steps)
         return measurements, mask, initial_mean, initial_cov
 
+    def check_parameters(self) -> None:
+        """Refuse a non-finite raw parameter (e.g. after a diverged optimiser step) before it
+        turns a whole batch into NaN; the error names the parameter."""
+        for name, p in self.named_parameters():
+            if not bool(torch.isfinite(p).all()):
+                readable = name.replace("parametrizations.", "").replace(".original", "")
+                raise ValueError(
+                    f"parameter {readable} ({name}) holds non-finite raw values; set a finite constrained value "
+                    f"(e.g. module.{readable.rsplit('.', 1)[-1]} = ...) or restore a checkpoint"
+                )
+
     @staticmethod
     def _check_mean(mean: Tensor, bsz: int, n: int, dtype: torch.dtype) -> Tensor:
         if not isinstance(mean, Tensor):
@@ -182,8 +203,9 @@ class Filter(nn.Module):
             mean = mean.expand(bsz, n)
         elif mean.shape != (bsz, n):
             raise ValueError(f"initial_mean must have shape [{n}] or [B, {n}] = [{bsz}, {n}], got {tuple(mean.shape)}")
-        if not bool(torch.isfinite(mean).all()):
-            raise ValueError("initial_mean contains non-finite values")
+        bad = ~torch.isfinite(mean).all(-1)
+        if bool(bad.any()):
+            raise ValueError(f"initial_mean contains non-finite values (batch elements {bad.nonzero().flatten().tolist()[:10]})")
         return mean
 
     @staticmethod
@@ -196,18 +218,9 @@ class Filter(nn.Module):
             cov = cov.expand(bsz, n, n)
         elif cov.shape != (bsz, n, n):
             raise ValueError(f"initial_cov must have shape [{n}, {n}] or [B, {n}, {n}] = [{bsz}, {n}, {n}], got {tuple(cov.shape)}")
-        if not bool(torch.isfinite(cov).all()):
-            raise ValueError("initial_cov contains non-finite values")
-        scale = cov.abs().flatten(-2).amax(-1).clamp_min(torch.finfo(dtype).tiny)[..., None, None]
-        if not bool(((cov - cov.mT).abs() <= 1e-6 * scale).all()):
-            raise ValueError("initial_cov must be symmetric")
-        info = torch.linalg.cholesky_ex(symmetrize(cov))[1]
-        if bool((info != 0).any()):
-            raise ValueError(f"initial_cov must be positive definite (fails for batch elements {info.nonzero().flatten().tolist()[:10]})")
-        return cov
+        return check_covariance("initial_cov", cov, n, batch_ok=True)
 
-    @staticmethod
-    def _check_controls(controls: Controls, bsz: int, steps: int) -> None:
+    def _check_controls(self, controls: Controls, bsz: int, steps: int) -> None:
         if controls is None:
             return
         items = [("controls", controls)] if isinstance(controls, Tensor) else [(f"controls[{k!r}]", v) for k, v in dict(controls).items()]
@@ -216,3 +229,6 @@ class Filter(nn.Module):
                 raise TypeError(f"{name} must be a tensor [B, T, ...]")
             if v.ndim < 2 or v.shape[0] != bsz or v.shape[1] != steps:
                 raise ValueError(f"{name} must have shape [B, T, ...] = [{bsz}, {steps}, ...], got {tuple(v.shape)}")
+        for module in self.modules():
+            if isinstance(module, (DynamicsModel, MeasurementModel)):
+                module.validate_controls(controls)

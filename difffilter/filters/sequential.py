@@ -63,6 +63,12 @@ class SequentialUpdate(RecursiveFilter):
     def init_belief(self, mean: Tensor, cov: Tensor) -> Belief:
         return self.filter.init_belief(mean, cov)
 
+    def attach_diffuse(self, belief: Belief, diffuse_cov: Tensor, scale: Tensor) -> Belief:
+        return self.filter.attach_diffuse(belief, diffuse_cov, scale)
+
+    def sensitivity(self, mean: Tensor, u: Controls) -> Tensor | None:
+        return self.filter.sensitivity(mean, u)
+
     def predict(self, belief: Belief, u: Controls) -> Belief:
         return self.filter.predict(belief, u)
 
@@ -76,6 +82,7 @@ class SequentialUpdate(RecursiveFilter):
         observed = torch.ones_like(z, dtype=torch.bool) if mask is None else mask
         zero = z.new_zeros(z.shape[:-1])
         ll, nis, nobs = zero, zero, zero
+        untrusted, jitter = torch.zeros_like(z[..., 0], dtype=torch.bool), zero
         for group in self.groups:
             sel = torch.zeros(z.shape[-1], dtype=torch.bool, device=z.device)
             sel[group] = True
@@ -84,4 +91,8 @@ class SequentialUpdate(RecursiveFilter):
                 continue
             belief, info = self.filter.update(belief, z, gmask, u)
             ll, nis, nobs = ll + info.log_likelihood, nis + info.nis, nobs + info.num_observed
-        return belief, StepInfo(ll, nis, nobs)
+            if info.untrusted is not None:
+                untrusted = untrusted | info.untrusted
+            if info.jitter is not None:
+                jitter = jitter + info.jitter
+        return belief, StepInfo(ll, nis, nobs, untrusted=untrusted, jitter=jitter)

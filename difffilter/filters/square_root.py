@@ -5,12 +5,14 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ..linalg import chol_rank1_update, gaussian_log_density, safe_cholesky, tria
+from ..linalg import chol_rank1_update, gaussian_log_density, psd_sqrt, tria
 from ..models.base import Controls, StateSpaceModel
 from ._common import expand_controls
-from .base import Belief, StepInfo, mask_measurement_system
+from .base import Belief, StepInfo, diffuse_gaussian_update, mask_measurement_system
+from .diffuse import DIFFUSE_COV, propagate_diffuse
+from .jacobians import measurement_matrix
 from .sigma_points import SigmaPoints
-from .ukf import UKF, weighted_mean
+from .ukf import UKF, deviations, state_add, weighted_mean
 
 __all__ = ["SquareRootUKF"]
 
@@ -36,7 +38,7 @@ class SquareRootUKF(UKF):
         super().__init__(model, sigma_points=sigma_points, redraw_after_predict=True, noise="additive")
 
     def init_belief(self, mean: Tensor, cov: Tensor) -> Belief:
-        return {"mean": mean, "cov": cov, "scale_tril": safe_cholesky(cov).factor}
+        return {"mean": mean, "cov": cov, "scale_tril": psd_sqrt(cov).factor}
 
     def _compound(self, dev: Tensor, wc: Tensor, extra: Tensor) -> Tensor:
         """Lower factor of ``sum_i wc_i dev_i dev_i^T + extra extra^T`` (``dev [B, S, d]``)."""
@@ -52,11 +54,14 @@ class SquareRootUKF(UKF):
         n = mean.shape[-1]
         wm, wc = self._weights(n, mean)
         prop = self.model.dynamics(self.sigma_points.generate(mean, s), expand_controls(u))
-        xm = weighted_mean(prop, wm)
-        q = self.model.dynamics.process_noise(mean, u)
-        sq = safe_cholesky(q.expand(*mean.shape[:-1], n, n)).factor
-        s_new = self._compound(prop - xm[..., None, :], wc, sq)
-        return {**belief, "mean": xm, "cov": s_new @ s_new.mT, "scale_tril": s_new}
+        dyn = self.model.dynamics
+        xm = weighted_mean(prop, wm, dyn)
+        q = dyn.process_noise(mean, u)
+        sq = psd_sqrt(q.expand(*mean.shape[:-1], n, n)).factor
+        s_new = self._compound(deviations(prop, xm, dyn), wc, sq)
+        out = {**belief, "mean": xm, "cov": s_new @ s_new.mT, "scale_tril": s_new}
+        propagate_diffuse(belief, out, None, self.model, u)
+        return out
 
     def update(self, belief: Belief, z: Tensor, mask: Tensor | None, u: Controls) -> tuple[Belief, StepInfo]:
         mean, s = belief["mean"], belief["scale_tril"]
@@ -65,20 +70,26 @@ class SquareRootUKF(UKF):
         hm = self.model.measurement
         chi = self.sigma_points.generate(mean, s)
         zeta = hm(chi, expand_controls(u))
-        zhat = weighted_mean(zeta, wm)
+        zhat = weighted_mean(zeta, wm, hm)
         dz = hm.residual(zeta, zhat[..., None, :])
-        dx = chi - mean[..., None, :]
+        add = state_add(self.model.dynamics)
+        dx = deviations(chi, mean, self.model.dynamics)
         r = hm.measurement_noise(mean, u)
         r = r.expand(*mean.shape[:-1], *r.shape[-2:])
         e = hm.residual(z, zhat)
         m = e.shape[-1]
+        if DIFFUSE_COV in belief:
+            post, info = diffuse_gaussian_update(belief, e, (dx, dz, wc, r), mask, obs_matrix=measurement_matrix(hm, mean, u), add=add)
+            rest = {k: v for k, v in belief.items() if k not in post and k != "scale_tril"}
+            return {**rest, **post, "scale_tril": psd_sqrt(post["cov"]).factor}, info
         e, r, dz, num_obs = mask_measurement_system(e, r, dz, mask)
-        sr = safe_cholesky(r).factor
+        sr = psd_sqrt(r).factor
         szz = self._compound(dz, wc, sr)
         pxz = (dx * wc[:, None]).mT @ dz
         tmp = torch.linalg.solve_triangular(szz, pxz.mT, upper=False)
         gain = torch.linalg.solve_triangular(szz.mT, tmp, upper=True).mT  # [B, n, m]
-        new_mean = mean + (gain @ e[..., None])[..., 0]
+        correction = (gain @ e[..., None])[..., 0]
+        new_mean = mean + correction if add is None else add(mean, correction)
         joseph_dev = dx - dz @ gain.mT
         s_new = self._compound(joseph_dev, wc, gain @ sr)
         loglik, maha = gaussian_log_density(e, szz)

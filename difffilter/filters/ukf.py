@@ -2,32 +2,60 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 from torch import Tensor
 
-from ..linalg import block_diag, safe_cholesky, symmetrize
-from ..models.base import Controls, DynamicsModel, StateSpaceModel
+from ..linalg import block_diag, psd_sqrt, symmetrize
+from ..models.base import Controls, DynamicsModel, MeasurementModel, StateSpaceModel, wrap_components
 from ._common import expand_controls
-from .base import Belief, RecursiveFilter, StepInfo, gaussian_update
+from .base import Belief, RecursiveFilter, StepInfo, diffuse_gaussian_update, gaussian_update
+from .diffuse import DIFFUSE_COV, propagate_diffuse
+from .jacobians import measurement_matrix
 from .sigma_points import MerweScaled, SigmaPoints
 
-__all__ = ["UKF", "SimplifiedUKF", "weighted_mean", "weighted_moments"]
+__all__ = ["UKF", "SimplifiedUKF", "deviations", "state_add", "weighted_mean", "weighted_moments"]
+
+#: What the unscented helpers need to know of a state or measurement space: a model part
+#: (``DynamicsModel`` or ``MeasurementModel``) with ``angular`` indices and ``residual``.
+Space = DynamicsModel | MeasurementModel | None
 
 
-def weighted_mean(points: Tensor, wm: Tensor) -> Tensor:
+def weighted_mean(points: Tensor, wm: Tensor, space: Space = None) -> Tensor:
     """``sum_i wm_i points_i`` for weights summing to one, computed as
     ``p_0 + sum_i wm_i (p_i - p_0)``: large centre weights (scaled sets with small alpha have
-    ``|W_0| ~ 1e6``) then multiply exact zeros instead of cancelling in float32."""
+    ``|W_0| ~ 1e6``) then multiply exact zeros instead of cancelling in float32.
+
+    When ``space`` declares angular components, the differences are ``space.residual(p_i, p_0)``
+    (wrapped) and the result is wrapped: a circular mean around the reference point ``p_0``,
+    exact for points within ``pi`` of it, whatever the sign of the weights (a weighted sum of
+    sines and cosines would be biased by a negative centre weight)."""
     ref = points[..., :1, :]
-    return ref[..., 0, :] + ((points - ref) * wm[:, None]).sum(-2)
+    if space is None or not space.angular:
+        return ref[..., 0, :] + ((points - ref) * wm[:, None]).sum(-2)
+    shift = (space.residual(points, ref) * wm[:, None]).sum(-2)
+    return wrap_components(ref[..., 0, :] + shift, space.angular)
 
 
-def weighted_moments(points: Tensor, wm: Tensor, wc: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+def deviations(points: Tensor, mean: Tensor, space: Space = None) -> Tensor:
+    """``points [B, S, d] - mean [B, d]``, through ``space.residual`` for angular components."""
+    if space is None or not space.angular:
+        return points - mean[..., None, :]
+    return space.residual(points, mean[..., None, :])
+
+
+def weighted_moments(points: Tensor, wm: Tensor, wc: Tensor, space: Space = None) -> tuple[Tensor, Tensor, Tensor]:
     """Weighted mean ``[B, d]``, deviations ``[B, S, d]`` and covariance ``[B, d, d]`` of points ``[B, S, d]``."""
-    mean = weighted_mean(points, wm)
-    dev = points - mean[..., None, :]
+    mean = weighted_mean(points, wm, space)
+    dev = deviations(points, mean, space)
     cov = (dev * wc[:, None]).mT @ dev
     return mean, dev, cov
+
+
+def state_add(space: DynamicsModel) -> Callable[[Tensor, Tensor], Tensor] | None:
+    """``space.add`` for a state with angular components, else None (plain addition)."""
+    return space.add if space.angular else None
 
 
 class UKF(RecursiveFilter):
@@ -82,7 +110,7 @@ class UKF(RecursiveFilter):
         return self.sigma_points.weights(dim, like.dtype, like.device)
 
     def _points(self, mean: Tensor, cov: Tensor) -> Tensor:
-        return self.sigma_points.generate(mean, safe_cholesky(cov).factor)
+        return self.sigma_points.generate(mean, psd_sqrt(cov).factor)
 
     def _noise_matrices(self, mean: Tensor, u: Controls) -> tuple[Tensor, Tensor]:
         q = self.model.dynamics.process_noise(mean, u)
@@ -101,10 +129,10 @@ class UKF(RecursiveFilter):
             chi = self._points(mean, cov)
             wm, wc = self._weights(n, mean)
             prop = f(chi, u1)
-            xm, dev, pf = weighted_moments(prop, wm, wc)
+            xm, dev, pf = weighted_moments(prop, wm, wc, f)
             new_cov = symmetrize(pf + q)
             if not self.redraw_after_predict:
-                sq = safe_cholesky(q).factor.mT * self.sigma_points.gamma(n)  # rows = scaled columns
+                sq = psd_sqrt(q).factor.mT * self.sigma_points.gamma(n)  # rows = scaled columns
                 ext = torch.cat([prop, xm[..., None, :] + sq, xm[..., None, :] - sq], -2)
                 wq = torch.full((2 * n,), 0.5 / self.sigma_points.gamma(n) ** 2, dtype=wm.dtype, device=wm.device)
                 out["sigma_points"] = ext
@@ -120,13 +148,14 @@ class UKF(RecursiveFilter):
             dim = aug_mean.shape[-1]
             wm, wc = self._weights(dim, mean)
             prop = f.with_noise(chi[..., :n], chi[..., n : n + qd], u1)
-            xm, dev, pf = weighted_moments(prop, wm, wc)
+            xm, dev, pf = weighted_moments(prop, wm, wc, f)
             new_cov = symmetrize(pf)
             if reuse:
                 out["sigma_points"] = prop
                 out["sigma_noise"] = chi[..., n + qd :]
                 out["sigma_wm"], out["sigma_wc"] = wm, wc
         out["mean"], out["cov"] = xm, new_cov
+        propagate_diffuse(belief, out, None, self.model, u)
         return out
 
     # -- update ------------------------------------------------------------------------------
@@ -152,14 +181,21 @@ class UKF(RecursiveFilter):
         chi, vnoise, wm, wc, add_r = self._update_points(belief, u)
         hm = self.model.measurement
         zeta = hm(chi, expand_controls(u)) if vnoise is None else hm.with_noise(chi, vnoise, expand_controls(u))
-        zhat = weighted_mean(zeta, wm)
+        zhat = weighted_mean(zeta, wm, hm)
         dz = hm.residual(zeta, zhat[..., None, :])
-        dx = chi - mean[..., None, :]
+        dyn = self.model.dynamics
+        dx = deviations(chi, mean, dyn)
         pzz = (dz * wc[:, None]).mT @ dz
-        if add_r:
-            pzz = pzz + hm.measurement_noise(mean, u)
+        r = hm.measurement_noise(mean, u) if add_r else None
+        if r is not None:
+            pzz = pzz + r
         pxz = (dx * wc[:, None]).mT @ dz
-        new_mean, new_cov, info = gaussian_update(mean, cov, hm.residual(z, zhat), pzz, pxz, mask)
+        e = hm.residual(z, zhat)
+        if DIFFUSE_COV in belief:
+            h = measurement_matrix(hm, mean, u)
+            post, info = diffuse_gaussian_update(belief, e, (dx, dz, wc, r), mask, obs_matrix=h, add=state_add(dyn))
+            return {**self._carry(belief), **post}, info
+        new_mean, new_cov, info = gaussian_update(mean, cov, e, pzz, pxz, mask, sigma_fallback=(dx, dz, wc, r), add=state_add(dyn))
         return {"mean": new_mean, "cov": new_cov, **self._carry(belief)}, info
 
     @staticmethod
@@ -197,4 +233,6 @@ class SimplifiedUKF(UKF):
             f = dyn.matrix(u)
             q = dyn.process_noise(mean, u)
             xm = dyn(mean, u)
-        return {**belief, "mean": xm, "cov": symmetrize(f @ cov @ f.mT + q)}
+        out = {**belief, "mean": xm, "cov": symmetrize(f @ cov @ f.mT + q)}
+        propagate_diffuse(belief, out, f, self.model, u)
+        return out

@@ -8,6 +8,7 @@ import torch
 from torch import Tensor
 
 from ..filters.base import Belief, RecursiveFilter, StepInfo
+from ..filters.diffuse import DIFFUSE_COV
 from ..filters.ekf import EKF
 from ..filters.ukf import UKF
 from ..linalg import symmetrize
@@ -138,13 +139,19 @@ class Blend(RecursiveFilter):
         pu = self.ukf.predict(belief, u)
         d = self.blend_weight(u, belief["mean"])
         xe, xu = pe["mean"], pu["mean"]
-        mean = d[:, None] * xe + (1.0 - d[:, None]) * xu
+        dyn = self.ukf.model.dynamics
+        if dyn.angular:  # blend angles along the short arc
+            mean = dyn.add(xu, d[:, None] * dyn.residual(xe, xu))
+        else:
+            mean = d[:, None] * xe + (1.0 - d[:, None]) * xu
         cov = d[:, None, None] * pe["cov"] + (1.0 - d[:, None, None]) * pu["cov"]
         if self.spread:
-            dev = xe - xu
+            dev = dyn.residual(xe, xu)
             cov = cov + (d * (1.0 - d))[:, None, None] * dev[:, :, None] * dev[:, None, :]
         out = {k: v for k, v in pu.items() if not k.startswith("sigma_")}
         out.update(self.ukf.init_belief(mean, symmetrize(cov)))
+        if DIFFUSE_COV in pu:
+            out[DIFFUSE_COV] = symmetrize(d[:, None, None] * pe[DIFFUSE_COV] + (1.0 - d[:, None, None]) * pu[DIFFUSE_COV])
         out["blend_weight"] = d
         return out
 

@@ -9,6 +9,7 @@ import torch
 from torch import Tensor, nn
 
 from ..filters.base import Belief, RecursiveFilter, StepInfo
+from ..filters.diffuse import DIFFUSE_COV, DIFFUSE_SCALE
 from ..linalg import symmetrize
 from ..models.base import Controls
 from ..params import RowStochastic, register_constrained
@@ -235,18 +236,36 @@ class IMM(RecursiveFilter):
         proj = self.project_maps[j]
         return (mean, cov) if proj is None else proj(mean, cov)
 
+    def _diffuse_to_common(self, j: int, mean: Tensor, p_inf: Tensor) -> Tensor:
+        """A mode's diffuse covariance part in the common state: embedded without the fill
+        variance (the difference of two embeddings is exact: the fill sits where the mode's
+        part is zero)."""
+        if self.embed_maps[j] is None:
+            return p_inf
+        return self._to_common(j, mean, p_inf)[1] - self._to_common(j, mean, torch.zeros_like(p_inf))[1]
+
     def _assemble(self, modes: list[Belief], log_probs: Tensor) -> Belief:
         """IMM belief from mode beliefs and log mode probabilities ``[B, M]``."""
         out: Belief = {}
-        means, covs = [], []
+        means, covs, diffuse = [], [], []
         for j, mb in enumerate(modes):
             out.update({f"mode{j}.{k}": v for k, v in mb.items()})
             x, p = self._to_common(j, mb["mean"], mb["cov"])
             means.append(x)
             covs.append(p)
+            if DIFFUSE_COV in mb:
+                diffuse.append(self._diffuse_to_common(j, mb["mean"], mb[DIFFUSE_COV]))
         mode_means, mode_covs = torch.stack(means, -2), torch.stack(covs, -3)
-        out["mean"], out["cov"] = combine_gaussians(log_probs.exp(), mode_means, mode_covs)
+        weights = log_probs.exp()
+        out["mean"], out["cov"] = combine_gaussians(weights, mode_means, mode_covs)
         out["mode_means"], out["mode_covs"], out["log_mode_probs"] = mode_means, mode_covs, log_probs
+        if diffuse:
+            mode_diffuse = torch.stack(diffuse, -3)
+            out["mode_diffuse_covs"] = mode_diffuse
+            out[DIFFUSE_COV] = symmetrize(
+                (weights[..., None, :] @ mode_diffuse.flatten(-2))[..., 0, :].unflatten(-1, mode_diffuse.shape[-2:])
+            )
+            out[DIFFUSE_SCALE] = modes[0][DIFFUSE_SCALE]
         return out
 
     def init_belief(self, mean: Tensor, cov: Tensor) -> Belief:
@@ -256,8 +275,24 @@ class IMM(RecursiveFilter):
         out["mode_log_likelihoods"] = torch.zeros_like(log_probs)
         return out
 
+    def attach_diffuse(self, belief: Belief, diffuse_cov: Tensor, scale: Tensor) -> Belief:
+        modes = [
+            f.attach_diffuse(self._mode_belief(belief, j), self._from_common(j, belief["mean"], diffuse_cov)[1], scale)
+            for j, f in enumerate(self.filters)
+        ]
+        out = self._assemble(modes, belief["log_mode_probs"])
+        out["mode_log_likelihoods"] = belief["mode_log_likelihoods"]
+        return out
+
+    def sensitivity(self, mean: Tensor, u: Controls) -> Tensor | None:  # type: ignore[override]
+        """The modes' rows (modes of the common dimension; None if there are none)."""
+        rows = [f.sensitivity(mean, u) for f in self.filters if f.state_dim == self._common_dim]
+        return torch.cat(rows, -2) if rows else None
+
     def record(self, belief: Belief) -> dict[str, Tensor]:
         out = {k: belief[k] for k in self.record_keys}
+        if "mode_diffuse_covs" in belief:
+            out["mode_covs"] = out["mode_covs"] + belief[DIFFUSE_SCALE][..., None, None, None] * belief["mode_diffuse_covs"]
         out["mode_probs"] = belief["log_mode_probs"].exp()
         return out
 
@@ -273,10 +308,16 @@ class IMM(RecursiveFilter):
         spread = (dev * mix.mT[..., None]).mT @ dev
         p0 = (mix.mT @ ps.flatten(-2)).unflatten(-1, ps.shape[-2:]) + spread
         p0 = symmetrize(p0)
+        diffuse = belief.get("mode_diffuse_covs")
+        if diffuse is not None:
+            # the diffuse parts mix linearly; the means' spread is finite and sits in p0
+            d0 = symmetrize((mix.mT @ diffuse.flatten(-2)).unflatten(-1, diffuse.shape[-2:]))
         priors = []
         for j, f in enumerate(self.filters):
             old = self._mode_belief(belief, j)
             fresh = f.init_belief(*self._from_common(j, x0[:, j], p0[:, j]))
+            if diffuse is not None:
+                fresh = f.attach_diffuse(fresh, self._from_common(j, x0[:, j], d0[:, j])[1], belief[DIFFUSE_SCALE])
             memory = getattr(f, "memory_keys", ())
             mixed = {**old, **{k: v for k, v in fresh.items() if k not in memory}}
             priors.append(f.predict(mixed, u))
@@ -302,4 +343,9 @@ class IMM(RecursiveFilter):
         out = self._assemble(posts, log_w)
         out["mode_log_likelihoods"] = log_lik
         nis = (log_c.exp() * torch.stack([i.nis for i in infos], -1)).sum(-1)
-        return out, StepInfo(total, nis, infos[0].num_observed)
+        flags = [i.untrusted for i in infos if i.untrusted is not None]
+        jitters = [i.jitter for i in infos if i.jitter is not None]  # each >= 0: the sum is 0 iff none was repaired
+        untrusted = torch.stack(flags, -1).any(-1) if flags else None
+        return out, StepInfo(
+            total, nis, infos[0].num_observed, untrusted=untrusted, jitter=sum(jitters[1:], jitters[0]) if jitters else None
+        )

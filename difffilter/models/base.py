@@ -31,6 +31,7 @@ __all__ = [
     "MeasurementModel",
     "StateSpaceModel",
     "wrap_angle",
+    "wrap_components",
 ]
 
 Controls = Tensor | dict[str, Tensor] | None
@@ -42,6 +43,15 @@ def wrap_angle(angle: Tensor) -> Tensor:
     return angle - two_pi * torch.ceil((angle - math.pi) / two_pi)
 
 
+def wrap_components(x: Tensor, indices: tuple[int, ...]) -> Tensor:
+    """``x [..., d]`` with the components ``indices`` reduced to ``(-pi, pi]`` (out of place)."""
+    if not indices:
+        return x
+    sel = torch.zeros(x.shape[-1], dtype=torch.bool, device=x.device)
+    sel[list(indices)] = True
+    return torch.where(sel, wrap_angle(x), x)
+
+
 class DynamicsModel(nn.Module):
     """Transition ``f`` with process noise ``Q``.
 
@@ -49,9 +59,23 @@ class DynamicsModel(nn.Module):
     ``df/dx``, else filters use autodiff), :meth:`process_noise` (state-dependent Q) and
     :meth:`matrix` (return ``F`` when ``f(x) = F x + c(u)`` is linear, enabling the Kalman filter
     and the simplified UKF).  ``self.Q`` is the (constrained) process-noise covariance.
+
+    ``angular`` lists the state components that are angles (radians, ``2 pi``-periodic): the
+    filters then take differences with :meth:`residual` and add corrections with :meth:`add`,
+    both wrapped to ``(-pi, pi]``, and the unscented filters average them around a reference
+    point (a circular mean).
     """
 
     state_dim: int
+    angular: tuple[int, ...] = ()
+
+    def residual(self, x: Tensor, x_ref: Tensor) -> Tensor:
+        """State difference ``x - x_ref`` ``[..., n]``, angular components wrapped."""
+        return wrap_components(x - x_ref, self.angular)
+
+    def add(self, x: Tensor, dx: Tensor) -> Tensor:
+        """State ``x + dx`` ``[..., n]``, angular components wrapped."""
+        return wrap_components(x + dx, self.angular)
 
     def forward(self, x: Tensor, u: Controls = None) -> Tensor:  # pragma: no cover - abstract
         raise NotImplementedError
@@ -67,6 +91,10 @@ class DynamicsModel(nn.Module):
     def process_noise(self, x: Tensor, u: Controls = None) -> Tensor:
         """Process-noise covariance ``[n, n]`` or ``[..., n, n]`` for prior mean ``x``."""
         return self.Q
+
+    def validate_controls(self, controls: Controls) -> None:
+        """Check the whole run's inputs ``[B, T, ...]`` before filtering; raise ``ValueError``
+        naming the input and the batch element(s) that are invalid (default: nothing to check)."""
 
     #: ``False`` when the model declares non-additive process noise ``x_k = f(x, w, u)``: it then
     #: implements :meth:`with_noise`, and ``forward(x, u)`` is ``f(x, 0, u)``.
@@ -84,9 +112,16 @@ class DynamicsModel(nn.Module):
 
 
 class MeasurementModel(nn.Module):
-    """Measurement ``h`` with noise ``R``; the counterpart of :class:`DynamicsModel`."""
+    """Measurement ``h`` with noise ``R``; the counterpart of :class:`DynamicsModel`.
+
+    ``angular`` lists the measurement components that are angles (a bearing, a heading): the
+    default :meth:`residual` wraps them and the unscented filters compute their predicted
+    measurement as a circular mean (around a reference sigma point), so that points on both
+    sides of ``+-pi`` average to an angle near ``pi``, not near 0.
+    """
 
     measurement_dim: int
+    angular: tuple[int, ...] = ()
 
     def forward(self, x: Tensor, u: Controls = None) -> Tensor:  # pragma: no cover - abstract
         raise NotImplementedError
@@ -104,8 +139,12 @@ class MeasurementModel(nn.Module):
         return self.R
 
     def residual(self, z: Tensor, z_ref: Tensor) -> Tensor:
-        """Difference ``z - z_ref`` of measurements ``[..., m]``; override to wrap angles."""
-        return z - z_ref
+        """Difference ``z - z_ref`` of measurements ``[..., m]``, the :attr:`angular` components
+        wrapped to ``(-pi, pi]``."""
+        return wrap_components(z - z_ref, self.angular)
+
+    def validate_controls(self, controls: Controls) -> None:
+        """As :meth:`DynamicsModel.validate_controls`."""
 
     #: ``False`` when the model declares non-additive measurement noise ``z = h(x, v, u)``: it
     #: then implements :meth:`with_noise`, and ``forward(x, u)`` is ``h(x, 0, u)``.
@@ -161,10 +200,25 @@ class StateSpaceModel(nn.Module):
         return self.measurement(x, u)
 
 
+def _check_matrix(name: str, value: Tensor | None, dtype: torch.dtype | None) -> None:
+    """A model matrix: a finite floating-point tensor of the model's dtype (``dtype``: that of
+    the first matrix given)."""
+    if value is None:
+        return
+    if not isinstance(value, Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor, got {type(value).__name__}")
+    if not value.is_floating_point():
+        raise TypeError(f"{name} must be a floating-point tensor, got {value.dtype}")
+    if dtype is not None and value.dtype != dtype:
+        raise TypeError(f"{name} has dtype {value.dtype} but the model's other matrices are {dtype}: give all of F, H, Q, R, B one dtype")
+    if not bool(torch.isfinite(value).all()):
+        raise ValueError(f"{name} must be finite, got non-finite entries")
+
+
 class _FunctionalDynamics(DynamicsModel):
     def __init__(self, f: Callable[..., Tensor], Q: Tensor, jacobian: Callable[..., Tensor] | None, structure: str, takes_u: bool) -> None:  # noqa: N803
         super().__init__()
-        check_covariance("Q", Q)
+        check_covariance("Q", Q, semidefinite=True)
         self.state_dim = Q.shape[-1]
         self._f, self._jac, self._takes_u = f, jacobian, takes_u
         register_covariance(self, "Q", Q, structure)
@@ -181,7 +235,7 @@ class _FunctionalDynamics(DynamicsModel):
 class _FunctionalMeasurement(MeasurementModel):
     def __init__(self, h: Callable[..., Tensor], R: Tensor, jacobian: Callable[..., Tensor] | None, structure: str, takes_u: bool) -> None:  # noqa: N803
         super().__init__()
-        check_covariance("R", R)
+        check_covariance("R", R, semidefinite=True)
         self.measurement_dim = R.shape[-1]
         self._h, self._jac, self._takes_u = h, jacobian, takes_u
         register_covariance(self, "R", R, structure)
@@ -198,14 +252,21 @@ class _FunctionalMeasurement(MeasurementModel):
 class FunctionalModel(StateSpaceModel):
     """A model from plain callables.
 
+    ``angular_states`` / ``angular_measurements`` declare angle components (see
+    :attr:`DynamicsModel.angular`, :attr:`MeasurementModel.angular`).
+
     Args:
         f: transition ``f(x [..., n]) -> [..., n]`` (or ``f(x, u)`` with ``controls=True``).
         h: measurement ``h(x [..., n]) -> [..., m]`` (or ``h(x, u)``).
-        Q: process-noise covariance ``[n, n]``; learnable with structure ``Q_structure``.
+        Q: process-noise covariance ``[n, n]`` (positive semi-definite); learnable with structure
+            ``Q_structure``.
         R: measurement-noise covariance ``[m, m]``; learnable with structure ``R_structure``.
         f_jacobian, h_jacobian: optional analytic Jacobians ``[..., n, n]`` / ``[..., m, n]``.
         controls: whether ``f``/``h`` take the per-step inputs ``u`` as second argument.
-        Q_structure, R_structure: ``"full"``, ``"diagonal"``, ``"scalar"`` or ``"fixed"``.
+        Q_structure, R_structure: ``"full"``, ``"diagonal"``, ``"scalar"``, ``"factor"`` (a free
+            factor of the value's rank: learnable semi-definite covariances) or ``"fixed"``
+            (:func:`~difffilter.params.register_covariance`).
+        angular_states, angular_measurements: indices of angle components (radians).
     """
 
     def __init__(
@@ -220,11 +281,24 @@ class FunctionalModel(StateSpaceModel):
         controls: bool = False,
         Q_structure: str = "full",  # noqa: N803
         R_structure: str = "full",  # noqa: N803
+        angular_states: tuple[int, ...] = (),
+        angular_measurements: tuple[int, ...] = (),
     ) -> None:
+        if isinstance(Q, Tensor) and isinstance(R, Tensor) and Q.dtype != R.dtype:
+            raise TypeError(f"Q and R must have one dtype, got Q {Q.dtype} and R {R.dtype}")
         super().__init__(
             _FunctionalDynamics(f, Q, f_jacobian, Q_structure, controls),
             _FunctionalMeasurement(h, R, h_jacobian, R_structure, controls),
         )
+        self.dynamics.angular = _indices("angular_states", angular_states, self.state_dim)
+        self.measurement.angular = _indices("angular_measurements", angular_measurements, self.measurement_dim)
+
+
+def _indices(name: str, indices: tuple[int, ...], dim: int) -> tuple[int, ...]:
+    out = tuple(int(i) for i in indices)
+    if len(set(out)) != len(out) or not all(0 <= i < dim for i in out):
+        raise ValueError(f"{name} must be distinct component indices in [0, {dim}), got {list(indices)}")
+    return out
 
 
 class _LinearDynamics(DynamicsModel):
@@ -233,7 +307,7 @@ class _LinearDynamics(DynamicsModel):
         if F.ndim != 2 or F.shape[0] != F.shape[1]:
             raise ValueError(f"F must be a square matrix [n, n], got shape {tuple(F.shape)}")
         n = F.shape[0]
-        check_covariance("Q", Q, n)
+        check_covariance("Q", Q, n, semidefinite=True)
         if B is not None and (B.ndim != 2 or B.shape[0] != n):
             raise ValueError(f"B must have shape [{n}, k], got {tuple(B.shape)}")
         self.state_dim = n
@@ -261,7 +335,7 @@ class _LinearMeasurement(MeasurementModel):
         super().__init__()
         if H.ndim != 2:
             raise ValueError(f"H must be a matrix [m, n], got shape {tuple(H.shape)}")
-        check_covariance("R", R, H.shape[0])
+        check_covariance("R", R, H.shape[0], semidefinite=True)
         self.measurement_dim = H.shape[0]
         self.register_buffer("H", H.detach().clone())
         register_covariance(self, "R", R, structure)
@@ -279,8 +353,9 @@ class _LinearMeasurement(MeasurementModel):
 class LinearModel(StateSpaceModel):
     """Linear-Gaussian model ``x_k = F x_{k-1} + B u_k + w_k``, ``z_k = H x_k + v_k``.
 
-    ``F [n, n]``, ``H [m, n]``, ``Q [n, n]``, ``R [m, m]``, optional ``B [n, k]`` (then
-    ``controls`` are ``[B, T, k]``).  ``Q`` and ``R`` are learnable (see ``*_structure``).
+    ``F [n, n]``, ``H [m, n]``, ``Q [n, n]`` (positive semi-definite), ``R [m, m]``, optional
+    ``B [n, k]`` (then ``controls`` are ``[B, T, k]``), all finite and of one dtype.  ``Q`` and
+    ``R`` are learnable (see ``*_structure``, as for :class:`FunctionalModel`).
     """
 
     def __init__(
@@ -294,6 +369,9 @@ class LinearModel(StateSpaceModel):
         Q_structure: str = "full",  # noqa: N803
         R_structure: str = "full",  # noqa: N803
     ) -> None:
+        _check_matrix("F", F, None)
+        for name, value in (("H", H), ("Q", Q), ("R", R), ("B", B)):
+            _check_matrix(name, value, F.dtype)
         if H.ndim == 2 and F.ndim == 2 and H.shape[1] != F.shape[0]:
             raise ValueError(f"H must have shape [m, {F.shape[0]}], got {tuple(H.shape)}")
         super().__init__(_LinearDynamics(F, Q, B, Q_structure), _LinearMeasurement(H, R, R_structure))

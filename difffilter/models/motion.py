@@ -37,6 +37,7 @@ __all__ = [
     "axis_block_diag",
     "constant_acceleration_noise",
     "constant_acceleration_transition",
+    "constant_velocity_discrete_noise",
     "constant_velocity_noise",
     "current_statistical_variance",
     "singer_noise_from_variance",
@@ -176,6 +177,13 @@ def constant_velocity_noise(dt: Tensor) -> Tensor:
     return _matrix([[dt**3 / 3, dt**2 / 2], [dt**2 / 2, dt]])
 
 
+def constant_velocity_discrete_noise(dt: Tensor) -> Tensor:
+    """Piecewise-constant white acceleration per unit variance ``[..., 2, 2]``: ``g g^T`` with
+    ``g = [T^2/2, T]`` (filterpy's ``Q_discrete_white_noise``), a rank-one covariance."""
+    g = torch.stack([dt * dt / 2, dt], -1)
+    return g[..., :, None] * g[..., None, :]
+
+
 def constant_acceleration_noise(dt: Tensor) -> Tensor:
     """White-jerk covariance per unit spectral density ``[..., 3, 3]``: p000's ``Q_axis`` =
     ``[[T^5/20, T^4/8, T^3/6], [T^4/8, T^3/3, T^2/2], [T^3/6, T^2/2, T]]``."""
@@ -216,8 +224,8 @@ class _Kinematic(DynamicsModel):
         super().__init__()
         if axes not in (1, 2, 3):
             raise ValueError(f"axes must be 1, 2 or 3, got {axes}")
-        if not dt > 0:
-            raise ValueError(f"dt must be positive, got {dt}")
+        if not (math.isfinite(dt) and dt > 0):
+            raise ValueError(f"dt must be finite and positive, got {dt}")
         self.axes = axes
         self.state_dim = axes * self.order
         self.register_buffer("dt", torch.tensor(float(dt), dtype=dtype or torch.get_default_dtype()))
@@ -228,7 +236,23 @@ class _Kinematic(DynamicsModel):
             t = t.expand(self.axes).clone()
         if t.shape != (self.axes,):
             raise ValueError(f"{name} must be a scalar or have shape [{self.axes}], got {tuple(t.shape)}")
+        if not bool(torch.isfinite(t).all()):
+            raise ValueError(f"{name} must be finite, got {t.tolist()}")
         return t
+
+    def validate_controls(self, controls: Controls) -> None:
+        """``controls["dt"]`` (when given) must be finite and positive in every batch element."""
+        if not isinstance(controls, dict) or "dt" not in controls:
+            return
+        dt = controls["dt"]
+        bad = ~(torch.isfinite(dt) & (dt > 0))
+        if bool(bad.any()):
+            b, t = (int(i) for i in bad.nonzero()[0][:2])
+            rows = sorted({int(i) for i in bad.nonzero()[:, 0]})[:10]
+            raise ValueError(
+                f"controls['dt'] must be finite and positive, got {float(dt[b, t].flatten()[0])} at [b, t] = [{b}, {t}] "
+                f"(batch elements {rows})"
+            )
 
     def step_dt(self, u: Controls) -> Tensor:
         """Sample interval: ``u["dt"][..., 0]`` when given, else the constructor's ``dt`` (0-d)."""
@@ -260,19 +284,28 @@ class ConstantVelocity(_Kinematic):
     """Constant velocity (white-noise acceleration) per axis, state ``[p, v]`` per axis.
 
     ``x_k = blockdiag([[1, T], [0, 1]]) x_{k-1} + w``,
-    ``Q = blockdiag(q_i [[T^3/3, T^2/2], [T^2/2, T]])``.
+    ``Q = blockdiag(q_i [[T^3/3, T^2/2], [T^2/2, T]])`` (continuous white acceleration), or with
+    ``noise="discrete"`` ``Q = blockdiag(q_i g g^T)``, ``g = [T^2/2, T]`` (an acceleration
+    constant over each interval, variance ``q_i``): a rank-deficient ``Q`` whose intensity is
+    learned while its structure stays exact.
 
     Args:
         axes: 1 to 3.
         dt: sample interval (s) unless ``u["dt"]`` is given.
-        q: acceleration spectral density per axis (m^2/s^3), scalar or ``[axes]``; learnable
-            (``Positive``).
+        q: acceleration spectral density per axis (m^2/s^3; ``noise="discrete"``: acceleration
+            variance, m^2/s^4), scalar or ``[axes]``; learnable (``Positive``).
+        noise: ``"continuous"`` or ``"discrete"``.
     """
 
     order = 2
 
-    def __init__(self, *, axes: int = 1, dt: float = 1.0, q: Tensor | float = 1.0, dtype: torch.dtype | None = None) -> None:
+    def __init__(
+        self, *, axes: int = 1, dt: float = 1.0, q: Tensor | float = 1.0, noise: str = "continuous", dtype: torch.dtype | None = None
+    ) -> None:
+        if noise not in ("continuous", "discrete"):
+            raise ValueError(f"noise must be 'continuous' or 'discrete', got {noise!r}")
         super().__init__(axes=axes, dt=dt, dtype=dtype)
+        self.noise = noise
         register_constrained(self, "q", self._per_axis(q, "q", dtype), Positive())
 
     def transition_blocks(self, u: Controls) -> Tensor:
@@ -283,7 +316,8 @@ class ConstantVelocity(_Kinematic):
 
     def process_noise(self, x: Tensor, u: Controls = None) -> Tensor:
         dt = self.step_dt(u)
-        return axis_block_diag(self.q[:, None, None] * constant_velocity_noise(dt)[..., None, :, :])
+        unit = constant_velocity_noise(dt) if self.noise == "continuous" else constant_velocity_discrete_noise(dt)
+        return axis_block_diag(self.q[:, None, None] * unit[..., None, :, :])
 
 
 class ConstantAcceleration(_Kinematic):

@@ -31,7 +31,7 @@ from torch.nn.utils import parametrize
 
 from ..filters.base import Belief, FilterResult, RecursiveFilter
 from ..linalg import psd_solve, symmetrize
-from ..models.base import Controls
+from ..models.base import Controls, DynamicsModel
 from .result import SmootherResult
 
 #: Default bound on the states (batch x time steps) of one batched cross-covariance call.
@@ -65,17 +65,38 @@ def smoother_gains(cross_cov: Tensor, prior_cov: Tensor) -> Tensor:
 
 
 def rts_step(
-    mean: Tensor, cov: Tensor, gain: Tensor, prior_mean: Tensor, prior_cov: Tensor, s_mean: Tensor, s_cov: Tensor
+    mean: Tensor,
+    cov: Tensor,
+    gain: Tensor,
+    prior_mean: Tensor,
+    prior_cov: Tensor,
+    s_mean: Tensor,
+    s_cov: Tensor,
+    space: DynamicsModel | None = None,
 ) -> tuple[Tensor, Tensor]:
     """One backward step: smoothed ``(x_{t-1|T}, P_{t-1|T})`` from the posterior at ``t - 1``,
-    the gain and prior at ``t`` and the smoothed moments at ``t`` (any leading dimensions)."""
-    new_mean = mean + (gain @ (s_mean - prior_mean)[..., None])[..., 0]
+    the gain and prior at ``t`` and the smoothed moments at ``t`` (any leading dimensions).
+
+    When ``space`` (the filter's dynamics) declares angular states, the correction is
+    ``space.add(x, G space.residual(x_s, x-))``: both differences and the sum wrapped."""
+    if space is not None and space.angular:
+        step = (gain @ space.residual(s_mean, prior_mean)[..., None])[..., 0]
+        new_mean = space.add(mean, step)
+    else:
+        new_mean = mean + (gain @ (s_mean - prior_mean)[..., None])[..., 0]
     new_cov = symmetrize(cov + gain @ (s_cov - prior_cov) @ gain.mT)
     return new_mean, new_cov
 
 
 def rts_backward(
-    mean: Tensor, cov: Tensor, prior_mean: Tensor, prior_cov: Tensor, gains: Tensor, initial_mean: Tensor, initial_cov: Tensor
+    mean: Tensor,
+    cov: Tensor,
+    prior_mean: Tensor,
+    prior_cov: Tensor,
+    gains: Tensor,
+    initial_mean: Tensor,
+    initial_cov: Tensor,
+    space: DynamicsModel | None = None,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """Fixed-interval backward pass.
 
@@ -84,6 +105,7 @@ def rts_backward(
         prior_mean, prior_cov: filter priors at the same steps.
         gains: ``G_t`` ``[B, T, n, n]`` linking ``x_{t-1}`` (``x_{-1}`` for ``t = 0``) and ``x_t``.
         initial_mean, initial_cov: the belief about ``x_{-1}`` ``[B, n]``, ``[B, n, n]``.
+        space: the filter's dynamics model; its angular states are wrapped (:func:`rts_step`).
 
     Returns ``(mean, cov, cross_cov, initial_mean, initial_cov)`` smoothed, with
     ``cross_cov[:, t] = P_{t-1,t|T}``.
@@ -97,7 +119,7 @@ def rts_backward(
         g = g_t[t]
         crosses.append(g @ s_cov)
         prev_m, prev_p = (m_t[t - 1], p_t[t - 1]) if t > 0 else (initial_mean, initial_cov)
-        s_mean, s_cov = rts_step(prev_m, prev_p, g, pm_t[t], pp_t[t], s_mean, s_cov)
+        s_mean, s_cov = rts_step(prev_m, prev_p, g, pm_t[t], pp_t[t], s_mean, s_cov, space)
         means.append(s_mean)
         covs.append(s_cov)
     init_mean, init_cov = means.pop(), covs.pop()

@@ -6,7 +6,7 @@ import torch
 from torch import Tensor
 
 from ..filters.base import Belief, FilterResult, RecursiveFilter
-from ..models.base import Controls
+from ..models.base import Controls, DynamicsModel
 from .base import Smoother, rts_step, smoother_gains
 from .result import SmootherResult
 from .rts import RTSSmoother, faded_prior_cov
@@ -14,7 +14,9 @@ from .rts import RTSSmoother, faded_prior_cov
 __all__ = ["FixedLagSmoother", "fixed_lag_backward"]
 
 
-def fixed_lag_backward(mean: Tensor, cov: Tensor, prior_mean: Tensor, prior_cov: Tensor, gains: Tensor, lag: int) -> tuple[Tensor, Tensor]:
+def fixed_lag_backward(
+    mean: Tensor, cov: Tensor, prior_mean: Tensor, prior_cov: Tensor, gains: Tensor, lag: int, space: DynamicsModel | None = None
+) -> tuple[Tensor, Tensor]:
     """``x_{t|min(t+L, T-1)}`` and its covariance for every ``t`` (shapes as :func:`rts_backward`).
 
     Runs ``L`` backward steps, each vectorised over all target steps ``t`` (and the batch): the
@@ -30,7 +32,7 @@ def fixed_lag_backward(mean: Tensor, cov: Tensor, prior_mean: Tensor, prior_cov:
         if not bool(active.any()):
             break
         src = (cur - 1).clamp(min=0)
-        new_m, new_p = rts_step(mean[:, src], cov[:, src], gains[:, cur], prior_mean[:, cur], prior_cov[:, cur], s_mean, s_cov)
+        new_m, new_p = rts_step(mean[:, src], cov[:, src], gains[:, cur], prior_mean[:, cur], prior_cov[:, cur], s_mean, s_cov, space)
         s_mean = torch.where(active[:, None], new_m, s_mean)
         s_cov = torch.where(active[:, None, None], new_p, s_cov)
         cur = torch.where(active, cur - 1, cur)
@@ -70,7 +72,7 @@ class FixedLagSmoother(Smoother):
     def smooth(self, result: FilterResult, initial: Belief, controls: Controls = None) -> SmootherResult:
         """``x_{t|min(t+L, T-1)}`` over ``result`` of a window that started from ``initial``."""
         gains, prior_cov = self._rts.gains(result, initial, controls)
-        mean, cov = fixed_lag_backward(result.mean, result.cov, result.prior_mean, prior_cov, gains, self.lag)
+        mean, cov = fixed_lag_backward(result.mean, result.cov, result.prior_mean, prior_cov, gains, self.lag, self._rts.dynamics)
         return SmootherResult(mean=mean, cov=cov, filtered=result, lag=self.lag)
 
     # -- online use ------------------------------------------------------------------------------
@@ -101,7 +103,7 @@ class FixedLagSmoother(Smoother):
         for i in range(new_state["means"].shape[1] - 1, 0, -1):
             s_mean, s_cov = rts_step(
                 new_state["means"][:, i - 1], new_state["covs"][:, i - 1], new_state["gains"][:, i],
-                new_state["prior_means"][:, i], new_state["prior_covs"][:, i], s_mean, s_cov,
+                new_state["prior_means"][:, i], new_state["prior_covs"][:, i], s_mean, s_cov, self._rts.dynamics,
             )  # fmt: skip
         return new_state, s_mean, s_cov
 

@@ -7,7 +7,7 @@ from torch import Tensor
 from ..filters.adaptive import RCUKF
 from ..filters.base import Belief, FilterResult, RecursiveFilter
 from ..filters.ukf import UKF
-from ..models.base import Controls
+from ..models.base import Controls, DynamicsModel
 from .base import Smoother, previous_posteriors, rts_backward, smoother_gains
 from .result import SmootherResult
 from .transition import check_smoothable, predicting_filter, transition_cross_covariance
@@ -67,10 +67,15 @@ class RTSSmoother(Smoother):
         q = self.per_step(lambda m, p, u: self.process_noise(m, u), prev_mean, result.prior_cov, controls)
         return faded_prior_cov(result.prior_cov, q, result.extras["fading_factor"])
 
+    @property
+    def dynamics(self) -> DynamicsModel:
+        """The dynamics of the filter's prediction (its angular states are wrapped in the backward step)."""
+        return predicting_filter(self.filter).model.dynamics
+
     def process_noise(self, mean: Tensor, u: Controls) -> Tensor:
         """The filter model's ``Q`` at the posterior ``mean [N, n]``, expanded to ``[N, n, n]``."""
         n = mean.shape[-1]
-        return predicting_filter(self.filter).model.dynamics.process_noise(mean, u).expand(mean.shape[0], n, n)
+        return self.dynamics.process_noise(mean, u).expand(mean.shape[0], n, n)
 
     def gains(self, result: FilterResult, initial: Belief, controls: Controls = None) -> tuple[Tensor, Tensor]:
         """Smoother gains ``G_t [B, T, n, n]`` and the prior covariances they use."""
@@ -83,7 +88,7 @@ class RTSSmoother(Smoother):
         """Backward pass over ``result`` of a window that started from the belief ``initial``."""
         gains, prior_cov = self.gains(result, initial, controls)
         mean, cov, cross, m0, p0 = rts_backward(
-            result.mean, result.cov, result.prior_mean, prior_cov, gains, initial["mean"], initial["cov"]
+            result.mean, result.cov, result.prior_mean, prior_cov, gains, initial["mean"], initial["cov"], self.dynamics
         )
         return SmootherResult(mean=mean, cov=cov, filtered=result, cross_cov=cross, initial_mean=m0, initial_cov=p0)
 

@@ -27,7 +27,7 @@ from ..filters.base import RecursiveFilter
 from ..filters.colored import ColoredNoiseUKF
 from ..filters.ekf import EKF
 from ..filters.sequential import SequentialUpdate
-from ..filters.ukf import UKF, SimplifiedUKF, expand_controls, weighted_mean
+from ..filters.ukf import UKF, SimplifiedUKF, deviations, expand_controls, weighted_mean
 from ..linalg import block_diag
 from ..models.base import Controls
 
@@ -92,9 +92,10 @@ def _unscented_cross(filt: UKF, mean: Tensor, cov: Tensor, u: Controls) -> Tenso
         wm, wc = filt._weights(aug_cov.shape[-1], mean)
         chi = full[..., :n]
         prop = dyn.with_noise(chi, full[..., n : n + q.shape[-1]], u1)
-    pred = weighted_mean(prop, wm)
-    dx = (chi - mean[..., None, :]) * wc[:, None]
-    return dx.mT @ (prop - pred[..., None, :])
+    # angular states: circular mean and wrapped deviations, as in the filter's prediction
+    pred = weighted_mean(prop, wm, dyn)
+    dx = deviations(chi, mean, dyn) * wc[:, None]
+    return dx.mT @ deviations(prop, pred, dyn)
 
 
 def transition_cross_covariance(filt: RecursiveFilter, mean: Tensor, cov: Tensor, u: Controls) -> Tensor:

@@ -1,0 +1,218 @@
+"""The shared Gaussian measurement update of every Kalman-family filter.
+
+:func:`gaussian_update` (covariance form, with the Joseph forms where they are needed) and
+:func:`diffuse_gaussian_update` (the exact update of a belief with a diffuse part, see
+:mod:`difffilter.filters.diffuse`), and the exact removal of unobserved components
+(:func:`~difffilter.filters._common.mask_measurement_system`).  Re-exported by
+:mod:`difffilter.filters.base`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import torch
+from torch import Tensor
+
+from ..linalg import joseph_update, psd_sqrt, safe_cholesky, symmetrize
+from ._common import StepInfo, mask_measurement_system
+from .diffuse import DIFFUSE_COV, DIFFUSE_SCALE, diffuse_update
+from .protocol import Belief
+
+__all__ = [
+    "diffuse_gaussian_update",
+    "gaussian_update",
+    "square_root_deviations",
+    "untrusted_steps",
+]
+
+_LOG_2PI = math.log(2.0 * math.pi)
+
+
+def _trust_limits(dtype: torch.dtype) -> tuple[float, float, float]:
+    """``(switch, standard, joseph)``: the posterior/prior variance ratio below which the
+    ``P - K S K^T`` form switches to a Joseph-type form (``64 sqrt(eps)``: measured errors of
+    that form reach ``~20 eps / ratio``, so it keeps about half of the digits), and the ratios
+    below which each form's relative rounding error (``eps / ratio``, resp. ``eps^2 / ratio``)
+    exceeds ``1e-2``."""
+    eps = torch.finfo(dtype).eps
+    return 64.0 * eps**0.5, eps / 1e-2, eps * eps / 1e-2
+
+
+def gaussian_update(
+    mean: Tensor,
+    cov: Tensor,
+    innovation: Tensor,
+    innovation_cov: Tensor,
+    cross_cov: Tensor,
+    mask: Tensor | None,
+    *,
+    joseph: tuple[Tensor, Tensor] | None = None,
+    joseph_fallback: tuple[Tensor, Tensor] | None = None,
+    sigma_fallback: tuple[Tensor, Tensor, Tensor, Tensor | None] | None = None,
+    add: Callable[[Tensor, Tensor], Tensor] | None = None,
+) -> tuple[Tensor, Tensor, StepInfo]:
+    """Linear-Gaussian measurement update shared by every Kalman-family filter.
+
+    Args:
+        mean, cov: prior ``[B, n]``, ``[B, n, n]``.
+        innovation: ``e = z - z_hat`` ``[B, m]``.
+        innovation_cov: ``S [B, m, m]`` (measurement noise included).
+        cross_cov: ``P_xz [B, n, m]``.
+        mask: ``[B, m]`` bool, True = observed (``None``: all observed).
+        joseph: ``(H [B, m, n], R [B, m, m])`` to use the Joseph form (KF/EKF) instead of
+            ``P - K S K^T``.
+        joseph_fallback: ``(H, R)`` for the Joseph form on the batch elements where
+            ``P - K S K^T`` cancels (below).
+        sigma_fallback: ``(dx [B, S, n], dz [B, S, m], wc [S], R [B, m, m] or None)``, the
+            sigma-point deviations of an unscented update, for its Joseph form on those
+            elements: ``sum_i wc_i (dx_i - K dz_i)(dx_i - K dz_i)^T + K R K^T`` (``R`` None when
+            the points already carry the measurement noise).
+        add: ``add(x, dx)``, the state addition (e.g. ``DynamicsModel.add`` wrapping angular
+            states) for the mean correction; None adds plainly.
+
+    Returns the posterior mean and covariance and the :class:`StepInfo`.  The gain is never
+    formed through an inverse: with ``S = L L^T``, ``W = L^{-1} P_xz^T`` gives
+    ``K e = W^T L^{-1} e`` and ``K S K^T = W^T W``.
+
+    ``P - K S K^T`` subtracts two numbers of the prior's size, so a variance that one update
+    reduces by a factor ``rho`` keeps about ``eps / rho`` relative accuracy; the Joseph forms
+    subtract only inside ``I - K H`` and keep about ``eps^2 / rho``.  Where a posterior variance
+    falls below ``64 sqrt(eps)`` times its prior (``9.5e-7`` in float64, ``2.2e-2`` in float32)
+    and a fallback is given, those batch elements are recomputed in the fallback's Joseph form;
+    ``StepInfo.jitter`` is ``S``'s repair (0 if none); without a Joseph form or a fallback,
+    ``StepInfo.untrusted`` marks elements whose reduction ``P - K S K^T`` cannot resolve to
+    ``1e-2``.  The time loop flags the rest over the whole run at once
+    (:func:`untrusted_steps`), so this function adds no per-step work for it.
+    """
+    innovation, innovation_cov, cross_cov, num_obs = mask_measurement_system(innovation, innovation_cov, cross_cov, mask)
+    chol, jitter = safe_cholesky(innovation_cov)
+    rhs = torch.cat([cross_cov.mT, innovation[..., None]], -1)  # [B, m, n+1]
+    sol = torch.linalg.solve_triangular(chol, rhs, upper=False)
+    w, v = sol[..., :-1], sol[..., -1]  # W [B, m, n], v = L^{-1} e [B, m]
+    correction = (w.mT @ v[..., None])[..., 0]
+    new_mean = mean + correction if add is None else add(mean, correction)
+    untrusted = None
+    if joseph is None:
+        new_cov = symmetrize(cov - w.mT @ w)
+        switch, std_limit, _ = _trust_limits(mean.dtype)
+        prior_var = torch.diagonal(cov, dim1=-2, dim2=-1)
+        post_var = torch.diagonal(new_cov, dim1=-2, dim2=-1)
+        if joseph_fallback is None and sigma_fallback is None:
+            untrusted = ~(post_var >= std_limit * prior_var).all(-1)
+        elif bool((post_var < switch * prior_var).any()):
+            lossy = (post_var < switch * prior_var).any(-1)
+            gain = torch.linalg.solve_triangular(chol.mT, w, upper=True).mT  # K = W^T L^{-1}
+            if joseph_fallback is not None:
+                stable = joseph_update(cov, gain, *_masked_system(*joseph_fallback, mask))
+            else:
+                stable = _sigma_joseph(gain, *sigma_fallback, mask)  # type: ignore[misc]
+            new_cov = torch.where(lossy[..., None, None], stable, new_cov)
+    else:
+        gain = torch.linalg.solve_triangular(chol.mT, w, upper=True).mT  # K = W^T L^{-1}
+        new_cov = joseph_update(cov, gain, *_masked_system(*joseph, mask))
+    maha = (v * v).sum(-1)
+    logdet = 2.0 * torch.log(torch.diagonal(chol, dim1=-2, dim2=-1)).sum(-1)
+    loglik = -0.5 * (maha + logdet + num_obs * _LOG_2PI)
+    info = StepInfo(loglik, maha, num_obs, innovation, innovation_cov, untrusted, jitter)
+    return new_mean, new_cov, info
+
+
+def untrusted_steps(mean: Tensor, cov: Tensor, prior_cov: Tensor, log_likelihood: Tensor, exact: Tensor | None = None) -> Tensor:
+    """``[B, T]`` steps whose posterior cannot be vouched for to ``1e-2`` in a Joseph-type
+    update (the weakest form every filter here ends up using): a variance reduced below
+    ``eps^2 / 1e-2`` of its prior (``4.9e-30`` in float64, ``1.4e-12`` in float32), a negative
+    or non-finite variance, a non-finite mean or log-likelihood.  ``exact [T]`` (bool) marks
+    steps to leave out (diffuse-part updates, which flag themselves).  Vectorised over the run."""
+    limit = _trust_limits(mean.dtype)[2]
+    post_var = torch.diagonal(cov, dim1=-2, dim2=-1)
+    prior_var = torch.diagonal(prior_cov, dim1=-2, dim2=-1)
+    # a NaN compares False, so non-finite variances are flagged too; whole-run checks first
+    # (one reduction each), per-step reductions only when one fails
+    bad = ~torch.isfinite(log_likelihood)
+    low = ~(post_var >= limit * prior_var)
+    if bool(low.any()):
+        bad = bad | low.any(-1)
+    finite = torch.isfinite(mean)
+    if not bool(finite.all()):
+        bad = bad | ~finite.all(-1)
+    if exact is not None:
+        bad = bad & ~exact
+    return bad
+
+
+def diffuse_gaussian_update(
+    belief: Belief,
+    innovation: Tensor,
+    deviations: tuple[Tensor, Tensor, Tensor, Tensor | None],
+    mask: Tensor | None,
+    *,
+    obs_matrix: Tensor | None = None,
+    diffuse_cross: Tensor | None = None,
+    diffuse_innovation: Tensor | None = None,
+    add: Callable[[Tensor, Tensor], Tensor] | None = None,
+) -> tuple[Belief, StepInfo]:
+    """:func:`gaussian_update` for a belief with a diffuse part (``"diffuse_cov"``).
+
+    ``deviations`` ``(dx [B, S, n], dz [B, S, m], wc [S], R or None)`` describe the finite part's
+    joint moments (:func:`~difffilter.filters.diffuse.diffuse_update`); the diffuse part enters
+    through the measurement Jacobian ``obs_matrix`` ``H [B, m, n]`` (or ``[m, n]``), or directly
+    through ``P_inf H^T`` and ``H P_inf H^T`` (``diffuse_cross``, ``diffuse_innovation``) when
+    the measurement is not a function of the current state alone; ``add`` as for
+    :func:`gaussian_update`.  Returns the belief entries
+    ``mean``, ``cov`` (finite part), ``diffuse_cov``, ``diffuse_scale`` and the step's
+    :class:`StepInfo`; ``untrusted`` marks a finite part whose reduction exceeds what the
+    Joseph form resolves (as in :func:`gaussian_update`) or non-finite results.
+    """
+    mean, p_inf, scale = belief["mean"], belief[DIFFUSE_COV], belief[DIFFUSE_SCALE]
+    if diffuse_cross is None or diffuse_innovation is None:
+        if obs_matrix is None:
+            raise ValueError("diffuse_gaussian_update needs obs_matrix or (diffuse_cross, diffuse_innovation)")
+        h = obs_matrix.expand(*mean.shape[:-1], *obs_matrix.shape[-2:])
+        diffuse_cross = p_inf @ h.mT
+        diffuse_innovation = symmetrize(h @ diffuse_cross)
+    new_mean, p_fin, new_inf, loglik, nis, num_obs = diffuse_update(
+        mean, p_inf, scale, innovation, deviations, diffuse_cross, diffuse_innovation, mask
+    )
+    if add is not None:
+        new_mean = add(mean, new_mean - mean)
+    limit = _trust_limits(mean.dtype)[2]
+    var = torch.diagonal(p_fin, dim1=-2, dim2=-1)
+    untrusted = ~torch.isfinite(loglik) | ~(var >= limit * torch.diagonal(belief["cov"], dim1=-2, dim2=-1)).all(-1)
+    post = {"mean": new_mean, "cov": p_fin, DIFFUSE_COV: new_inf, DIFFUSE_SCALE: scale}
+    return post, StepInfo(loglik, nis, num_obs, innovation, None, untrusted)
+
+
+def square_root_deviations(cov: Tensor, obs_matrix: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """``(dx [B, n, n], dz [B, n, m], wc [n])``: the columns of a square root of ``cov`` and their
+    images under ``obs_matrix`` with unit weights, the deviations form of ``(P, P H^T, H P H^T)``
+    that :func:`diffuse_gaussian_update` takes from filters without sigma points."""
+    dx = psd_sqrt(cov).factor.mT
+    return dx, dx @ obs_matrix.mT, torch.ones(cov.shape[-1], dtype=cov.dtype, device=cov.device)
+
+
+def _masked_noise(r: Tensor, mask: Tensor | None) -> Tensor:
+    """``R`` with the rows and columns of unobserved components zeroed."""
+    if mask is None:
+        return r
+    mo = mask.to(r.dtype)
+    return r * (mo[..., :, None] * mo[..., None, :])
+
+
+def _masked_system(h: Tensor, r: Tensor, mask: Tensor | None) -> tuple[Tensor, Tensor]:
+    """``H`` and ``R`` with the rows (and columns) of unobserved components zeroed."""
+    if mask is None:
+        return h, r
+    return h * mask.to(h.dtype)[..., :, None], _masked_noise(r, mask)
+
+
+def _sigma_joseph(gain: Tensor, dx: Tensor, dz: Tensor, wc: Tensor, r: Tensor | None, mask: Tensor | None) -> Tensor:
+    """Joseph form of an unscented update from its sigma-point deviations (``gaussian_update``)."""
+    if mask is not None:
+        dz = dz * mask.to(dz.dtype)[..., None, :]
+    dev = dx - dz @ gain.mT
+    out = (dev * wc[:, None]).mT @ dev
+    if r is not None:
+        out = out + gain @ _masked_noise(r, mask) @ gain.mT
+    return symmetrize(out)

@@ -1,7 +1,7 @@
 """difffilter: batched, differentiable Kalman-family filters in PyTorch."""
 
-from . import linalg, mixers, params, smoothers
-from ._util import as_dtype
+from . import filters, linalg, mixers, models, params, sim, smoothers
+from ._util import as_dtype, document_init
 from .filters import EKF, RCUKF, UKF, ColoredNoiseUKF, Filter, GaussianFilter, KalmanFilter, RecursiveFilter, SimplifiedUKF, SquareRootUKF
 from .mixers import IMM, Blend
 from .models import FunctionalModel, LinearModel, StateSpaceModel
@@ -29,3 +29,6 @@ __all__ = [
     "smoothers",
 ]
 __version__ = "0.1.0"
+
+# help(UKF.__init__) shows UKF's arguments, not the text nn.Module.__init__ would pass on
+document_init(getattr(m, name) for m in (filters, mixers, models, params, sim, smoothers) for name in m.__all__)

@@ -4,17 +4,19 @@
 * :func:`generator` - the one seed convention of the simulators and samplers.
 * :func:`tensor`, :func:`covariance` - tensors and covariances from plain config numbers.
 * :func:`control` - one named per-step input from a controls dict, with a clear error.
+* :func:`document_init` - ``help(cls.__init__)`` shows the class's own documentation.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+import inspect
+from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
 import torch
 from torch import Tensor
 
-__all__ = ["as_dtype", "control", "covariance", "generator", "tensor"]
+__all__ = ["as_dtype", "control", "covariance", "document_init", "generator", "tensor"]
 
 
 def as_dtype(dtype: torch.dtype | str | None, default: torch.dtype = torch.float64) -> torch.dtype:
@@ -68,3 +70,14 @@ def control(u: Any, key: str, owner: str = "this model") -> Tensor:
     if not isinstance(u, Mapping) or key not in u:
         raise KeyError(f"{owner} needs u[{key!r}] (per-step inputs dict)")
     return u[key]
+
+
+def document_init(classes: Iterable[Any]) -> None:
+    """Give the ``__init__`` of each class in ``classes`` the class docstring (where the class
+    defines ``__init__`` without a docstring of its own), so that ``help(UKF.__init__)`` describes
+    the arguments instead of showing the text ``nn.Module.__init__`` would pass on."""
+    for cls in classes:
+        init = cls.__dict__.get("__init__") if isinstance(cls, type) else None
+        if init is None or init.__doc__ or not cls.__doc__ or not hasattr(init, "__doc__"):
+            continue
+        init.__doc__ = f"Build a ``{cls.__name__}`` (arguments below, from the class docstring).\n\n{inspect.cleandoc(cls.__doc__)}"

@@ -3,7 +3,7 @@
 Forward and forward+backward time of the Kalman filter, EKF and UKF on a 2-D constant-velocity
 target (B=64, T=200, float64, one thread, best of 5 after one warm-up call).  Run it on two
 checkouts and compare: ``PYTHONPATH=<checkout> python experiments/reliability_cost.py`` prints one
-JSON line of seconds per filter and mode.
+JSON line of seconds per filter and mode (options ``batch=``, ``steps=``: conf/reliability_cost.yaml).
 """
 
 from __future__ import annotations
@@ -12,7 +12,9 @@ import json
 import time
 from collections.abc import Callable
 
+import hydra
 import torch
+from omegaconf import DictConfig
 
 from difffilter.filters import EKF, UKF, KalmanFilter
 from difffilter.models import LinearModel
@@ -60,5 +62,11 @@ def main(batch: int = 64, steps: int = 200) -> dict[str, float]:
     return out
 
 
+@hydra.main(version_base="1.3", config_path="../conf", config_name="reliability_cost")
+def cli(cfg: DictConfig) -> None:
+    """Print :func:`main`'s timings for ``cfg.batch`` and ``cfg.steps`` as one JSON line."""
+    print(json.dumps(main(batch=int(cfg.batch), steps=int(cfg.steps))))
+
+
 if __name__ == "__main__":
-    print(json.dumps(main()))
+    cli()

@@ -1,7 +1,9 @@
 """Accuracy of every filter against an 80-digit reference over the prior's dynamic range.
 
-    python experiments/reliability_sweep.py                      # the README table (P0 = s I sweep)
-    python experiments/reliability_sweep.py --scales 1e24 --all  # every filter at one scale
+    python experiments/reliability_sweep.py                            # the README table (P0 = s I sweep)
+    python experiments/reliability_sweep.py 'scales=[1e24]' all=true  # every filter at one scale
+
+Options in conf/reliability_sweep.yaml (a Hydra app like every entry point).
 
 Model: 2-D constant velocity ``[px, vx, py, vy]``, ``dt = 1``, white-noise-acceleration
 ``Q`` with intensity ``q``, both positions measured with ``R = r I`` (default ``r = 1e-8``,
@@ -17,10 +19,10 @@ output is not finite.
 
 from __future__ import annotations
 
-import argparse
-
+import hydra
 import numpy as np
 import torch
+from omegaconf import DictConfig
 
 from difffilter.bench.exact import (
     cv_scenario,
@@ -105,26 +107,21 @@ def run_case(name: str, scale: float, dtype: torch.dtype, *, q: float, r: float,
     return out
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--scales", type=float, nargs="+", default=[1e8, 1e12, 1e16, 1e24])
-    parser.add_argument("--filters", nargs="+", default=["kf", "ukf", "srukf"], choices=FILTERS)
-    parser.add_argument("--all", action="store_true", help="every filter")
-    parser.add_argument("--dtypes", nargs="+", default=["float64", "float32"], choices=["float64", "float32"])
-    parser.add_argument("--q", type=float, default=1.0)
-    parser.add_argument("--r", type=float, default=1e-8)
-    parser.add_argument("--steps", type=int, default=12)
-    parser.add_argument("--seed", type=int, default=0)
-    args = parser.parse_args()
-    torch.set_num_threads(1)
+@hydra.main(version_base="1.3", config_path="../conf", config_name="reliability_sweep")
+def main(args: DictConfig) -> None:
+    """Print the table for the options in ``args`` (conf/reliability_sweep.yaml)."""
+    unknown = sorted(set(args.filters) - set(FILTERS))
+    if unknown:
+        raise ValueError(f"filters: unknown {unknown}; expected names from {list(FILTERS)}")
+    torch.set_num_threads(int(args.threads))
     names = FILTERS if args.all else args.filters
     print(f"CV 2-D, q = {args.q:g}, R = {args.r:g} I, T = {args.steps}, seed {args.seed}; errors against the 80-digit reference")
     print("| filter | dtype | P0 = s I | max abs mean error | mean rel | cov rel | loglik rel | loglik abs | flags |")
     print("|---|---|---|---|---|---|---|---|---|")
     for name in names:
         for dt in args.dtypes:
-            for s in args.scales:
-                out = run_case(name, s, getattr(torch, dt), q=args.q, r=args.r, steps=args.steps, seed=args.seed)
+            for s in (float(x) for x in args.scales):
+                out = run_case(name, s, getattr(torch, dt), q=float(args.q), r=float(args.r), steps=int(args.steps), seed=int(args.seed))
                 if "error" in out:
                     print(f"| {name} | {dt} | {s:g} | {out['error']} | | | | | |")
                     continue

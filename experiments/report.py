@@ -1,9 +1,11 @@
 """Collect the papers' experiment results into one markdown report, next to the published numbers.
 
-    python experiments/report.py                            # results/*.md -> results/REPORT.md
-    python experiments/report.py outputs/train/runs/<run>   # add run directories (results.csv)
-    python experiments/report.py --print --no-write         # only print the report
-    python experiments/report.py outputs/train/multiruns/<sweep>   # add a seed sweep's summary.md
+    python experiments/report.py                                           # results/*.md -> results/REPORT.md
+    python experiments/report.py 'runs=[outputs/train/runs/<run>]'         # add run directories (results.csv)
+    python experiments/report.py print=true write=false                    # only print the report
+    python experiments/report.py 'runs=[outputs/train/multiruns/<sweep>]'  # add a seed sweep's summary.md
+
+Options in conf/report.yaml (a Hydra app like every entry point; :func:`collect` is the function).
 
 Inputs: the per-experiment sections ``results/<name>.md`` (written by hand after the full-size
 runs: command, table, wall time, interpretation) and/or Hydra run directories holding the
@@ -18,19 +20,21 @@ column holding the published number of the matching filter, then the collected s
 
 from __future__ import annotations
 
-import argparse
 import csv
 import math
 import re
-import sys
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+
+import hydra
+from omegaconf import DictConfig
 
 __all__ = [
     "PUBLISHED",
     "Published",
     "build_report",
+    "collect",
     "load_run",
     "load_sweep",
     "main",
@@ -300,29 +304,37 @@ def build_report(runs: Sequence[Run], *, sections: Sequence[Run] = ()) -> str:
     return "\n".join(out) + "\n"
 
 
-def main(argv: Sequence[str] | None = None) -> str:
-    """Command line (module docstring); returns the report text."""
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("runs", nargs="*", help="run directories, results.csv or results .md files")
-    ap.add_argument("--results-dir", default=str(ROOT / "results"), help="folder of the <name>.md sections (default: results/)")
-    ap.add_argument("--output", default=None, help="report path (default: <results-dir>/REPORT.md)")
-    ap.add_argument("--print", action="store_true", dest="show", help="print the report")
-    ap.add_argument("--no-write", action="store_true", help="do not write the report file")
-    args = ap.parse_args(argv)
-    results = Path(args.results_dir)
-    output = Path(args.output) if args.output else results / "REPORT.md"
-    sections = [load_run(p) for p in sorted(results.glob("*.md")) if p.resolve() != output.resolve()] if results.is_dir() else []
-    sweeps = [Path(p) for p in args.runs if (Path(p) / "summary.md").exists()]
-    runs = [load_run(p) for p in args.runs if Path(p) not in sweeps]
+def collect(
+    runs: Sequence[str | Path] = (),
+    *,
+    results_dir: str | Path | None = None,
+    output: str | Path | None = None,
+    show: bool = False,
+    write: bool = True,
+) -> str:
+    """The report of ``runs`` (run directories, results files, sweep directories) and the
+    sections in ``results_dir`` (default: the project's ``results/``); written to ``output``
+    (default ``<results_dir>/REPORT.md``) when ``write``, printed when ``show`` or not ``write``."""
+    results = Path(results_dir) if results_dir is not None else ROOT / "results"
+    out = Path(output) if output is not None else results / "REPORT.md"
+    sections = [load_run(p) for p in sorted(results.glob("*.md")) if p.resolve() != out.resolve()] if results.is_dir() else []
+    sweeps = [Path(p) for p in runs if (Path(p) / "summary.md").exists()]
+    loaded = [load_run(p) for p in runs if Path(p) not in sweeps]
     sections += [load_sweep(p) for p in sweeps]
-    text = build_report(runs, sections=sections)
-    if not args.no_write:
-        output.parent.mkdir(parents=True, exist_ok=True)
-        output.write_text(text)
-    if args.show or args.no_write:
+    text = build_report(loaded, sections=sections)
+    if write:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(text)
+    if show or not write:
         print(text)
     return text
 
 
+@hydra.main(version_base="1.3", config_path="../conf", config_name="report")
+def main(cfg: DictConfig) -> str:
+    """Command line (module docstring; options in conf/report.yaml); returns the report text."""
+    return collect(list(cfg.runs), results_dir=cfg.results_dir, output=cfg.output, show=bool(cfg.print), write=bool(cfg.write))
+
+
 if __name__ == "__main__":
-    main(sys.argv[1:])
+    main()

@@ -1,34 +1,32 @@
 """Paired comparison of smartLoc runs' learned filters with the hand-tuned one, with block-bootstrap
 intervals: is a difference on one held-out segment of one real drive more than noise?
 
-    python experiments/smartloc_paired.py outputs/smartloc_A_v2 outputs/smartloc_B_v2
-    python experiments/smartloc_paired.py outputs/smartloc_*        # every run, one line each
+    python experiments/smartloc_paired.py 'run_dirs=[outputs/smartloc_A_v2,outputs/smartloc_B_v2]'
 
-The logic is :func:`difffilter.papers.smartloc.paired.compare` (see its module docstring).
+Options in conf/smartloc_paired.yaml; the logic is :func:`difffilter.papers.smartloc.paired.compare`
+(see its module docstring).
 """
 
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 
+import hydra
 import torch
+from omegaconf import DictConfig
 
 from difffilter.papers.smartloc.paired import MARKDOWN_HEADER, block_bootstrap, compare, markdown_row
 
 __all__ = ["block_bootstrap", "compare", "main"]
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("run_dirs", type=Path, nargs="+")
-    parser.add_argument("--block", type=int, default=50, help="bootstrap block length in epochs (default 50 = 10 s)")
-    parser.add_argument("--draws", type=int, default=4000, help="bootstrap resamples (default 4000)")
-    args = parser.parse_args()
-    torch.set_num_threads(1)
+@hydra.main(version_base="1.3", config_path="../conf", config_name="smartloc_paired")
+def main(cfg: DictConfig) -> None:
+    """Print one table row per run directory of ``cfg.run_dirs``."""
+    torch.set_num_threads(int(cfg.threads))
     print(MARKDOWN_HEADER)
-    for run in args.run_dirs:
-        print(markdown_row(run.name, compare(run, block=args.block, draws=args.draws)))
+    for run in cfg.run_dirs:
+        print(markdown_row(Path(str(run)).name, compare(str(run), block=int(cfg.block), draws=int(cfg.draws))))
 
 
 if __name__ == "__main__":

@@ -1,11 +1,17 @@
-"""Shared pieces of the end-to-end smoke tests: read a results CSV, run `experiments/train.py`."""
+"""Shared pieces of the end-to-end smoke tests: read a results CSV, run `experiments/train.py`,
+interrupt a run with a signal."""
 
 from __future__ import annotations
 
 import csv
+import os
+import signal
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
+
+import pytorch_lightning as pl
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -24,3 +30,15 @@ def run_train_smoke(tmp_path: Path, experiment: str) -> tuple[list[dict[str, str
     proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-4000:]
     return read_rows(tmp_path / "results.csv"), (tmp_path / "results.md").read_text()
+
+
+class SignalAt(pl.Callback):
+    """Send ``signum`` to this process after training step ``step`` (a scheduler's SIGTERM, a
+    Ctrl+C), from inside the training loop: what an interrupted run experiences."""
+
+    def __init__(self, step: int, signum: int = int(signal.SIGTERM)) -> None:
+        self.step, self.signum = int(step), int(signum)
+
+    def on_train_batch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule, outputs: Any, batch: Any, batch_idx: int) -> None:
+        if trainer.global_step == self.step:
+            os.kill(os.getpid(), self.signum)

@@ -19,6 +19,7 @@ def test_readme_python_example_runs():
     res = namespace["res"]
     assert res.mean.shape == (32, 100, 4)
     assert torch.isfinite(res.mean).all()
+    assert namespace["model"].measurement.angular == (1,)  # the example's bearing is declared an angle (wrapped)
     raw = namespace["model"].measurement.parametrizations.R.original
     assert raw.grad is not None and torch.isfinite(raw.grad).all()
 

@@ -4,6 +4,8 @@ into results/REPORT.md with the papers' published numbers beside ours."""
 from __future__ import annotations
 
 import importlib.util
+import os
+import subprocess
 import sys
 from pathlib import Path
 
@@ -59,7 +61,7 @@ def test_report_from_run_directory_and_sections(report, tmp_path):
     section = "# p000_gpsdr\n\n| filter | rmse_pos | anees | anees_lo | anees_hi |\n|---|---|---|---|---|\n"
     section += "| hand-tuned | 6.0 | 44 | 7.98 | 8.02 |\n| learned | 4.5 | 9.0 | 7.98 | 8.02 |\n"
     (results / "p000_gpsdr.md").write_text(section)
-    text = report.main([str(run), "--results-dir", str(results)])
+    text = report.collect([str(run)], results_dir=results)
     written = (results / "REPORT.md").read_text()
     assert written == text
     lines = text.splitlines()
@@ -80,17 +82,17 @@ def test_report_from_run_directory_and_sections(report, tmp_path):
     assert "\n## p000_gpsdr\n" in text and "(from `results/p000_gpsdr.md`)" in text and "\n# p000_gpsdr" not in text
     # a section without a heading gets one; an experiment given as run and section is summarised once
     (results / "p004_blend.md").write_text("| filter | rmse_pos |\n|---|---|\n| hand-tuned | 0.2 |\n| learned | 0.1 |\n")
-    text = report.main([str(run), "--results-dir", str(results), "--no-write"])
+    text = report.collect([str(run)], results_dir=results, write=False)
     assert sum(x.startswith("| p004_blend |") for x in text.splitlines()) == 1 and "\n## p004_blend\n" in text
     # hand-written tables: units and (ignored) bands in the headers, roles inside longer names, bold cells
     table = "| filter (4 runs) | rmse_pos (m) | anees (band 19.85-20.15) |\n|---|---|---|\n"
     table += "| IMM, hand-tuned | 3.500 [3.9] | 218 |\n| **IMM, learned** | **3.150** | 20.0 |\n| IMM, oracle | 3.0 | 20.1 |\n"
     (results / "p003_imm.md").write_text("## p003\n\n" + table)
-    text = report.main(["--results-dir", str(results), "--no-write"])
+    text = report.collect(results_dir=results, write=False)
     p003 = next(x for x in text.splitlines() if x.startswith("| p003_imm |"))
     assert "| 3.5 | 3.15 | 3 | -10.0 % | 20 |" in p003 and "5 vs 7 steps" in p003
     # a second run does not read its own REPORT.md back as a section
-    again = report.main(["--results-dir", str(results), "--no-write"])
+    again = report.collect(results_dir=results, write=False)
     assert "REPORT" not in again
 
 
@@ -106,6 +108,17 @@ def test_sweep_summary_is_included_as_a_section(report, tmp_path):
     (sweep / "summary.md").write_text(
         "# Sweep summary\n\n## all jobs (seeds 0, 1; jobs 0, 1)\n\n| filter | seeds |\n|---|---|\n| learned | 2 |\n"
     )
-    text = report.main([str(sweep), "--results-dir", str(tmp_path / "none"), "--no-write"])
+    text = report.collect([str(sweep)], results_dir=tmp_path / "none", write=False)
     assert "\n## Sweep summary: p004_blend\n" in text and "\n### all jobs (seeds 0, 1; jobs 0, 1)\n" in text
     assert f"(from `{sweep / 'summary.md'}`)" in text and "## p004_blend (run" not in text
+
+
+def test_command_line_is_a_hydra_app(tmp_path):
+    run = tmp_path / "run"
+    write_results([_row("hand-tuned", 0.125), _row("learned", 0.1)], run, title="difffilter results: p004_blend")
+    results = tmp_path / "results"
+    cmd = [sys.executable, str(ROOT / "experiments" / "report.py"), f"runs=[{run}]", f"results_dir={results}"]
+    proc = subprocess.run(cmd, capture_output=True, text=True, cwd=tmp_path, timeout=120, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "| p004_blend | 0.125 | 0.1 |" in (results / "REPORT.md").read_text()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["results", "run"]  # no outputs/ or .hydra/ left behind

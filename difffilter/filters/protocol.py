@@ -135,11 +135,18 @@ class Filter(nn.Module):
         self, measurements: Tensor, initial_mean: Tensor | None, initial_cov: Tensor | None, mask: Tensor | None, controls: Controls
     ) -> tuple[Tensor, Tensor | None, Tensor | None, Tensor | None]:
         """Validate shapes, dtypes and values; return ``(z, mask [B,T,m] or None, mean, cov)``."""
+        # Checks of values (finite, symmetric, positive definite; finite parameters and controls)
+        # read the data, which breaks a torch.compile graph: inside a compiled region only shapes
+        # and dtypes are checked.
+        values = not torch.compiler.is_compiling()
         n, m = self.state_dim, self.measurement_dim
         if not isinstance(measurements, Tensor):
             raise TypeError(f"measurements must be a torch.Tensor [B, T, {m}], got {type(measurements).__name__}")
-        if not measurements.is_floating_point():
-            raise TypeError(f"measurements must be floating point, got {measurements.dtype}")
+        if measurements.dtype not in (torch.float32, torch.float64):
+            raise TypeError(
+                f"measurements must be float32 or float64 (the dtypes difffilter computes in; half precision cannot hold "
+                f"covariances), got {measurements.dtype}"
+            )
         if measurements.ndim != 3 or measurements.shape[-1] != m:
             raise ValueError(f"measurements must have shape [B, T, {m}], got {tuple(measurements.shape)}")
         bsz, steps = measurements.shape[:2]
@@ -151,7 +158,8 @@ class Filter(nn.Module):
         pdt = self._param_dtype()
         if pdt is not None and pdt != dtype:
             raise TypeError(f"measurements dtype {dtype} differs from the filter's parameter dtype {pdt}; convert one with .to()")
-        self.check_parameters()
+        if values:
+            self.check_parameters()
         if mask is not None:
             if not isinstance(mask, Tensor):
                 raise TypeError("mask must be a bool tensor [B, T] or [B, T, m]")
@@ -162,12 +170,12 @@ class Filter(nn.Module):
                     f"mask must have shape [B, T] = [{bsz}, {steps}] or [B, T, m] = [{bsz}, {steps}, {m}], got {tuple(mask.shape)}"
                 )
             if mask.dtype != torch.bool:
-                if mask.is_complex() or not bool(((mask == 0) | (mask == 1)).all()):
+                if mask.is_complex() or (values and not bool(((mask == 0) | (mask == 1)).all())):
                     raise ValueError("mask must be boolean (True = observed) or hold only 0 and 1")
                 mask = mask.to(torch.bool)
         finite = torch.isfinite(measurements)
         bad = ~finite if mask is None else (~finite & mask)
-        if bool(bad.any()):
+        if values and bool(bad.any()):
             idx = tuple(int(i) for i in bad.nonzero()[0])
             raise ValueError(
                 f"measurements contain a non-finite value at [b, t, i] = {list(idx)} that is not masked; "
@@ -176,10 +184,10 @@ class Filter(nn.Module):
         if mask is not None:
             measurements = torch.where(mask, measurements, torch.zeros((), dtype=dtype, device=measurements.device))
         if initial_mean is not None:
-            initial_mean = self._check_mean(initial_mean, bsz, n, dtype)
+            initial_mean = self._check_mean(initial_mean, bsz, n, dtype, values=values)
         if initial_cov is not None:
-            initial_cov = self._check_cov(initial_cov, bsz, n, dtype)
-        self._check_controls(controls, bsz, steps)
+            initial_cov = self._check_cov(initial_cov, bsz, n, dtype, values=values)
+        self._check_controls(controls, bsz, steps, values=values)
         return measurements, mask, initial_mean, initial_cov
 
     def check_parameters(self) -> None:
@@ -194,7 +202,7 @@ class Filter(nn.Module):
                 )
 
     @staticmethod
-    def _check_mean(mean: Tensor, bsz: int, n: int, dtype: torch.dtype) -> Tensor:
+    def _check_mean(mean: Tensor, bsz: int, n: int, dtype: torch.dtype, *, values: bool = True) -> Tensor:
         if not isinstance(mean, Tensor):
             raise TypeError(f"initial_mean must be a torch.Tensor [{n}] or [B, {n}]")
         if mean.dtype != dtype:
@@ -203,13 +211,15 @@ class Filter(nn.Module):
             mean = mean.expand(bsz, n)
         elif mean.shape != (bsz, n):
             raise ValueError(f"initial_mean must have shape [{n}] or [B, {n}] = [{bsz}, {n}], got {tuple(mean.shape)}")
+        if not values:
+            return mean
         bad = ~torch.isfinite(mean).all(-1)
         if bool(bad.any()):
             raise ValueError(f"initial_mean contains non-finite values (batch elements {bad.nonzero().flatten().tolist()[:10]})")
         return mean
 
     @staticmethod
-    def _check_cov(cov: Tensor, bsz: int, n: int, dtype: torch.dtype) -> Tensor:
+    def _check_cov(cov: Tensor, bsz: int, n: int, dtype: torch.dtype, *, values: bool = True) -> Tensor:
         if not isinstance(cov, Tensor):
             raise TypeError(f"initial_cov must be a torch.Tensor [{n}, {n}] or [B, {n}, {n}]")
         if cov.dtype != dtype:
@@ -218,9 +228,11 @@ class Filter(nn.Module):
             cov = cov.expand(bsz, n, n)
         elif cov.shape != (bsz, n, n):
             raise ValueError(f"initial_cov must have shape [{n}, {n}] or [B, {n}, {n}] = [{bsz}, {n}, {n}], got {tuple(cov.shape)}")
+        if not values:
+            return cov
         return check_covariance("initial_cov", cov, n, batch_ok=True)
 
-    def _check_controls(self, controls: Controls, bsz: int, steps: int) -> None:
+    def _check_controls(self, controls: Controls, bsz: int, steps: int, *, values: bool = True) -> None:
         if controls is None:
             return
         items = [("controls", controls)] if isinstance(controls, Tensor) else [(f"controls[{k!r}]", v) for k, v in dict(controls).items()]
@@ -229,6 +241,8 @@ class Filter(nn.Module):
                 raise TypeError(f"{name} must be a tensor [B, T, ...]")
             if v.ndim < 2 or v.shape[0] != bsz or v.shape[1] != steps:
                 raise ValueError(f"{name} must have shape [B, T, ...] = [{bsz}, {steps}, ...], got {tuple(v.shape)}")
+        if not values:
+            return
         for module in self.modules():
             if isinstance(module, (DynamicsModel, MeasurementModel)):
                 module.validate_controls(controls)

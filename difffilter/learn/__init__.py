@@ -5,12 +5,13 @@ trajectory data module (TBPTT windows), losses, metrics, figures and the experim
 
 from ..selection import assign_parameters, learnable_values, match_parameters, select_parameters
 from . import replicates  # noqa: F401 - registers the `replicate_seed` resolver of the configs
+from .checkpoints import best_checkpoint
 from .consistency import Consistency, consistency
 from .data import TrajectoryDataModule, TrajectorySet, WindowedTrajectories
 from .evaluation import evaluate_runs
 from .experiment import evaluate_filter, run_experiment
 from .intervals import GapClosed, Interval, block_bootstrap_difference, crossed_interval, gap_closed, t_interval
-from .learner import FilterLearner
+from .learner import FilterLearner, load_filter
 from .losses import CompositeLoss, HuberLoss, LogNormalPrior, MSELoss, NEESLoss, NLLLoss, NormalPrior, StateNLLLoss
 from .metrics import (
     anees,
@@ -46,6 +47,7 @@ __all__ = [
     "anees",
     "anis",
     "assign_parameters",
+    "best_checkpoint",
     "block_bootstrap_difference",
     "chi2_interval",
     "consistency",
@@ -56,6 +58,7 @@ __all__ = [
     "gap_closed",
     "innovation_whiteness",
     "learnable_values",
+    "load_filter",
     "match_parameters",
     "metric_sums",
     "mode_switch_delay",

@@ -11,7 +11,8 @@ Batches are plain dicts (which Lightning moves between devices as they are)::
 
     {"measurements": [B, W, m], "mask": [B, W(, m)] | None, "controls": ... | None,
      "truth": [B, W, n_t] | None, "initial_mean": [B, n] | None, "initial_cov": [B, n, n] | None,
-     "index": [B] trajectory ids, "window_index": k, "num_windows": K, "start": k * W}
+     "index": [B] trajectory ids, "window_index": k, "num_windows": K, "start": k * W,
+     "modes": [B, W] true mode indices | None}
 
 Training yields, for each batch of trajectories, its windows in time order (``window_index``
 ``0..K-1``) so that the learner can carry the belief from one window to the next
@@ -31,12 +32,11 @@ from typing import Any
 import pytorch_lightning as pl
 import torch
 from torch import Tensor
-from torch.utils.data import DataLoader, IterableDataset
 
 from .._util import as_dtype
 from ..models.base import Controls
 
-__all__ = ["SimulatedTrajectories", "TrajectoryDataModule", "TrajectorySet", "WindowedTrajectories"]
+__all__ = ["EpochOrder", "SimulatedTrajectories", "TrajectoryDataModule", "TrajectorySet", "WindowedTrajectories"]
 
 Batch = dict[str, Any]
 
@@ -82,7 +82,8 @@ class TrajectorySet:
 
     ``initial_mean [N, n]`` and ``initial_cov [N, n, n]`` are ``None`` when the simulator gives no
     initial belief (the learner then uses its own).  ``source`` is the simulator's raw output
-    (``true_params``, ``make_model()``...).
+    (``true_params``, ``make_model()``...).  ``modes [N, T]``: the true mode index of every step
+    when the simulator gives one (``modes``; drawn over IMM mode probabilities in the figures).
     """
 
     measurements: Tensor
@@ -92,6 +93,7 @@ class TrajectorySet:
     initial_mean: Tensor | None
     initial_cov: Tensor | None
     source: Any = None
+    modes: Tensor | None = None
 
     @classmethod
     def from_simulation(cls, data: Any, dtype: torch.dtype | None = None, max_steps: int | None = None) -> TrajectorySet:
@@ -110,6 +112,7 @@ class TrajectorySet:
         if cov0 is not None and cov0.ndim == 2:
             cov0 = cov0.expand(n_traj, -1, -1)
         truth = getattr(data, "truth", None)
+        modes = getattr(data, "modes", None)
         return cls(
             measurements=z[:, cut].to(dtype),
             mask=None if getattr(data, "mask", None) is None else data.mask[:, cut],
@@ -118,6 +121,7 @@ class TrajectorySet:
             initial_mean=_cast(mean0, dtype),
             initial_cov=_cast(cov0, dtype),
             source=data,
+            modes=modes[:, cut] if isinstance(modes, Tensor) else None,
         )
 
     def __len__(self) -> int:
@@ -139,6 +143,7 @@ class TrajectorySet:
             "initial_mean": None if self.initial_mean is None else self.initial_mean[index],
             "initial_cov": None if self.initial_cov is None else self.initial_cov[index],
             "index": index,
+            "modes": None if self.modes is None else pick(self.modes),
         }
 
     def all(self) -> Batch:
@@ -148,13 +153,41 @@ class TrajectorySet:
         return out
 
 
-class WindowedTrajectories(IterableDataset):
-    """Yields batches of ``batch_size`` trajectories, each cut into consecutive windows of
-    ``window`` steps (``None``: whole trajectories), in time order.
+class EpochOrder:
+    """The order in which one epoch visits the trajectories: a permutation drawn from
+    ``seed + epoch`` when ``shuffle``, else the identity.  Lightning calls :meth:`set_epoch` at the
+    start of every training epoch (as for a ``DistributedSampler``); a standalone user calls it too."""
 
-    Shuffles the trajectory order every pass (seed ``seed + pass``) if ``shuffle``.  ``rank`` and
-    ``world_size`` select this process's shard; with ``equal_shards`` every shard has the same
-    number of trajectories (the remainder is dropped) so that DDP processes step in lock-step.
+    def __init__(self, *, seed: int = 0, shuffle: bool = False) -> None:
+        self.seed, self.shuffle, self.epoch = int(seed), bool(shuffle), 0
+
+    def set_epoch(self, epoch: int) -> None:
+        """Use the order of epoch ``epoch`` from the next pass on."""
+        self.epoch = int(epoch)
+
+    def order(self, n: int, epoch: int) -> Tensor:
+        """Trajectory ids ``[n]`` in the order of epoch ``epoch``."""
+        if not self.shuffle:
+            return torch.arange(n)
+        return torch.randperm(n, generator=torch.Generator().manual_seed(self.seed + epoch))
+
+
+class WindowedTrajectories:
+    """Batches of ``batch_size`` trajectories, each cut into consecutive windows of ``window``
+    steps (``None``: whole trajectories), in time order: an iterable with a length, used directly
+    as a Lightning data loader (the batches are ready-made, so there is nothing to collate and no
+    worker to start).
+
+    The trajectory order of a pass is ``sampler.order`` of the current epoch (``sampler.set_epoch``;
+    reshuffled per epoch when ``shuffle``).  ``rank`` and ``world_size`` select this process's
+    shard; with ``equal_shards`` every shard has the same number of trajectories (the remainder is
+    dropped) so that DDP processes step in lock-step.
+
+    Resumable: :meth:`state_dict` records the seed, the epoch and how many batches of it are done
+    (``progress()``, given by the data module from the trainer's loop), and after
+    :meth:`load_state_dict` the next pass continues the interrupted epoch where it stopped, so a
+    resumed run sees exactly the batches of an uninterrupted one.  Lightning saves and restores
+    this state in its checkpoints.
     """
 
     def __init__(
@@ -168,18 +201,31 @@ class WindowedTrajectories(IterableDataset):
         rank: int = 0,
         world_size: int = 1,
         equal_shards: bool = False,
+        progress: Callable[[], tuple[int, float]] | None = None,
     ) -> None:
-        super().__init__()
         if batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
         if window is not None and window < 1:
             raise ValueError(f"window must be >= 1 or None, got {window}")
         self.data, self.batch_size, self.window = data, int(batch_size), window
-        self.shuffle, self.seed, self.rank, self.world_size = shuffle, int(seed), int(rank), int(world_size)
+        self.rank, self.world_size = int(rank), int(world_size)
         self.equal_shards = equal_shards
-        self._passes = 0
+        self.sampler = EpochOrder(seed=seed, shuffle=shuffle)
+        # what a DataLoader(batch_size=None) has: Lightning looks for both next to each other
+        self.batch_sampler = None
+        self.progress = progress
+        self._pass_epoch = 0
+        self._skip = 0
         if self._shard_size() == 0:
             raise ValueError(f"{len(data)} trajectories cannot be shared by {world_size} processes")
+
+    @property
+    def seed(self) -> int:
+        return self.sampler.seed
+
+    @property
+    def shuffle(self) -> bool:
+        return self.sampler.shuffle
 
     def _shard_size(self) -> int:
         n = len(self.data)
@@ -195,19 +241,39 @@ class WindowedTrajectories(IterableDataset):
     def __len__(self) -> int:
         return math.ceil(self._shard_size() / self.batch_size) * self.num_windows
 
+    def set_epoch(self, epoch: int) -> None:
+        """Shorthand for ``sampler.set_epoch``."""
+        self.sampler.set_epoch(epoch)
+
+    def state_dict(self) -> dict[str, int]:
+        """``{"seed", "epoch", "position"}``: the epoch being iterated and its batches done; an
+        epoch whose batches are all done is recorded as the next epoch at position 0."""
+        done, total = self.progress() if self.progress is not None else (0, math.inf)
+        epoch, done = (self._pass_epoch + 1, 0) if done >= min(total, len(self)) else (self._pass_epoch, int(done))
+        return {"seed": self.seed, "epoch": int(epoch), "position": int(done)}
+
+    def load_state_dict(self, state: Mapping[str, int]) -> None:
+        """Continue from ``state`` (:meth:`state_dict`) at the next pass."""
+        if int(state["seed"]) != self.seed:
+            raise ValueError(f"the checkpoint's data order seed is {state['seed']}, this data module's is {self.seed}: the runs differ")
+        self.sampler.set_epoch(int(state["epoch"]))
+        self._skip = int(state["position"])
+
     def __iter__(self) -> Iterator[Batch]:
         n = len(self.data)
-        if self.shuffle:
-            order = torch.randperm(n, generator=torch.Generator().manual_seed(self.seed + self._passes))
-        else:
-            order = torch.arange(n)
-        self._passes += 1
+        self._pass_epoch = epoch = self.sampler.epoch
+        order = self.sampler.order(n, epoch)
+        skip, self._skip = self._skip, 0
         shard = order[self.rank :: self.world_size][: self._shard_size()]
         steps, k = self.data.num_steps, self.num_windows
         width = steps if self.window is None else self.window
+        position = 0
         for first in range(0, len(shard), self.batch_size):
             index = shard[first : first + self.batch_size]
             for w in range(k):
+                position += 1
+                if position <= skip:
+                    continue
                 start = w * width
                 out = self.data.batch(index, start, min(start + width, steps))
                 out.update(window_index=w, num_windows=k, start=start)
@@ -286,12 +352,21 @@ class TrajectoryDataModule(pl.LightningDataModule):
             return 0, 1
         return int(trainer.global_rank), int(trainer.world_size)
 
-    def _loader(self, split: str) -> DataLoader:
+    def _train_progress(self) -> tuple[int, float]:
+        """Training batches done in the current epoch and the epoch's length, as the trainer's
+        loop counts them (what a checkpoint taken now resumes from)."""
+        trainer = getattr(self, "trainer", None)
+        if trainer is None:
+            return 0, math.inf
+        done = trainer.fit_loop.epoch_loop.batch_progress.current.processed
+        return int(done), float(trainer.num_training_batches)
+
+    def _loader(self, split: str) -> WindowedTrajectories:
         rank, world = self._rank_world()
         data = self.dataset(split)
         train = split == "train"
         shard = len(range(rank, len(data), world))
-        windows = WindowedTrajectories(
+        return WindowedTrajectories(
             data,
             batch_size=self.batch_size if train else (self.eval_batch_size or max(shard, 1)),
             window=self.window if train else None,
@@ -300,15 +375,28 @@ class TrajectoryDataModule(pl.LightningDataModule):
             rank=rank,
             world_size=world,
             equal_shards=train,
+            progress=self._train_progress if train else None,
         )
-        # batch_size=None: the dataset yields ready-made batches (no collation, no sampler).
-        return DataLoader(windows, batch_size=None)
 
-    def train_dataloader(self) -> DataLoader:
+    def state_dict(self) -> dict[str, Any]:
+        """The seeds and sizes of the sets (checked when a run resumes from a checkpoint)."""
+        return {"seeds": dict(self.seeds), "sizes": dict(self.sizes), "max_steps": self.max_steps}
+
+    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
+        """Refuse to resume on other data than the checkpoint's."""
+        mine = self.state_dict()
+        differ = [k for k in mine if k in state_dict and state_dict[k] != mine[k]]
+        if differ:
+            raise ValueError(
+                f"the checkpoint was trained on other data ({', '.join(f'{k}={state_dict[k]}' for k in differ)}; "
+                f"this run: {', '.join(f'{k}={mine[k]}' for k in differ)})"
+            )
+
+    def train_dataloader(self) -> WindowedTrajectories:
         return self._loader("train")
 
-    def val_dataloader(self) -> DataLoader:
+    def val_dataloader(self) -> WindowedTrajectories:
         return self._loader("val")
 
-    def test_dataloader(self) -> DataLoader:
+    def test_dataloader(self) -> WindowedTrajectories:
         return self._loader("test")

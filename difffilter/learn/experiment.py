@@ -54,7 +54,9 @@ from __future__ import annotations
 
 import copy
 import csv
+import logging
 import math
+import time
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -63,16 +65,34 @@ import pytorch_lightning as pl
 import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
+from pytorch_lightning.callbacks import LearningRateMonitor, ModelCheckpoint, ProgressBar, TQDMProgressBar
 
 from .._util import as_dtype
 from ..filters.protocol import Filter
 from ..models.layout import model_defaults
-from ..selection import assign_parameters, match_parameters, parameter_owners
+from ..selection import assign_parameters, parameter_owners
 from ..smoothers import Smoother, make_smoother, smoother_spec
+from .callbacks import EpochSummary, GracefulInterrupt
 from .data import TrajectorySet
 from .evaluation import PER_RUN_FILE, consistency_table, evaluate_runs, write_per_run
+from .learner import FilterLearner
+from .reporting import log_results, parameter_summary, parameter_values
+from .runs import checkpoint_config, resume_checkpoint, run_status
 
-__all__ = ["apply_model_defaults", "build_filter", "evaluate_filter", "format_results", "run_experiment", "write_results"]
+__all__ = [
+    "apply_model_defaults",
+    "build_filter",
+    "best_logged_value",
+    "build_learner",
+    "evaluate_experiment",
+    "evaluate_filter",
+    "format_results",
+    "rebuild_filter",
+    "run_experiment",
+    "write_results",
+]
+
+log = logging.getLogger(__name__)
 
 COLUMNS = (
     "filter",
@@ -147,23 +167,9 @@ def evaluate_filter(
     ).summary
 
 
-def _parameter_summary(filt: Filter, names: list[str]) -> str:
-    owners = parameter_owners(filt)
-    parts = []
-    for pattern, hits in match_parameters(filt, names).items():
-        for name in hits:
-            mod, attr, _ = owners[name]
-            v = getattr(mod, attr).detach().to("cpu", torch.float64)
-            if v.ndim >= 2 and v.shape[-1] == v.shape[-2]:
-                v = torch.diagonal(v, dim1=-2, dim2=-1)
-            vals = ", ".join(f"{x:.4g}" for x in v.flatten()[:8].tolist())
-            parts.append(f"{name if len(hits) > 1 else pattern}=[{vals}]")
-    return "; ".join(parts)
-
-
 def format_results(rows: list[dict[str, Any]], *, title: str = "results", note: str = "") -> str:
     """A markdown table of evaluation rows, then the consistency table (per state block)."""
-    extra = sorted(k for k in {k for r in rows for k in r} - set(COLUMNS) - {"parameters"} if not k.startswith("nees_"))
+    extra = sorted(k for k in {k for r in rows for k in r} - set(COLUMNS) - {"parameters", "parameter_values"} if not k.startswith("nees_"))
     cols = [c for c in COLUMNS if any(c in r for r in rows)] + extra + (["parameters"] if any("parameters" in r for r in rows) else [])
     fmt = lambda v: v if isinstance(v, str) else ("nan" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.4g}")  # noqa: E731
     lines = [f"# {title}", "", note, "", "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
@@ -232,27 +238,142 @@ def apply_model_defaults(cfg: DictConfig, filt: Filter) -> None:
             cfg.experiment.position_index = list(defaults.layout.position)
 
 
+def rebuild_filter(
+    filter: Mapping[str, Any],  # noqa: A002 - the field's word
+    *,
+    dtype: str = "float64",
+    params: Mapping[str, Any] | None = None,
+    learner: Mapping[str, Any] | None = None,
+) -> Filter:
+    """The filter a learner trains, rebuilt from the configs that built it (what a learner
+    checkpoint's ``filter_config`` calls; values are then loaded from the state dict): the
+    ``filter`` config with ``params`` (the hand-tuned values) set, then, when ``learner`` is a
+    learner factory other than :class:`FilterLearner` (a paper's, which may reshape the filter,
+    e.g. p003's grouped process noise), that factory applied to it."""
+    filt = build_filter(filter, dtype=as_dtype(dtype), params=_plain(params))
+    if learner is not None and learner.get("_target_") not in (None, _LEARNER_TARGET):
+        factory = {k: v for k, v in _plain(learner).items() if k not in ("optimizer", "scheduler", "log_prior")}
+        filt = instantiate(factory, _convert_="all", filter=filt, loss="nll").filter
+    return filt
+
+
+_LEARNER_TARGET = f"{FilterLearner.__module__}.{FilterLearner.__qualname__}"
+
+
+def build_learner(cfg: DictConfig, hand: Filter) -> FilterLearner:
+    """The learner of ``cfg`` on a copy of the hand-tuned filter, with the ``filter_config`` that
+    rebuilds it (so that its checkpoints load with ``FilterLearner.load_from_checkpoint(path)``)
+    and the loss as a config (kept in the checkpoint too)."""
+    recipe = {
+        "_target_": f"{rebuild_filter.__module__}.rebuild_filter",
+        "_recursive_": False,  # rebuild_filter instantiates the configs itself, in order
+        "filter": _plain(cfg.filter),
+        "dtype": str(cfg.dtype),
+        "params": _plain(cfg.experiment.get("hand_tuned")) or None,
+        "learner": _plain(cfg.learner),
+    }
+    learner = instantiate(cfg.learner, _convert_="all", filter=copy.deepcopy(hand), loss=instantiate(cfg.loss, _convert_="all"))
+    if not isinstance(learner, FilterLearner):
+        raise TypeError(f"learner config must build a FilterLearner, got {type(learner).__name__}")
+    # Set after construction: Hydra would instantiate configs passed as arguments.  The
+    # checkpoint's hyperparameters are these entries (FilterLearner.load_from_checkpoint).
+    learner.hparams.update(filter_config=recipe, loss=_plain(cfg.loss))
+    return learner
+
+
+def _trainer(cfg: DictConfig) -> tuple[pl.Trainer, list[Any]]:
+    loggers = [instantiate(v, _convert_="all") for v in (cfg.get("logger") or {}).values() if v is not None]
+    callbacks = [instantiate(v, _convert_="all") for v in (cfg.get("callbacks") or {}).values() if v is not None]
+    if not loggers:  # Lightning refuses a learning-rate monitor without a logger to write to
+        callbacks = [c for c in callbacks if not isinstance(c, LearningRateMonitor)]
+    # always on: a line per epoch, and a checkpoint when a signal stops training
+    for kind in (EpochSummary, GracefulInterrupt):
+        if not any(isinstance(c, kind) for c in callbacks):
+            callbacks.append(kind())
+    # Lightning's tqdm bar, chosen here so that the console looks the same on every machine
+    # (Lightning would pick its rich bar where the rich package happens to be installed); not in
+    # the callbacks config, which trainer.enable_progress_bar=false would contradict.
+    if cfg.trainer.get("enable_progress_bar", True) and not any(isinstance(c, ProgressBar) for c in callbacks):
+        callbacks.append(TQDMProgressBar())
+    trainer = instantiate(cfg.trainer, _convert_="all", logger=loggers or False, callbacks=callbacks)
+    return trainer, loggers
+
+
 def run_experiment(cfg: DictConfig) -> dict[str, Any]:
-    """Train and evaluate as configured; returns ``{"metric": value, "rows": [...], ...}``."""
+    """Train and evaluate as configured; returns ``{"metric": the learned filter's
+    experiment.metric, "optimized": what a sweeper minimises (cfg.optimized_metric), "rows": [...],
+    ...}``.
+
+    ``cfg.train: false`` evaluates the checkpoint ``cfg.ckpt_path`` instead of training (what
+    ``experiments/eval.py`` runs), under the config stored in the checkpoint unless
+    ``cfg.config_from_checkpoint`` is false (:func:`~difffilter.learn.runs.checkpoint_config`);
+    with ``cfg.train: true``, ``cfg.ckpt_path`` or ``cfg.resume`` continue an interrupted training
+    run (:func:`~difffilter.learn.runs.resume_checkpoint`).  The run directory gets a
+    ``status.json`` (:func:`~difffilter.learn.runs.run_status`)."""
     if cfg.get("threads"):
         torch.set_num_threads(int(cfg.threads))
-    pl.seed_everything(int(cfg.seed), workers=True)
+    train = bool(cfg.get("train", True))
+    if not train:
+        if not cfg.get("ckpt_path"):
+            raise ValueError("train=false evaluates a checkpoint: give ckpt_path=<file>")
+        if cfg.get("config_from_checkpoint", True):
+            cfg = checkpoint_config(cfg, str(cfg.ckpt_path))
+    with run_status(Path(cfg.paths.output_dir)):
+        return _run(cfg, train)
+
+
+def _run(cfg: DictConfig, train: bool) -> dict[str, Any]:
+    pl.seed_everything(int(cfg.seed), workers=True, verbose=False)
     dtype = as_dtype(cfg.dtype)
     exp = cfg.experiment
     datamodule = instantiate(cfg.data, _convert_="all")
     hand = build_filter(cfg.filter, dtype=dtype, params=exp.get("hand_tuned"))
     apply_model_defaults(cfg, hand)
-    learner = instantiate(cfg.learner, _convert_="all", filter=copy.deepcopy(hand), loss=instantiate(cfg.loss, _convert_="all"))
-    loggers = [instantiate(v, _convert_="all") for v in (cfg.get("logger") or {}).values() if v is not None]
-    callbacks = [instantiate(v, _convert_="all") for v in (cfg.get("callbacks") or {}).values() if v is not None]
-    trainer = instantiate(cfg.trainer, _convert_="all", logger=loggers or False, callbacks=callbacks)
-    trainer.fit(learner, datamodule=datamodule)
-    best = getattr(trainer.checkpoint_callback, "best_model_path", "") if trainer.checkpoint_callback else ""
-    trainer.test(learner, datamodule=datamodule, ckpt_path="best" if best else None)
+    learner = build_learner(cfg, hand)
+    learner.run_config = OmegaConf.to_container(cfg, resolve=True)  # type: ignore[assignment]
+    trainer, loggers = _trainer(cfg)
+    optimized = math.nan
+    if train:
+        trainer.fit(learner, datamodule=datamodule, ckpt_path=resume_checkpoint(cfg))
+        if cfg.get("optimized_metric"):
+            optimized = best_logged_value(trainer, str(cfg.optimized_metric))
+        best = getattr(trainer.checkpoint_callback, "best_model_path", "") if trainer.checkpoint_callback else ""
+        trainer.test(learner, datamodule=datamodule, ckpt_path="best" if best else None)
+    else:
+        trainer.test(learner, datamodule=datamodule, ckpt_path=str(cfg.ckpt_path))
     if not trainer.is_global_zero:
         return {}
+    rows, note = evaluate_experiment(cfg, hand, learner, datamodule.dataset("test"))
+    title = f"difffilter results: {exp.get('name', '')}"
+    output_dir = Path(cfg.paths.output_dir)
+    write_results(rows, output_dir, title=title, note=note)
+    text = format_results(rows, title=f"results ({output_dir})", note=note)
+    print(text)
+    log_results(
+        loggers, config=learner.run_config or {}, rows=rows, text=format_results(rows, title=title, note=note), step=trainer.global_step
+    )
+    learned = next(r for r in rows if r["filter"] == "learned")
+    metric = float(learned.get(exp.get("metric", "rmse_pos"), math.nan))
+    optimized = optimized if cfg.get("optimized_metric") else metric
+    return {"metric": metric, "optimized": optimized, "rows": rows, "output_dir": str(output_dir), "trainer": trainer}
 
-    test = datamodule.dataset("test")
+
+def best_logged_value(trainer: pl.Trainer, name: str) -> float:
+    """The best value of the logged metric ``name`` during training: the checkpoint callback's
+    best score when it monitors ``name``, else the last logged value."""
+    keeper = trainer.checkpoint_callback
+    if isinstance(keeper, ModelCheckpoint) and keeper.monitor == name and keeper.best_model_score is not None:
+        return float(keeper.best_model_score)
+    if name not in trainer.callback_metrics:
+        raise ValueError(f"optimized_metric {name!r} was not logged; logged: {sorted(trainer.callback_metrics)}")
+    return float(trainer.callback_metrics[name])
+
+
+def evaluate_experiment(cfg: DictConfig, hand: Filter, learner: FilterLearner, test: TrajectorySet) -> tuple[list[dict[str, Any]], str]:
+    """The results rows of the hand-tuned, learned, oracle and baseline filters on the test set
+    (``per_run.csv`` written to ``cfg.paths.output_dir``) and the table's note."""
+    dtype = as_dtype(cfg.dtype)
+    exp = cfg.experiment
     filters: dict[str, Filter] = {"hand-tuned": hand, "learned": learner.filter}
     oracle = _oracle(cfg, hand, test, dtype)
     if oracle is not None:
@@ -264,13 +385,12 @@ def run_experiment(cfg: DictConfig) -> dict[str, Any]:
     blocks = {str(k): [int(i) for i in v] for k, v in (_plain(exp.get("state_blocks")) or {}).items()} or None
     truth_blocks = {str(k): [int(i) for i in v] for k, v in (_plain(exp.get("truth_blocks")) or {}).items()} or None
     per_run: dict[str, dict[str, torch.Tensor]] = {}
-    mean0, cov0 = learner.initial_mean, learner.initial_cov
     learned_names = list(cfg.get("learn") or [])
     spec = smoother_spec(_plain(cfg.get("smoother")))
     smoothed_rows = spec is not None and bool(spec.get("evaluate", True))
     kwargs = {
-        "initial_mean": mean0,
-        "initial_cov": cov0,
+        "initial_mean": learner.initial_mean,
+        "initial_cov": learner.initial_cov,
         "batch_size": exp.get("eval_batch_size"),
         "max_jitter": cfg.learner.get("max_jitter"),
         "error_quantiles": None if exp.get("error_quantiles") is None else [float(q) for q in exp.error_quantiles],
@@ -279,7 +399,9 @@ def run_experiment(cfg: DictConfig) -> dict[str, Any]:
         **indices,
     }
     rows = []
-    for name, filt in filters.items():
+    for k, (name, filt) in enumerate(filters.items(), start=1):
+        log.info("evaluating %s (%d/%d) on %d test trajectories x %d steps", name, k, len(filters), len(test), test.num_steps)
+        tic = time.perf_counter()
         filt = filt.to(dtype).eval()
         row: dict[str, Any] = {"filter": name}
         evaluation = evaluate_runs(filt, test, **kwargs)
@@ -287,27 +409,33 @@ def run_experiment(cfg: DictConfig) -> dict[str, Any]:
         per_run[name] = evaluation.per_run
         if learned_names:
             try:
-                row["parameters"] = _parameter_summary(filt, learned_names)
+                row["parameters"] = parameter_summary(filt, learned_names)
+                row["parameter_values"] = parameter_values(filt, learned_names)
             except ValueError:
-                row["parameters"] = ""
+                row["parameters"] = row["parameter_values"] = ""
         rows.append(row)
+        metric = exp.get("metric", "rmse_pos")
+        log.info("evaluated %s: %s %.4g (%.1f s)", name, metric, row.get(metric, math.nan), time.perf_counter() - tic)
         if smoothed_rows:
             assert spec is not None
             try:
                 smoother = make_smoother(filt, spec["kind"], lag=spec.get("lag"), time_chunk=spec.get("time_chunk"))
             except (TypeError, ValueError) as exc:  # e.g. a Blend baseline: no smoother, say so
-                print(f"no smoothed row for {name}: {exc}")
+                log.info("no smoothed row for %s: %s", name, exc)
                 continue
             smoothed = evaluate_runs(filt, test, smoother=smoother, **kwargs)
             rows.append({"filter": f"{name} (smoothed)", **smoothed.summary})
             per_run[f"{name} (smoothed)"] = smoothed.per_run
-            if "parameters" in row:
-                rows[-1]["parameters"] = row["parameters"]
+            for key in ("parameters", "parameter_values"):
+                if key in row:
+                    rows[-1][key] = row[key]
+    write_per_run(per_run, Path(cfg.paths.output_dir) / PER_RUN_FILE)
     note = (
         f"experiment `{exp.get('name', '')}`: {len(test)} held-out test trajectories x {test.num_steps} steps, "
         f"loss `{cfg.loss.get('_target_', cfg.loss)}`, learned {learned_names}; rmse in the truth's units; "
         "anees/nis: run-level means with 95 % t-intervals over runs (_run_ci_lo/hi) and the fraction of steps inside the "
-        "per-step chi-square band (_step_band_frac); nll per observed step (nats); time_per_step_ms for the whole test batch."
+        "per-step chi-square band (_step_band_frac); nll per observed step (nats); time_per_step_ms for the whole test batch; "
+        "parameters: learned values in short (matrices by their diagonal), full values in results.csv."
     )
     if smoothed_rows:
         assert spec is not None
@@ -316,10 +444,4 @@ def run_experiment(cfg: DictConfig) -> dict[str, Any]:
             f" '(smoothed)' rows: the same filter followed by the {kind} smoother over each whole test trajectory "
             f"(training {'on smoothed' if spec.get('train', True) else 'on filtered'} states); their nis/nll are the filter's."
         )
-    output_dir = Path(cfg.paths.output_dir)
-    write_results(rows, output_dir, title=f"difffilter results: {exp.get('name', '')}", note=note)
-    write_per_run(per_run, output_dir / PER_RUN_FILE)
-    print(format_results(rows, title=f"results ({output_dir})", note=note))
-    learned = next(r for r in rows if r["filter"] == "learned")
-    metric_name = exp.get("metric", "rmse_pos")
-    return {"metric": float(learned.get(metric_name, math.nan)), "rows": rows, "output_dir": str(output_dir), "trainer": trainer}
+    return rows, note

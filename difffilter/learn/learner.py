@@ -28,7 +28,13 @@ Logged to every logger: ``train/loss``, ``val/loss`` and ``val/{rmse_pos, rmse_s
 nis, nll}`` (``test/...`` likewise), every element of every learnable constrained value each
 epoch (``params/model.measurement.R[0,0]``...), and, to loggers that can, figures: truth vs
 estimate, errors with their ±3 sigma envelope, and IMM mode probabilities when the result has
-``mode_probs``.
+``mode_probs`` (with the true mode drawn over them when the data have ``modes``), axes named
+after the model's :class:`~difffilter.models.layout.StateLayout`.
+
+Checkpoints load back without arguments: ``FilterLearner.load_from_checkpoint(path)`` rebuilds
+the filter from ``filter_config`` (which :func:`~difffilter.learn.experiment.run_experiment`
+sets) and loads its parameters; :func:`load_filter` returns the learned filter alone.  A
+checkpoint also carries what resuming needs (:mod:`difffilter.learn.checkpoints`).
 """
 
 from __future__ import annotations
@@ -39,6 +45,7 @@ from typing import Any
 
 import pytorch_lightning as pl
 import torch
+from hydra.utils import instantiate
 from torch import Tensor, nn
 
 from .. import linalg
@@ -48,61 +55,25 @@ from ..filters.fused import FusedFilter
 from ..filters.protocol import Belief, Filter, FilterResult
 from ..selection import learnable_values, match_parameters, parameter_owners, select_parameters
 from ..smoothers import Smoother, SmootherResult, make_smoother, smoother_spec
-from .losses import FilterLoss, MSELoss, NEESLoss, NLLLoss, Prior, StateNLLLoss
-from .metrics import finalize_metrics, metric_sums
-from .plots import plot_errors, plot_mode_probs, plot_trajectory
+from .checkpoints import CHECKPOINT_KEY, learner_state, restore_learner_state, set_rng_state
+from .eval_steps import EvaluationSteps
+from .losses import FilterLoss, Prior, make_loss
 from .replicates import perturb_initial_values
+from .reporting import parameter_scalars
 from .stability import OnceWarner, bounded_jitter
 
-__all__ = ["FilterLearner", "make_loss", "parameter_scalars"]
-
-_LOSSES: dict[str, Callable[[], FilterLoss]] = {"mse": MSELoss, "nll": NLLLoss, "nees": NEESLoss, "state_nll": StateNLLLoss}
-_SMOOTHED_METRICS = ("rmse_pos", "rmse_state", "anees")
+__all__ = ["FilterLearner", "load_filter", "make_loss", "parameter_scalars"]
 
 
-def make_loss(loss: FilterLoss | str) -> FilterLoss:
-    """A loss object from a name (``"mse"``, ``"nll"``, ``"nees"``, ``"state_nll"``) or a callable."""
-    if isinstance(loss, str):
-        if loss not in _LOSSES:
-            raise ValueError(f"loss must be one of {sorted(_LOSSES)} or a callable, got {loss!r}")
-        return _LOSSES[loss]()
-    if not callable(loss):
-        raise TypeError(f"loss must be a name or a callable (result, batch) -> [B], got {type(loss).__name__}")
-    return loss
-
-
-def parameter_scalars(name: str, value: Tensor, max_elements: int = 64) -> dict[str, float]:
-    """Scalars to log for one constrained value: every element of small tensors (upper triangle
-    of symmetric matrices, structural zeros left out), only the diagonal of large square ones."""
-    v = value.detach().to("cpu", torch.float64)
-    if v.ndim == 0:
-        return {name: float(v)}
-    if v.ndim == 1:
-        entries = v if v.numel() <= max_elements else v[:max_elements]
-        return {f"{name}[{i}]": float(x) for i, x in enumerate(entries)}
-    if v.ndim == 2 and v.shape[0] == v.shape[1]:
-        symmetric = bool(torch.allclose(v, v.T))
-        if v.numel() > max_elements:
-            return {f"{name}[{i},{i}]": float(v[i, i]) for i in range(min(v.shape[0], max_elements))}
-        out = {}
-        for i in range(v.shape[0]):
-            for j in range(i if symmetric else 0, v.shape[1]):
-                if i == j or not symmetric or float(v[i, j]) != 0.0:
-                    out[f"{name}[{i},{j}]"] = float(v[i, j])
-        return out
-    flat = v.flatten()
-    if flat.numel() <= max_elements:
-        return {f"{name}[{i}]": float(x) for i, x in enumerate(flat)}
-    return {f"{name}.norm": float(flat.norm())}
-
-
-class FilterLearner(pl.LightningModule):
+class FilterLearner(EvaluationSteps, pl.LightningModule):
     """Learn a filter's parameters from trajectories.
 
     Args:
-        filter: the filter or mixer to train (any :class:`~difffilter.filters.protocol.Filter`).
-        loss: ``"mse"``, ``"nll"``, ``"nees"`` or a callable ``(result, batch) -> [B]`` (see
-            :mod:`difffilter.learn.losses`).
+        filter: the filter or mixer to train (any :class:`~difffilter.filters.protocol.Filter`);
+            may be left out when ``filter_config`` is given.
+        loss: ``"mse"``, ``"nll"``, ``"nees"``, a Hydra loss config (``{"_target_": ...}``) or a
+            callable ``(result, batch) -> [B]`` (see :mod:`difffilter.learn.losses`).  Names and
+            configs are kept in the checkpoint's hyperparameters, callables are not.
         learn: names of the parameters to train (``["R", "Q", "tau", "transition"]``; matched as
             in :mod:`difffilter.selection`); ``None`` trains every parameter.
         optimizer: ``params -> torch.optim.Optimizer`` (a Hydra ``_partial_``); default Adam(lr=0.01).
@@ -132,12 +103,22 @@ class FilterLearner(pl.LightningModule):
             parameters' initial values (:func:`~difffilter.learn.replicates.perturb_initial_values`);
             0 (default) starts from the given values exactly.
         init_seed: seed of that perturbation (a multirun's ``${seed}``).
+        filter_config: a Hydra config that builds the filter's structure (its values come from
+            the state dict), kept in the checkpoint so that ``load_from_checkpoint(path)`` needs
+            no argument; builds ``filter`` when that is left out.  ``run_experiment`` sets it
+            (:func:`~difffilter.learn.experiment.rebuild_filter`).
+
+    Example::
+
+        learner = FilterLearner(UKF(model), "nll", learn=["Q", "R"])
+        pl.Trainer(max_epochs=20).fit(learner, datamodule=TrajectoryDataModule(simulator))
+        learned = FilterLearner.load_from_checkpoint(path, filter=UKF(model)).filter
     """
 
     def __init__(
         self,
-        filter: Filter,  # noqa: A002 - the field's word
-        loss: FilterLoss | str = "nll",
+        filter: Filter | None = None,  # noqa: A002 - the field's word
+        loss: FilterLoss | str | Mapping[str, Any] = "nll",
         *,
         learn: Sequence[str] | None = None,
         optimizer: Callable[[Iterable[nn.Parameter]], torch.optim.Optimizer] | None = None,
@@ -160,8 +141,16 @@ class FilterLearner(pl.LightningModule):
         smoother: str | Mapping[str, Any] | None = None,
         init_perturbation: float = 0.0,
         init_seed: int = 0,
+        filter_config: Mapping[str, Any] | None = None,
     ) -> None:
         super().__init__()
+        if filter is None and filter_config is not None:
+            filter = instantiate(dict(filter_config), _convert_="all")  # noqa: A001
+        if filter is None:
+            raise TypeError(
+                "FilterLearner needs filter= (or filter_config=); a checkpoint saved without filter_config loads with "
+                "FilterLearner.load_from_checkpoint(path, filter=<a filter of the same structure>)"
+            )
         if not isinstance(filter, Filter):
             raise TypeError(
                 "filter must be a difffilter Filter (a RecursiveFilter, formerly GaussianFilter; a mixer; a baseline), "
@@ -169,7 +158,9 @@ class FilterLearner(pl.LightningModule):
             )
         if scheduler_interval not in ("epoch", "step"):
             raise ValueError(f"scheduler_interval must be 'epoch' or 'step', got {scheduler_interval!r}")
-        self.save_hyperparameters(ignore=["filter", "loss", "optimizer", "scheduler", "log_prior", "smoother"])
+        # names and configs are kept (load_from_checkpoint rebuilds from them); objects are not
+        ignore = ["filter", "optimizer", "scheduler", "log_prior"] + ([] if isinstance(loss, str | Mapping) else ["loss"])
+        self.save_hyperparameters(ignore=ignore)
         self.filter = filter if dtype is None else filter.to(as_dtype(dtype))
         self.loss_fn = make_loss(loss)
         self.learned_names = select_parameters(self.filter, None if learn is None else list(learn))
@@ -214,6 +205,10 @@ class FilterLearner(pl.LightningModule):
         self._skip_pending = False
         self._sums: dict[str, Tensor] = {}
         self._figure_data: dict[str, Any] | None = None
+        self._restored_rng: Mapping[str, Any] | None = None
+        self._restored_carry = False
+        #: the resolved experiment config (kept in checkpoints; set by run_experiment)
+        self.run_config: dict[str, Any] | None = None
 
     # -- running the filter -------------------------------------------------------------------
     def initial_belief(self, batch: Mapping[str, Any]) -> tuple[Tensor, Tensor]:
@@ -304,6 +299,7 @@ class FilterLearner(pl.LightningModule):
         belief = self._carries.get(window - 1) if window > 0 else None
         if window > 0 and belief is None:
             self._warn("carry", "a continuation window arrived without its previous window; restarting from the initial belief")
+        self._restored_carry = False
         result = self(batch, belief)
         # Keyed by window so that an optimiser re-evaluating a window (LBFGS closures) still
         # starts it from the previous window's belief.
@@ -345,90 +341,26 @@ class FilterLearner(pl.LightningModule):
         # covariance factorisations that failed even at the largest allowed jitter (identity
         # factor substituted): process-wide count from difffilter.linalg
         scalars["stability/cholesky_failures"] = float(linalg.cholesky_failure_count())
-        self.log_dict(scalars, on_step=False, on_epoch=True, rank_zero_only=True, batch_size=1)
-
-    def _eval_step(self, batch: Mapping[str, Any], batch_idx: int, stage: str) -> None:
-        result = self(batch)
-        loss, bad = self._reduce_loss(self.loss_fn(result, batch), stage)
-        n = int(batch["measurements"].shape[0])
-        f64 = torch.float64
-        filtered = result.filtered if isinstance(result, SmootherResult) else result
-        sums = metric_sums(filtered, batch.get("truth"), **self.indices)
-        if self._smoother is not None and batch.get("truth") is not None:
-            smoothed = result if isinstance(result, SmootherResult) else self.smooth(result, batch)
-            sums.update({f"smoothed/{k}": v for k, v in metric_sums(smoothed, batch["truth"], **self.indices).items()})
-        result = filtered
-        sums["loss_sum"] = (loss.detach() if loss is not None else torch.zeros((), device=self.device)).to(f64) * (n - bad)
-        sums["loss_count"] = torch.tensor(float(n - bad), dtype=f64, device=self.device)
-        for k, v in sums.items():
-            self._sums[k] = self._sums.get(k, torch.zeros((), dtype=f64, device=self.device)) + v.to(f64)
-        if batch_idx == 0:
-            self._figure_data = {
-                "truth": None if batch.get("truth") is None else batch["truth"][0].detach(),
-                "mean": result.mean[0].detach(),
-                "cov": result.cov[0].detach(),
-                "mode_probs": result.extras["mode_probs"][0].detach() if "mode_probs" in result.extras else None,
-            }
-
-    def _eval_epoch_end(self, stage: str) -> None:
-        keys = sorted(self._sums)
-        if not keys:
-            return
-        packed = torch.stack([self._sums[k] for k in keys])
-        if self.trainer.world_size > 1:
-            packed = self.trainer.strategy.reduce(packed, reduce_op="sum")
-        sums = dict(zip(keys, packed, strict=True))
-        self._sums = {}
-        metrics = finalize_metrics({k: v for k, v in sums.items() if not k.startswith("smoothed/")})
-        smoothed = finalize_metrics({k.removeprefix("smoothed/"): v for k, v in sums.items() if k.startswith("smoothed/")})
-        metrics.update({f"smoothed_{k}": smoothed[k] for k in _SMOOTHED_METRICS if k in smoothed})
-        count = float(sums["loss_count"])
-        metrics["loss"] = float(sums["loss_sum"]) / count if count > 0 else float("nan")
-        # Already summed over processes above; sync_dist only averages identical values.
-        self.log_dict({f"{stage}/{k}": v for k, v in metrics.items()}, on_step=False, on_epoch=True, batch_size=1, sync_dist=True)
-        every = self.figure_every_n_epochs
-        if stage == "test" or (every > 0 and self.current_epoch % every == 0 and not self.trainer.sanity_checking):
-            self._log_figures(stage)
-
-    def _log_figures(self, stage: str) -> None:
-        data = self._figure_data
-        if data is None or not self.trainer.is_global_zero:
-            return
-        writers = [lg.experiment for lg in self.loggers if hasattr(lg.experiment, "add_figure")]
-        if not writers:
-            return
-        ix = self.indices
-        pos = ix["position_index"] or list(range(min(2, data["mean"].shape[-1])))
-        tpos = ix["truth_position_index"] if ix["position_index"] is not None else None
-        figures = {"trajectory": plot_trajectory(data["truth"], data["mean"], position_index=pos, truth_position_index=tpos)}
-        if data["truth"] is not None:
-            figures["error"] = plot_errors(data["truth"], data["mean"], data["cov"], index=pos, truth_index=tpos)
-        if data["mode_probs"] is not None:
-            figures["mode_probs"] = plot_mode_probs(data["mode_probs"])
-        for writer in writers:
-            for name, fig in figures.items():
-                writer.add_figure(f"{stage}/{name}", fig, global_step=self.global_step, close=False)
-
-    def on_validation_epoch_start(self) -> None:
-        self._sums, self._figure_data = {}, None
-
-    def validation_step(self, batch: Mapping[str, Any], batch_idx: int) -> None:
-        self._eval_step(batch, batch_idx, "val")
-
-    def on_validation_epoch_end(self) -> None:
-        self._eval_epoch_end("val")
-
-    def on_test_epoch_start(self) -> None:
-        self._sums, self._figure_data = {}, None
-
-    def test_step(self, batch: Mapping[str, Any], batch_idx: int) -> None:
-        self._eval_step(batch, batch_idx, "test")
-
-    def on_test_epoch_end(self) -> None:
-        self._eval_epoch_end("test")
+        # identical on every process (parameters are synchronised by DDP); sync_dist averages
+        # equal values, which leaves them unchanged
+        self.log_dict(scalars, on_step=False, on_epoch=True, batch_size=1, sync_dist=True)
 
     def on_train_epoch_start(self) -> None:
-        self._carries, self._carry_index = {}, None
+        if not self._restored_carry:  # a run resumed mid-epoch continues the batch in progress
+            self._carries, self._carry_index = {}, None
+        self._restored_carry = False
+
+    def on_train_start(self) -> None:
+        # the generators continue from the checkpoint's states once nothing else draws from them
+        if self._restored_rng is not None:
+            set_rng_state(self._restored_rng)
+            self._restored_rng = None
+
+    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        checkpoint[CHECKPOINT_KEY] = learner_state(self)
+
+    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        restore_learner_state(self, checkpoint.get(CHECKPOINT_KEY))
 
     def configure_optimizers(self) -> Any:
         params = [p for p in self.filter.parameters() if p.requires_grad]
@@ -443,3 +375,12 @@ class FilterLearner(pl.LightningModule):
             "optimizer": optimizer,
             "lr_scheduler": {"scheduler": scheduler, "interval": self.scheduler_interval, "monitor": self.monitor},
         }
+
+
+def load_filter(path: str, **kwargs: Any) -> Filter:
+    """The learned filter of a :class:`FilterLearner` checkpoint, in evaluation mode on the CPU:
+    ``FilterLearner.load_from_checkpoint(path, map_location="cpu", **kwargs).filter`` (the
+    filter rebuilt from the checkpoint's ``filter_config``; pass ``filter=`` for a checkpoint
+    saved without one)."""
+    learner = FilterLearner.load_from_checkpoint(str(path), map_location="cpu", **kwargs)
+    return learner.filter.eval()

@@ -31,10 +31,11 @@ the filter's likelihood).
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any, Protocol
 
 import torch
+from hydra.utils import instantiate
 from torch import Tensor
 
 from ..filters.base import FilterResult
@@ -52,6 +53,7 @@ __all__ = [
     "NormalPrior",
     "Prior",
     "StateNLLLoss",
+    "make_loss",
 ]
 
 
@@ -220,3 +222,22 @@ class LogNormalPrior:
             value = torch.diagonal(value, dim1=-2, dim2=-1)
         logv = torch.log(value)
         return NormalPrior(loc=self.loc, scale=self.scale).log_prob(logv) - logv.sum()
+
+
+_LOSSES: dict[str, Callable[[], FilterLoss]] = {"mse": MSELoss, "nll": NLLLoss, "nees": NEESLoss, "state_nll": StateNLLLoss}
+
+
+def make_loss(loss: FilterLoss | str | Mapping[str, Any]) -> FilterLoss:
+    """A loss object from a name (``"mse"``, ``"nll"``, ``"nees"``, ``"state_nll"``), a Hydra config (a mapping
+    with ``_target_``, e.g. ``conf/loss/*.yaml``) or a callable."""
+    if isinstance(loss, Mapping):
+        if "_target_" not in loss:
+            raise ValueError(f"a loss config needs a _target_, got keys {sorted(loss)}")
+        return make_loss(instantiate(loss, _convert_="all"))
+    if isinstance(loss, str):
+        if loss not in _LOSSES:
+            raise ValueError(f"loss must be one of {sorted(_LOSSES)} or a callable, got {loss!r}")
+        return _LOSSES[loss]()
+    if not callable(loss):
+        raise TypeError(f"loss must be a name or a callable (result, batch) -> [B], got {type(loss).__name__}")
+    return loss

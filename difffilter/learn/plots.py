@@ -1,18 +1,35 @@
 """Diagnostic figures (matplotlib, object-oriented API: no global pyplot state).
 
 Each function draws one trajectory and returns a ``matplotlib.figure.Figure`` ready for
-``SummaryWriter.add_figure`` or ``fig.savefig``.
+``SummaryWriter.add_figure`` or ``fig.savefig``.  Axes carry the state components' names and
+units when the model has a :class:`~difffilter.models.layout.StateLayout` (``labels``, from
+:func:`state_labels`), else ``state[i]``.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 import torch
 from matplotlib.figure import Figure
 from torch import Tensor
 
-__all__ = ["plot_errors", "plot_mode_probs", "plot_trajectory"]
+from ..models.layout import StateLayout
+
+__all__ = ["diagnostic_figures", "plot_errors", "plot_mode_probs", "plot_trajectory", "state_labels"]
+
+
+def state_labels(index: Sequence[int], layout: StateLayout | None = None) -> list[str]:
+    """Axis labels of state components ``index``: ``"x [m]"`` from ``layout``, else ``"state[i]"``."""
+    out = []
+    for i in index:
+        if layout is not None and 0 <= i < layout.dim:
+            unit = layout.units[i]
+            out.append(f"{layout.names[i]} [{unit}]" if unit else layout.names[i])
+        else:
+            out.append(f"state[{i}]")
+    return out
 
 
 def _np(x: Tensor) -> object:
@@ -28,14 +45,17 @@ def plot_trajectory(
     measurements: Tensor | None = None,
     measurement_index: Sequence[int] | None = None,
     title: str = "trajectory",
+    labels: Sequence[str] | None = None,
 ) -> Figure:
     """Truth vs estimate of one trajectory: the plane of the first two position components
-    (``estimate [T, n]``, ``truth [T, n_t]``), or position against time for one component."""
+    (``estimate [T, n]``, ``truth [T, n_t]``), or position against time for one component;
+    ``labels`` name the position components (default ``state[i]``)."""
     fig = Figure(figsize=(6, 5))
     ax = fig.add_subplot()
     pi = list(position_index)
     ti = list(truth_position_index) if truth_position_index is not None else pi
     est = _np(estimate[:, pi])
+    names = list(labels) if labels is not None else state_labels(pi)
     if len(pi) >= 2:
         if measurements is not None and measurement_index is not None:
             z = _np(measurements[:, list(measurement_index)])
@@ -44,14 +64,15 @@ def plot_trajectory(
             tr = _np(truth[:, ti])
             ax.plot(tr[:, 0], tr[:, 1], "k-", lw=1.5, label="truth")  # type: ignore[index]
         ax.plot(est[:, 0], est[:, 1], "C1--", lw=1.2, label="estimate")  # type: ignore[index]
-        ax.set_xlabel(f"state[{pi[0]}]")
-        ax.set_ylabel(f"state[{pi[1]}]")
+        ax.set_xlabel(names[0])
+        ax.set_ylabel(names[1])
         ax.set_aspect("equal", adjustable="datalim")
     else:
         if truth is not None:
             ax.plot(_np(truth[:, ti[0]]), "k-", label="truth")
         ax.plot(est[:, 0], "C1--", label="estimate")  # type: ignore[index]
         ax.set_xlabel("step")
+        ax.set_ylabel(names[0])
     ax.set_title(title)
     ax.legend(loc="best", fontsize=8)
     fig.tight_layout()
@@ -66,11 +87,13 @@ def plot_errors(
     index: Sequence[int] | None = None,
     truth_index: Sequence[int] | None = None,
     title: str = "error and 3-sigma envelope",
+    labels: Sequence[str] | None = None,
 ) -> Figure:
     """Estimation error of each selected component with the filter's ``±3 sigma`` envelope
-    (``mean [T, n]``, ``cov [T, n, n]``, ``truth [T, n_t]``)."""
+    (``mean [T, n]``, ``cov [T, n, n]``, ``truth [T, n_t]``); ``labels`` name the components."""
     idx = list(index) if index is not None else list(range(mean.shape[-1]))
     tidx = list(truth_index) if truth_index is not None else idx
+    names = list(labels) if labels is not None else state_labels(idx)
     err = _np(mean[:, idx] - truth[:, tidx])
     sd = _np(3.0 * torch.diagonal(cov, dim1=-2, dim2=-1)[:, idx].clamp_min(0).sqrt())
     fig = Figure(figsize=(7, 1.8 * len(idx) + 0.6))
@@ -79,7 +102,7 @@ def plot_errors(
         ax.plot(err[:, k], "C0-", lw=1, label="error")  # type: ignore[index]
         ax.plot(sd[:, k], "C3--", lw=0.8, label="±3σ")  # type: ignore[index]
         ax.plot(-sd[:, k], "C3--", lw=0.8)  # type: ignore[index, operator]
-        ax.set_ylabel(f"state[{idx[k]}]")
+        ax.set_ylabel(names[k])
     axes[0].set_title(title)
     axes[0].legend(loc="upper right", fontsize=8)
     axes[-1].set_xlabel("step")
@@ -88,7 +111,9 @@ def plot_errors(
 
 
 def plot_mode_probs(mode_probs: Tensor, *, true_modes: Tensor | None = None, names: Sequence[str] | None = None) -> Figure:
-    """IMM mode probabilities ``[T, M]`` over time (and the true mode sequence ``[T]`` if known)."""
+    """IMM mode probabilities ``[T, M]`` over time, with the true mode sequence ``[T]`` (mode
+    indices) drawn over them when known: a step line at the height of the true mode's index
+    scaled to ``[0, 1]`` (for two modes, the probability the true mode should have)."""
     mp = _np(mode_probs)
     fig = Figure(figsize=(7, 3))
     ax = fig.add_subplot()
@@ -103,3 +128,25 @@ def plot_mode_probs(mode_probs: Tensor, *, true_modes: Tensor | None = None, nam
     ax.legend(loc="best", fontsize=8)
     fig.tight_layout()
     return fig
+
+
+def diagnostic_figures(
+    data: Mapping[str, Any],
+    *,
+    position_index: Sequence[int] | None = None,
+    truth_position_index: Sequence[int] | None = None,
+    layout: StateLayout | None = None,
+) -> dict[str, Figure]:
+    """The figures of one trajectory: ``data`` holds ``mean [T, n]``, ``cov [T, n, n]`` and
+    optionally ``truth [T, n_t]``, ``mode_probs [T, M]``, ``modes [T]`` (true mode indices).
+    Returns ``{"trajectory", "error" (with a truth), "mode_probs" (with mode probabilities)}``."""
+    mean = data["mean"]
+    pos = list(position_index) if position_index is not None else list(range(min(2, mean.shape[-1])))
+    tpos = list(truth_position_index) if truth_position_index is not None and position_index is not None else None
+    labels = state_labels(pos, layout)
+    figures = {"trajectory": plot_trajectory(data.get("truth"), mean, position_index=pos, truth_position_index=tpos, labels=labels)}
+    if data.get("truth") is not None:
+        figures["error"] = plot_errors(data["truth"], mean, data["cov"], index=pos, truth_index=tpos, labels=labels)
+    if data.get("mode_probs") is not None:
+        figures["mode_probs"] = plot_mode_probs(data["mode_probs"], true_modes=data.get("modes"))
+    return figures

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import json
 import logging
 import math
 import sys
@@ -47,7 +48,7 @@ from torch import Tensor
 from .evaluation import PER_RUN_FILE, read_per_run
 from .intervals import GapClosed, Interval, crossed_interval, gap_closed, nested_interval
 
-__all__ = ["SUMMARY_CSV", "SUMMARY_MD", "SweepSummary", "load_jobs", "main", "summarize_sweep"]
+__all__ = ["SUMMARY_CSV", "SUMMARY_MD", "SweepSummary", "load_jobs", "main", "summarize_sweep", "unfinished_jobs"]
 
 log = logging.getLogger(__name__)
 
@@ -98,6 +99,18 @@ def load_jobs(sweep_dir: str | Path, *, replicate_key: str = "seed") -> list[Job
     for j in jobs:
         j.group = " ".join(o for o in j.overrides if o not in common)
     return jobs
+
+
+def unfinished_jobs(sweep_dir: str | Path) -> list[tuple[Path, str]]:
+    """Job directories of a sweep whose ``status.json`` says failed, interrupted or still
+    running (:func:`difffilter.learn.runs.run_status`), with the reason."""
+    out = []
+    for status_file in sorted(Path(sweep_dir).rglob("status.json")):
+        state = json.loads(status_file.read_text())
+        if state.get("status") != "completed":
+            why = state.get("error") or (f"{state.get('signal')}; checkpoint {state.get('checkpoint')}" if state.get("signal") else "")
+            out.append((status_file.parent, f"{state.get('status')}" + (f" ({why})" if why else "")))
+    return out
 
 
 def _float(text: str | None) -> float:
@@ -337,7 +350,11 @@ def summarize_sweep(
         _summarize_group(g, metric=metric, reference=reference, learned=learned, oracle=oracle, prob=prob, draws=draws)
     root = Path(sweep_dir)
     md = root / SUMMARY_MD
-    md.write_text(_markdown(groups, metric=metric, reference=reference, learned=learned, oracle=oracle, prob=prob))
+    text = _markdown(groups, metric=metric, reference=reference, learned=learned, oracle=oracle, prob=prob)
+    missing = unfinished_jobs(root)
+    if missing:
+        text += "\n## Jobs left out (no results)\n\n" + "\n".join(f"- `{d.relative_to(root)}`: {why}" for d, why in missing) + "\n"
+    md.write_text(text)
     rows = _csv_rows(groups, metric)
     path = root / SUMMARY_CSV
     with path.open("w", newline="") as fh:

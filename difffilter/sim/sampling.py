@@ -43,7 +43,7 @@ from ..models.layout import model_defaults
 from ..params import constrained_values
 from ..selection import assign_parameters
 
-__all__ = ["ModelSimulator", "SampledTrajectories", "sample_trajectories"]
+__all__ = ["ModelSimulator", "SampledTrajectories", "sample_trajectories", "simulate"]
 
 
 def _cast_controls(controls: Controls, dtype: torch.dtype) -> Controls:
@@ -277,3 +277,52 @@ class ModelSimulator:
             missing_prob=self.missing_prob,
             dt=self.dt,
         )
+
+
+def simulate(
+    model: StateSpaceModel,
+    *,
+    num_steps: int,
+    batch_size: int = 1,
+    seed: int | torch.Generator = 0,
+    initial_mean: Tensor | Sequence[float] | None = None,
+    initial_cov: Tensor | Sequence[float] | Sequence[Sequence[float]] | None = None,
+    controls: Callable[..., Controls] | Mapping[str, Tensor] | Tensor | None = None,
+    missing_prob: float = 0.0,
+    dtype: torch.dtype | str | None = torch.float64,
+) -> SampledTrajectories:
+    """Draw ``batch_size`` trajectories of ``num_steps`` steps from ``model`` as it is (its
+    current parameter values; the model is not changed).
+
+    ``initial_mean``/``initial_cov`` (the belief before the first measurement, ``x_0 ~ N(m_0,
+    P_0)``; ``initial_cov`` ``[n, n]`` or its diagonal) and ``controls`` (a ``[1|B, T, ...]``
+    tensor, a dict of ``[B, T, ...]`` tensors, or a ``(batch_size, num_steps, generator, dtype) ->
+    controls`` sampler) default to the
+    model's :class:`~difffilter.models.layout.ModelDefaults` when it has them.  The result's
+    ``truth [B, T, n]``, ``measurements [B, T, m]``, ``mask``, ``controls``, ``initial_mean`` and
+    ``initial_cov`` go straight into any filter::
+
+        data = simulate(model, num_steps=100, batch_size=32, initial_mean=m0, initial_cov=P0)
+        res = UKF(model)(data.measurements, data.initial_mean, data.initial_cov, mask=data.mask)
+
+    A thin front of :class:`ModelSimulator` (what the data module calls) and
+    :func:`sample_trajectories` (seeded; the same seed gives the same trajectories everywhere).
+    """
+    if isinstance(controls, Mapping) or (isinstance(controls, Tensor) and controls.shape[0] == batch_size and batch_size > 1):
+        given = controls  # per-trajectory inputs, used as they are
+
+        def fixed(b: int, t: int, g: torch.Generator | None, d: torch.dtype) -> Controls:
+            return _cast_controls(given[:, :t] if isinstance(given, Tensor) else {k: v[:, :t] for k, v in given.items()}, d)
+
+    else:
+        fixed = controls
+    sim = ModelSimulator(
+        model=model,
+        num_steps=num_steps,
+        initial_mean=initial_mean,
+        initial_cov=initial_cov,
+        true_params={},
+        controls=fixed,
+        missing_prob=missing_prob,
+    )
+    return sim(batch_size=batch_size, seed=seed, dtype=dtype)

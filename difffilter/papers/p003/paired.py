@@ -17,6 +17,7 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
+from ...learn.checkpoints import best_checkpoint
 from ...learn.experiment import build_filter
 from .report import ModeSwitchReport
 
@@ -27,22 +28,19 @@ def paired_report(run_dir: str | Path) -> list[str]:
     """The report lines for the run directory ``run_dir`` (``.hydra/config.yaml`` and ``checkpoints/``)."""
     run_dir = Path(run_dir)
     cfg = OmegaConf.load(run_dir / ".hydra" / "config.yaml")
-    ckpts = sorted((run_dir / "checkpoints").glob("*.ckpt"))
-    if not ckpts:
-        raise FileNotFoundError(f"no checkpoint under {run_dir / 'checkpoints'}")
+    ckpt = best_checkpoint(run_dir)
     test = instantiate(cfg.data, _convert_="all").dataset("test")
     batch = test.batch(torch.arange(len(test)))
     plain = lambda node: OmegaConf.to_container(node, resolve=True) if node is not None else None  # noqa: E731
     exp = cfg.experiment
     hand = build_filter(cfg.filter, dtype=torch.float64, params=plain(exp.hand_tuned))
-    state = torch.load(ckpts[-1], map_location="cpu", weights_only=False)["state_dict"]
-    filters = {"hand-tuned": hand, "learned": ModeSwitchReport._learned_from_state(hand, state, cfg.learner.get("q_groups"))}
+    filters = {"hand-tuned": hand, "learned": ModeSwitchReport._learned(hand, run_dir, cfg.learner.get("q_groups"))}
     if exp.get("oracle") is not None and exp.oracle.get("filter") is not None:
         filters["oracle"] = build_filter(exp.oracle.filter, dtype=torch.float64, params=plain(exp.oracle.get("params")))
     idx = [int(i) for i in exp.position_index]
     tidx = idx if exp.get("truth_position_index") is None else [int(i) for i in exp.truth_position_index]
     rmse: dict[str, torch.Tensor] = {}
-    lines = [f"{run_dir}: {len(test)} test runs, checkpoint {ckpts[-1].name}"]
+    lines = [f"{run_dir}: {len(test)} test runs, checkpoint {ckpt.name}"]
     for name, filt in filters.items():
         with torch.no_grad():
             res = filt(batch["measurements"], batch["initial_mean"], batch["initial_cov"], mask=batch["mask"], controls=batch["controls"])

@@ -26,7 +26,9 @@ from torch import Tensor
 
 from ..._util import as_dtype
 from ...filters.protocol import Filter
+from ...learn.checkpoints import best_checkpoint
 from ...learn.experiment import build_filter
+from ...learn.learner import load_filter
 from ...learn.metrics import mode_switch_delay
 from ...mixers import IMM
 from .experiment import group_scale_q, model_options, p003_mode_model
@@ -145,12 +147,14 @@ class ModeSwitchReport(Callback):
 
     @staticmethod
     def _learned(hand: Filter, out_dir: Path, q_groups: str | None = None) -> Filter | None:
-        ckpts = sorted((out_dir / "checkpoints").glob("*.ckpt"))
-        if not ckpts:
+        try:
+            ckpt = best_checkpoint(out_dir)
+        except FileNotFoundError:
             log.warning("ModeSwitchReport: no checkpoint under %s; the learned row is left out", out_dir)
             return None
-        state = torch.load(ckpts[-1], map_location="cpu", weights_only=False)["state_dict"]
-        return ModeSwitchReport._learned_from_state(hand, state, q_groups)
+        # the structure given explicitly: checkpoints written before learners kept their
+        # filter_config load too
+        return load_filter(str(ckpt), filter=group_scale_q(copy.deepcopy(hand), q_groups))
 
     @staticmethod
     def _learned_from_state(hand: Filter, state: Mapping[str, Tensor], q_groups: str | None = None) -> Filter:

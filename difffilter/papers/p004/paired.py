@@ -20,6 +20,8 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
+from ...learn.checkpoints import best_checkpoint
+from ...learn.learner import load_filter
 from ...models.navigation.gnss_imu import GnssImuModel
 from ...selection import assign_parameters
 from .experiment import blend_filter, p004_simulator
@@ -62,9 +64,7 @@ def paired_report(
     """
     run_dir = Path(run_dir)
     cfg = OmegaConf.load(run_dir / ".hydra" / "config.yaml")
-    ckpts = sorted((run_dir / "checkpoints").glob("*.ckpt"))
-    if not ckpts:
-        raise FileNotFoundError(f"no checkpoint under {run_dir / 'checkpoints'}")
+    ckpt = best_checkpoint(run_dir)
     runs = int(runs or cfg.data.test_size)
     if runs < 2:
         raise ValueError(f"runs must be at least 2, got {runs}")
@@ -81,16 +81,19 @@ def paired_report(
     )
     options = dict(model_options or {})
     points = cfg.filter.get("sigma_points")  # the run's own set (p004: Julier, lambda = 3 - n)
-    hand = _blend(float(cfg.filter.delta), options, None if points is None else instantiate(points))
+
+    def blend() -> torch.nn.Module:
+        return _blend(float(cfg.filter.delta), options, None if points is None else instantiate(points))
+
+    hand = blend()
     assign_parameters(hand, OmegaConf.to_container(cfg.experiment.hand_tuned, resolve=True))
-    learned = _blend(float(cfg.filter.delta), options, None if points is None else instantiate(points))
-    state = torch.load(ckpts[-1], map_location="cpu", weights_only=False)["state_dict"]
-    learned_state = {k.removeprefix("filter."): v for k, v in state.items() if k.startswith("filter.")}
+    learned = blend()
+    learned_state = load_filter(str(ckpt), filter=blend()).state_dict()
     # values overridden by model_options stay as given (they are not learned in p004_blend)
     keep = [n.removeprefix("sigma_") for n in options]
     learned_state = {k: v for k, v in learned_state.items() if not any(n in k for n in keep)}
     learned.load_state_dict({**learned.state_dict(), **learned_state})
-    lines = [f"{run_dir}: {runs} runs, checkpoint {ckpts[-1].name}"]
+    lines = [f"{run_dir}: {runs} runs, checkpoint {ckpt.name}"]
     rows = {"hand-tuned": per_run_errors(hand, data), "learned": per_run_errors(learned, data)}
     for name, r in rows.items():
         nees = r["nees_all"]

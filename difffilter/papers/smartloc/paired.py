@@ -21,7 +21,9 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
+from ...learn.checkpoints import best_checkpoint
 from ...learn.intervals import block_bootstrap_difference
+from ...learn.learner import load_filter
 from ...selection import assign_parameters
 
 __all__ = ["block_bootstrap", "compare", "markdown_row", "MARKDOWN_HEADER"]
@@ -30,13 +32,6 @@ MARKDOWN_HEADER = (
     "| run | epochs | median hand / learned (m) | learned - hand, 95 % CI | RMS hand / learned (m) | learned - hand, 95 % CI |\n"
     "|---|---|---|---|---|---|"
 )
-
-
-def _best_checkpoint(run_dir: Path) -> Path:
-    ckpts = sorted((run_dir / "checkpoints").glob("*.ckpt"), key=lambda p: p.stat().st_mtime)
-    if not ckpts:
-        raise FileNotFoundError(f"no checkpoint under {run_dir / 'checkpoints'}")
-    return ckpts[-1]  # save_top_k = 1: the newest file is the run's best
 
 
 def _errors(filt: torch.nn.Module, data: Any) -> torch.Tensor:
@@ -68,9 +63,8 @@ def compare(run_dir: str | Path, *, block: int = 50, draws: int = 4000) -> dict[
     softness = cfg.learner.get("gate_softness")
     if softness is not None:
         learned.model.measurement.set_gate_softness(float(softness))
-    ckpt = _best_checkpoint(run_dir)
-    state = torch.load(ckpt, map_location="cpu", weights_only=False)["state_dict"]
-    learned.load_state_dict({k.removeprefix("filter."): v for k, v in state.items() if k.startswith("filter.")})
+    ckpt = best_checkpoint(run_dir)
+    learned = load_filter(str(ckpt), filter=learned)
     eh, el = _errors(hand, data), _errors(learned, data)
     ci = block_bootstrap(el, eh, block=block, draws=draws)
     rms = lambda e: float(e.pow(2).mean().sqrt())  # noqa: E731

@@ -18,6 +18,7 @@ from torch import Tensor
 
 __all__ = [
     "CholeskyResult",
+    "any_set",
     "block_diag",
     "cholesky_failure_count",
     "jitter_bound",
@@ -78,6 +79,17 @@ def _chol_ok(chol: Tensor, info: Tensor) -> Tensor:
     # depends on the whole row i), so the diagonal suffices and is much cheaper to scan.
     finite = torch.isfinite(torch.diagonal(chol, dim1=-2, dim2=-1)).all(-1)
     return (info == 0) & finite
+
+
+def any_set(flags: Tensor) -> bool:
+    """Whether any element of the boolean ``flags`` is set.
+
+    The guard of optional per-element work whose result is selected with ``torch.where`` (e.g. a
+    Joseph-form recomputation where ``P - K S K^T`` cancels): skipping the work when no element
+    needs it changes no value, so an engine that cannot branch on data (the generated kernels of
+    :class:`~difffilter.filters.FusedFilter`) takes the guard as always true.
+    """
+    return bool(flags.any())
 
 
 def safe_cholesky(a: Tensor, *, max_jitter: float | None = None) -> CholeskyResult:

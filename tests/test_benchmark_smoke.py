@@ -16,9 +16,10 @@ from pathlib import Path
 import pytest
 import torch
 
+from difffilter.bench.cases import BenchCase, builtin_case
 from difffilter.bench.gpsdr import make_gpsdr_model, simulate_gpsdr
 from difffilter.bench.memory import training_step_memory
-from difffilter.bench.runner import MAIN_COLUMNS
+from difffilter.bench.runner import MAIN_COLUMNS, BenchSettings
 from difffilter.bench.suite import run_suite
 from difffilter.filters.ekf import autodiff_jacobian
 from tests.smoke_helpers import read_rows
@@ -43,8 +44,9 @@ def test_full_config_composes_with_the_documented_cases() -> None:
     with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
         cfg = compose(config_name="benchmark")
     b = cfg.benchmark
-    assert list(b.batch_sizes) == [1, 16, 256, 4096] and b.steps == 500
-    assert set(b.filters) == {"kf", "ekf", "ukf", "imm"} and set(b.dtypes) == {"float64", "float32"}
+    assert list(b.batch_sizes) == [16, 256, 4096] and b.steps == 500
+    assert set(b.filters) == {"kf", "ekf", "ukf", "imm", "p003"} and set(b.dtypes) == {"float64", "float32"}
+    assert set(b.modes) == {"forward", "train"}
     assert b.memory.steps == 5000 and b.memory.batch == 1024
 
 
@@ -55,11 +57,11 @@ def test_smoke_difffilter_and_filterpy(tmp_path: Path) -> None:
     rows = read_rows(tmp_path / "benchmark.csv")
     assert list(rows[0]) == MAIN_COLUMNS
     ours = {(r["filter"], r["mode"]) for r in rows if r["library"] == "difffilter"}
-    assert ours == {(k, m) for k in ("kf", "ekf", "ukf", "imm") for m in ("forward", "fwd+bwd")}
+    assert ours == {(k, m) for k in ("kf", "ekf", "ukf", "imm") for m in ("forward", "train")}
     for r in rows:
         assert r["B"] == "2" and r["T"] == "5" and r["dtype"] == "float64"
         assert math.isfinite(float(r["steps_per_s"])) and float(r["steps_per_s"]) > 0
-        if r["library"] == "difffilter" and r["mode"] == "fwd+bwd":
+        if r["library"] == "difffilter" and r["mode"] == "train":
             assert float(r["fb_over_f"]) > 0
     if HAS_FILTERPY:
         fp = [r for r in rows if r["library"] == "filterpy"]
@@ -70,24 +72,46 @@ def test_smoke_difffilter_and_filterpy(tmp_path: Path) -> None:
         # Same model, same data, same conventions: the log-likelihoods agree to rounding.
         assert max(float(a["max_rel_diff"]) for a in agree) < 1e-10
     targets = read_rows(tmp_path / "targets.csv")
-    assert any(t["target"].startswith("UKF B=2 difffilter: backward / forward") and t["met"] in ("yes", "NO") for t in targets)
+    assert any(t["target"].startswith("IMM of 2 UKFs train B=2 (difffilter)") and t["met"] in ("yes", "NO") for t in targets)
     text = (tmp_path / "results.md").read_text()
     assert text == md and "## Throughput and memory" in text and "| ukf | difffilter | float64 | 2 | 5 | forward |" in text
 
 
 def test_smoke_fused_rows_agree_with_the_reference(tmp_path: Path) -> None:
-    """The difffilter-fused library (FusedFilter, here eager: benchmark.fused_compile=false in the
-    smoke config) gets its own rows, fb/f ratios and an agreement entry against the reference."""
+    """The difffilter-fused library (FusedFilter, here its eager engine: benchmark.fused_engine=eager
+    in the smoke config, which has no IMM) gets its own rows, fb/f ratios and an agreement entry
+    against the reference; a kind the engine refuses is skipped with a message."""
     cfg = _compose("benchmark.libraries=[difffilter,difffilter-fused]", "benchmark.filters=[kf,ekf,ukf,imm]")
     run_suite(cfg, tmp_path, log=lambda s: None)
     rows = read_rows(tmp_path / "benchmark.csv")
     fused = {(r["filter"], r["mode"]) for r in rows if r["library"] == "difffilter-fused"}
-    assert fused == {(k, m) for k in ("kf", "ekf", "ukf") for m in ("forward", "fwd+bwd")}  # no fused IMM
+    assert fused == {(k, m) for k in ("kf", "ekf", "ukf") for m in ("forward", "train")}
     assert all(float(r["compile_s"]) > 0 for r in rows if r["library"] == "difffilter-fused")
+    assert all(float(r["fb_over_f"]) > 0 for r in rows if r["library"] == "difffilter-fused" and r["mode"] == "train")
     agree = {a["filter"]: float(a["max_rel_diff"]) for a in read_rows(tmp_path / "agreement.csv") if a["peer"] == "difffilter-fused"}
     assert set(agree) == {"kf", "ekf", "ukf"} and max(agree.values()) < 1e-12
-    targets = {t["target"] for t in read_rows(tmp_path / "targets.csv")}
-    assert "UKF B=2 difffilter-fused: backward / forward time ((fwd+bwd) / fwd - 1)" in targets
+    assert "skipping difffilter-fused imm" in (tmp_path / "results.md").read_text()
+
+
+def test_smoke_generated_engine_and_extra_case(tmp_path: Path) -> None:
+    """The generated engine's rows, and a filter kind passed in by the caller (as the entry point
+    does for p003's bank)."""
+    def tiny(*, dtype: torch.dtype, batch: int, steps: int, seed: int) -> BenchCase:
+        case = builtin_case("kf", dtype, simulate_gpsdr(batch_size=batch, steps=steps, seed=seed, dtype=dtype), BenchSettings())
+        mask = torch.ones(case.measurements.shape[:2], dtype=torch.bool)
+        mask[:, 1] = False
+        return BenchCase(case.filter, case.measurements, case.initial_mean, case.initial_cov, mask)
+
+    cfg = _compose("benchmark.libraries=[difffilter,difffilter-fused]", "benchmark.filters=[kf,masked]", "benchmark.fused_engine=generated")
+    run_suite(cfg, tmp_path, log=lambda s: None, cases={"masked": tiny})
+    rows = read_rows(tmp_path / "benchmark.csv")
+    assert {(r["filter"], r["library"], r["mode"]) for r in rows} == {
+        (k, lib, m) for k in ("kf", "masked") for lib in ("difffilter", "difffilter-fused") for m in ("forward", "train")
+    }
+    agree = {a["filter"]: float(a["max_rel_diff"]) for a in read_rows(tmp_path / "agreement.csv") if a["peer"] == "difffilter-fused"}
+    assert set(agree) == {"kf", "masked"} and max(agree.values()) < 1e-12
+    with pytest.raises(ValueError, match="unknown"):
+        run_suite(_compose("benchmark.filters=[nope]"), tmp_path, log=lambda s: None)
 
 
 @pytest.mark.skipif(not HAS_JAX, reason="dynamax/jax not installed")
@@ -129,12 +153,14 @@ def test_benchmark_script_end_to_end(tmp_path: Path) -> None:
     """The Hydra entry point with every installed peer, the compile section and a memory subprocess."""
     cmd = [
         sys.executable, str(ROOT / "experiments" / "benchmark.py"), "benchmark=smoke", f"hydra.run.dir={tmp_path}",
-        "benchmark.compile.enabled=true", "benchmark.compile.filters=[ekf]", "benchmark.compile.batch_size=2",
-        "benchmark.compile.steps=3", "benchmark.memory.enabled=true",
+        "benchmark.compile.enabled=true", "benchmark.compile.filters=[kf]", "benchmark.compile.engines=[generated]",
+        "benchmark.compile.batch_size=2", "benchmark.compile.steps=3", "benchmark.memory.enabled=true",
     ]  # fmt: skip
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=1200, cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "## Throughput and memory" in (tmp_path / "results.md").read_text()
-    assert len(read_rows(tmp_path / "compile.csv")) == 3
+    compile_rows = read_rows(tmp_path / "compile.csv")
+    assert [r["start"] for r in compile_rows] == ["cold", "warm process"]
+    assert all(float(r["first_train_s"]) > 0 for r in compile_rows)
     mem = read_rows(tmp_path / "memory.csv")
     assert len(mem) == 1 and float(mem[0]["peak_rss_mb"]) > 0

@@ -207,7 +207,7 @@ def test_smartloc_learner_softens_the_gate_of_the_learned_copy_only() -> None:
     learner = smartloc_learner(copy.deepcopy(hand), "nll", gate_softness=0.2, start_params={"psi": 0.1}, learn=["psi", "gate_softness"])
     meas = learner.filter.model.measurement
     assert meas.soft_gate and float(meas.gate_softness.detach()) == pytest.approx(0.2)
-    assert meas.parametrizations.gate_softness.original.requires_grad
+    assert meas.robust_gate.parametrizations.gate_softness.original.requires_grad  # the gate lives in robust_gate
     assert float(learner.filter.psi[0].detach()) == pytest.approx(0.1)
     assert not hand.model.measurement.soft_gate and float(hand.psi[0].detach()) == 0.0
     assert smartloc_model(gate_softness=0.0).measurement.soft_gate is False

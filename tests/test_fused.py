@@ -13,7 +13,9 @@ import pytest
 import torch
 from torch import Tensor
 
+from difffilter.bench.cases import builtin_case
 from difffilter.bench.gpsdr import make_gpsdr_model, simulate_gpsdr
+from difffilter.bench.runner import BenchSettings
 from difffilter.filters import (
     EKF,
     RCUKF,
@@ -27,7 +29,7 @@ from difffilter.filters import (
     SquareRootUKF,
     fuse,
 )
-from difffilter.filters.fused import _chol
+from difffilter.filters.fused.step import cholesky_lower as _chol
 from difffilter.models import tracking_model
 from difffilter.models.base import DynamicsModel, MeasurementModel, StateSpaceModel, wrap_angle
 from difffilter.models.motion import Singer
@@ -156,7 +158,7 @@ def test_output_buffers_are_reused_only_when_no_result_holds_them() -> None:
             assert torch.equal(getattr(fourth, name), kept[name]), name
         fresh = FusedFilter(filt, compile=False, reuse_buffers=False)
         fresh(z, m0, p0, controls=u)
-        assert fresh._kept_outputs == []
+        assert fresh._inductor.buffers.kept == []
         _assert_same(fresh(z, m0, p0, controls=u), ref)
 
 
@@ -227,15 +229,21 @@ def test_branch_free_cholesky_clamps_only_the_bad_element() -> None:
 
 
 def test_unsupported_filters_and_bad_inputs_are_rejected() -> None:
+    """The batch-last (inductor and eager) engines refuse filters whose equations they do not
+    implement; the generated engine accepts any filter (it traces the filter's own step)."""
     model, z, u, m0, p0 = _range_bearing_data()
-    with pytest.raises(TypeError, match="FusedFilter supports"):
-        FusedFilter(SquareRootUKF(model))
-    with pytest.raises(TypeError, match="FusedFilter supports"):
-        FusedFilter(RCUKF(model))
-    with pytest.raises(TypeError, match="FusedFilter supports"):
+    for engine in ("inductor", "eager"):
+        with pytest.raises(TypeError, match="engine supports UKF"):
+            FusedFilter(SquareRootUKF(model), engine=engine)
+        with pytest.raises(TypeError, match="engine supports UKF"):
+            FusedFilter(RCUKF(model), engine=engine)
+        with pytest.raises(TypeError, match="engine supports UKF"):
+            FusedFilter(UKF(model, noise="augmented"), engine=engine)
+    with pytest.raises(TypeError, match="RecursiveFilter"):
         FusedFilter(torch.nn.Linear(2, 2))  # type: ignore[arg-type]
-    with pytest.raises(ValueError, match="noise='additive'"):
-        FusedFilter(UKF(model, noise="augmented"))
+    with pytest.raises(ValueError, match="engine must be one of"):
+        FusedFilter(UKF(model), engine="fast")
+    assert FusedFilter(RCUKF(model)).engine == "auto"
     fused = fuse(UKF(model), compile=False)
     with pytest.raises(ValueError, match=r"measurements must have shape \[B, T, 2\]"):
         fused(z[..., :1], m0, p0, controls=u)
@@ -283,15 +291,13 @@ class _no_fallback_warning:  # noqa: N801 - used as a context manager
 @pytest.mark.slow
 @pytest.mark.parametrize("kind", ["kf", "ekf", "ukf"])
 def test_compiled_benchmark_model_matches_reference(kind: str) -> None:
-    from difffilter.bench.runner import BenchSettings, _inputs, make_difffilter
-
-    data = simulate_gpsdr(batch_size=16, steps=40, seed=2)
-    filt = make_difffilter(kind, F64, BenchSettings())
-    z, m0, p0 = _inputs(kind, data)
+    """The inductor and generated engines on the benchmark model (the inductor build takes minutes)."""
+    case = builtin_case(kind, F64, simulate_gpsdr(batch_size=16, steps=40, seed=2), BenchSettings())
+    filt, z, m0, p0 = case.filter, case.measurements, case.initial_mean, case.initial_cov
     with torch.no_grad():
         ref = filt(z, m0, p0)
-        out = FusedFilter(filt)(z, m0, p0)
-    _assert_same(out, ref, rtol=1e-9)
+        for engine in ("inductor", "generated"):
+            _assert_same(FusedFilter(filt, engine=engine)(z, m0, p0), ref, rtol=1e-9)
 
 
 def test_gpsdr_model_fused_eager_equals_reference() -> None:
@@ -322,8 +328,8 @@ def test_learner_trains_through_the_fused_step() -> None:
         torch.testing.assert_close(gb, ga, rtol=1e-9, atol=1e-12)
     with pytest.raises(ValueError, match="fused must be"):
         FilterLearner(UKF(model), "nll", fused="yes")
-    with pytest.raises(TypeError, match="FusedFilter supports"):
-        FilterLearner(SquareRootUKF(model), "nll", fused=True)
+    with pytest.raises(TypeError, match="engine supports UKF"):
+        FilterLearner(SquareRootUKF(model), "nll", fused="eager")
 
 
 def test_nan_under_the_mask_reaches_no_gradient() -> None:

@@ -16,6 +16,7 @@ from difffilter.models.base import StateSpaceModel
 from difffilter.models.navigation.clock import ConstantVelocityClock, OdometryClockDynamics, clock_process_noise
 from difffilter.models.navigation.pseudorange import GnssStateLayout, PseudorangeMeasurement
 from difffilter.papers.p001 import make_p001_model, simulate_p001
+from difffilter.selection import named_raw_parameters
 
 F64 = torch.float64
 ORIGIN = geodetic_to_ecef(torch.tensor([math.radians(52.5), math.radians(13.37), 76.0], dtype=F64))
@@ -292,8 +293,9 @@ def test_soft_gate_position_gradient_matches_finite_differences() -> None:
         res = UKF(model)(z, sc.initial_mean, sc.initial_cov, controls=controls)
         return (res.mean[..., :2] - sc.truth[..., :2]).norm(dim=-1).mean()
 
+    raws = {k.rsplit(".", 1)[-1]: v[0] for k, v in named_raw_parameters(meas).items()}  # the gate lives in meas.robust_gate
     for name in ("noise_scale", "gate_softness"):
-        raw = meas.parametrizations[name].original
+        raw = raws[name]
         meas.zero_grad()
         loss().backward()
         auto = float(raw.grad)

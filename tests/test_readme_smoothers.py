@@ -3,26 +3,18 @@ the iterated EKF runs as written and produces what the text says."""
 
 from __future__ import annotations
 
-import re
-from pathlib import Path
-
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
+from .readme_snippets import readme_snippets, run_snippet
+
 HEADING = "### Smoothing, non-additive noise, multi-rate sensors, iterated EKF"
 
 
 def _snippets() -> list[str]:
-    text = (ROOT / "README.md").read_text()
-    start = text.index(HEADING)
-    end = text.index("\n#", start + len(HEADING))
-    return re.findall(r"```python\n(.*?)```", text[start:end], re.S)
+    return readme_snippets(HEADING)
 
 
-def _run(code: str) -> dict:
-    namespace: dict = {}
-    exec(compile(code, "README.md", "exec"), namespace)  # noqa: S102 - our own README
-    return namespace
+_run = run_snippet
 
 
 def test_section_has_one_snippet_per_capability():

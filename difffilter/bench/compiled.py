@@ -1,121 +1,94 @@
-"""Eager vs ``torch.compile`` of one filter step (predict + update), driven by a Python time loop.
+"""What FusedFilter's first call costs: a cold start (empty kernel caches) and a warm process
+start (a new process that finds the kernels built by an earlier one).
 
-Compiling ``RecursiveFilter.forward`` itself would unroll the whole ``T``-step loop into one
-graph (compile time grows with ``T``), so the experiment compiles the *step*: the same
-``predict``/``update`` the filter's loop calls, on a belief dict, for a fixed batch size.  Both
-variants run inside ``parametrize.cached()`` like ``forward`` does.  Graph breaks (e.g. the
-data-dependent ``bool(...)`` in ``safe_cholesky``) are counted with ``torch._dynamo.explain``.
+Each measurement runs in a fresh Python process, so nothing of the benchmark's own process
+(loaded libraries, traced programs) is reused: the first call is a forward (no gradient), the
+second a training step (log-likelihood and gradient), each on ``steps`` steps.  The generated
+engine keeps its kernels in ``DIFFFILTER_CACHE_DIR``, the inductor engine in
+``TORCHINDUCTOR_CACHE_DIR``; both point into one temporary directory per cold/warm pair.
+
+Run one measurement as a script (prints one JSON line)::
+
+    python -m difffilter.bench.compiled --kind ukf --engine generated --dtype float64 --batch 256
 """
 
 from __future__ import annotations
 
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
 import time
-import traceback
+from pathlib import Path
 from typing import Any
 
 import torch
-import torch._dynamo as dynamo
-from torch.nn.utils import parametrize
 
-from ..filters.base import RecursiveFilter
+from .cases import builtin_case, torch_runner
 from .gpsdr import simulate_gpsdr
-from .runner import DTYPES, BenchSettings, _inputs, make_difffilter
+from .runner import DTYPES, BenchSettings
 
-__all__ = ["compile_experiment"]
-
-
-def _step_fn(filt: RecursiveFilter):  # type: ignore[no-untyped-def]
-    def step(belief: dict[str, torch.Tensor], z: torch.Tensor) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
-        prior = filt.predict(belief, None)
-        post, info = filt.update(prior, z, None, None)
-        return filt.finalize_belief(post), info.log_likelihood
-
-    return step
+__all__ = ["compile_costs", "first_calls"]
 
 
-def _loop(filt, step, z: torch.Tensor, m0: torch.Tensor, p0: torch.Tensor, backward: bool, params: list[torch.Tensor]) -> float:  # type: ignore[no-untyped-def]
-    total = torch.zeros((), dtype=z.dtype)
-    with torch.set_grad_enabled(backward), parametrize.cached():
-        belief = filt.init_belief(m0.expand(z.shape[0], -1), p0.expand(z.shape[0], -1, -1))
-        for t in range(z.shape[1]):
-            belief, ll = step(belief, z[:, t])
-            total = total + ll.sum()
-    if backward:
-        for p in params:
-            p.grad = None
-        (-total).backward()
-    return float(total)
-
-
-def compile_experiment(
-    kind: str, *, batch: int, steps: int, dtype: str = "float64", mode: str = "default", seed: int = 0
-) -> list[dict[str, Any]]:
-    """Rows comparing ``filter.forward``, the eager step loop and the compiled step loop."""
+def first_calls(*, kind: str, engine: str, dtype: str, batch: int, steps: int, threads: int = 1, seed: int = 0) -> dict[str, Any]:
+    """Seconds of the first forward call and of the first training step after it, in this process."""
+    torch.set_num_threads(threads)
     dt = DTYPES[dtype]
-    s = BenchSettings()
-    filt = make_difffilter(kind, dt, s)
-    z, m0, p0 = _inputs(kind, simulate_gpsdr(batch_size=batch, steps=steps, seed=seed, dtype=dt))
-    params = [p for p in filt.parameters() if p.requires_grad]
-    rows: list[dict[str, Any]] = []
+    case = builtin_case(kind, dt, simulate_gpsdr(batch_size=batch, steps=steps, seed=seed, dtype=dt), BenchSettings())
+    t0 = time.perf_counter()
+    forward = torch_runner(case, "forward", fused=True, threads=threads, engine=engine)
+    forward()
+    t1 = time.perf_counter()
+    torch_runner(case, "train", runner=forward.runner)()  # the same wrapper, as a training script uses it
+    t2 = time.perf_counter()
+    return {"first_forward_s": t1 - t0, "first_train_s": t2 - t1, "total_s": t2 - t0}
 
-    def timed(fn) -> float:  # type: ignore[no-untyped-def]
-        t0 = time.perf_counter()
-        fn()
-        return time.perf_counter() - t0
 
-    def add(variant: str, fwd: float, fb: float, **kw: Any) -> None:
-        rows.append(
-            {
-                "filter": kind,
-                "dtype": dtype,
-                "B": batch,
-                "T": steps,
-                "variant": variant,
-                "forward_us_per_step": fwd / steps * 1e6,
-                "fwd+bwd_us_per_step": fb / steps * 1e6,
-                "compile_s": kw.get("compile_s", float("nan")),
-                "graph_breaks": kw.get("graph_breaks", ""),
-                "note": kw.get("note", ""),
-            }
-        )
+def _in_subprocess(cache: Path, timeout_s: float | None, **config: Any) -> dict[str, Any]:
+    args = [sys.executable, "-m", "difffilter.bench.compiled"]
+    for k, v in config.items():
+        args += [f"--{k.replace('_', '-')}", str(v)]
+    root = str(Path(__file__).resolve().parents[2])
+    env = dict(os.environ)
+    env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    env["DIFFFILTER_CACHE_DIR"] = str(cache / "difffilter")
+    env["TORCHINDUCTOR_CACHE_DIR"] = str(cache / "inductor")
+    t0 = time.perf_counter()
+    proc = subprocess.run(args, capture_output=True, text=True, timeout=timeout_s, env=env, cwd=root)
+    wall = time.perf_counter() - t0
+    if proc.returncode != 0:
+        raise RuntimeError(f"compile-cost subprocess failed ({proc.returncode}): {proc.stderr[-2000:]}")
+    out = json.loads(proc.stdout.strip().splitlines()[-1])
+    out["process_s"] = wall
+    return out
 
-    def fwd_module() -> None:
-        with torch.no_grad():
-            filt(z, m0, p0)
 
-    def fb_module() -> None:
-        for p in params:
-            p.grad = None
-        (-filt(z, m0, p0).log_likelihood.sum()).backward()
-
-    fwd_module()
-    add("filter.forward (eager)", min(timed(fwd_module) for _ in range(2)), min(timed(fb_module) for _ in range(2)))
-    eager = _step_fn(filt)
-    _loop(filt, eager, z, m0, p0, False, params)
-    add(
-        "step loop (eager)",
-        min(timed(lambda: _loop(filt, eager, z, m0, p0, False, params)) for _ in range(2)),
-        min(timed(lambda: _loop(filt, eager, z, m0, p0, True, params)) for _ in range(2)),
-    )
-    try:
-        dynamo.reset()
-        breaks = ""
-        try:
-            with parametrize.cached():
-                expl = dynamo.explain(eager)(filt.init_belief(m0.expand(batch, -1), p0.expand(batch, -1, -1)), z[:, 0])
-            breaks = f"{expl.graph_count} graphs, {expl.graph_break_count} breaks"
-            dynamo.reset()
-        except Exception as exc:  # noqa: BLE001 - explain is best-effort diagnostics
-            breaks = f"explain failed: {type(exc).__name__}"
-        compiled = torch.compile(eager, mode=mode, dynamic=False)
-        t0 = time.perf_counter()
-        _loop(filt, compiled, z[:, :2], m0, p0, False, params)
-        _loop(filt, compiled, z[:, :2], m0, p0, True, params)
-        compile_s = time.perf_counter() - t0
-        fwd = min(timed(lambda: _loop(filt, compiled, z, m0, p0, False, params)) for _ in range(2))
-        fb = min(timed(lambda: _loop(filt, compiled, z, m0, p0, True, params)) for _ in range(2))
-        add(f"step loop (torch.compile mode={mode})", fwd, fb, compile_s=compile_s, graph_breaks=breaks)
-    except Exception as exc:  # noqa: BLE001 - report any compiler failure instead of aborting the benchmark
-        tb = traceback.format_exception_only(type(exc), exc)[-1].strip()
-        add(f"step loop (torch.compile mode={mode})", float("nan"), float("nan"), note=f"FAILED: {tb[:300]}")
+def compile_costs(
+    kind: str, *, engine: str, dtype: str = "float64", batch: int = 256, steps: int = 20, threads: int = 1, timeout_s: float | None = 3600.0
+) -> list[dict[str, Any]]:
+    """Two rows: the cold start and the warm process start of ``FusedFilter(engine=engine)``."""
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="difffilter-compile-") as tmp:
+        for start in ("cold", "warm process"):
+            res = _in_subprocess(Path(tmp), timeout_s, kind=kind, engine=engine, dtype=dtype, batch=batch, steps=steps, threads=threads)
+            rows.append({"filter": kind, "engine": engine, "dtype": dtype, "B": batch, "start": start, **res})
     return rows
+
+
+def _main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--kind", default="ukf", choices=["kf", "ekf", "ukf", "imm"])
+    p.add_argument("--engine", default="generated")
+    p.add_argument("--dtype", default="float64", choices=list(DTYPES))
+    p.add_argument("--batch", type=int, default=256)
+    p.add_argument("--steps", type=int, default=20)
+    p.add_argument("--threads", type=int, default=1)
+    a = p.parse_args()
+    print(json.dumps(first_calls(kind=a.kind, engine=a.engine, dtype=a.dtype, batch=a.batch, steps=a.steps, threads=a.threads)))
+
+
+if __name__ == "__main__":
+    _main()

@@ -8,9 +8,10 @@ same log-likelihood (dynamax's UKF ``alpha, beta, kappa`` follow the same scaled
 
 Forward calls return dynamax's default posterior (filtered and predicted means/covariances plus
 the marginal log-likelihood), the counterpart of difffilter's ``FilterResult``;
-forward+backward calls are ``jax.value_and_grad`` of the summed marginal log-likelihood w.r.t.
-``(Q, R)``.  float64 runs enable ``jax_enable_x64``; float32 runs disable it so that no constant
-silently promotes the computation to float64.
+training calls are ``jax.value_and_grad`` of the summed marginal log-likelihood w.r.t.
+``log diag R`` (``Q`` fixed), difffilter's training step.  float64 runs enable
+``jax_enable_x64``; float32 runs disable it so that no constant silently promotes the
+computation to float64.
 """
 
 from __future__ import annotations
@@ -58,7 +59,7 @@ def prepare_dynamax(
 ) -> DynamaxRun:
     """Build and compile the dynamax ``kind`` (``kf``, ``ekf``, ``ukf``) run on ``data``.
 
-    ``mode`` is ``"forward"`` or ``"backward"`` (forward + gradient w.r.t. Q and R).
+    ``mode`` is ``"forward"`` or ``"train"`` (value and gradient w.r.t. ``log diag R``).
     """
     import jax
     import jax.numpy as jnp
@@ -129,13 +130,16 @@ def prepare_dynamax(
     batched = jax.vmap(single, in_axes=(None, None, 0, 0))
     if mode == "forward":
         fn = jax.jit(batched)
+        args = (Q0, R0, m0s, zs)
+    elif mode == "train":
+
+        def loss(log_r, m0, z):  # type: ignore[no-untyped-def]
+            return batched(Q0, jnp.diag(jnp.exp(log_r)), m0, z).marginal_loglik.sum()
+
+        fn = jax.jit(jax.value_and_grad(loss))
+        args = (jnp.log(jnp.diag(R0)), m0s, zs)
     else:
-
-        def loss(Q, R, m0, z):  # noqa: N803
-            return batched(Q, R, m0, z).marginal_loglik.sum()
-
-        fn = jax.jit(jax.value_and_grad(loss, argnums=(0, 1)))
-    args = (Q0, R0, m0s, zs)
+        raise ValueError(f"mode must be 'forward' or 'train', got {mode!r}")
     t0 = time.perf_counter()
     compiled = fn.lower(*args).compile()
     compile_s = time.perf_counter() - t0
@@ -146,6 +150,6 @@ def prepare_dynamax(
     ll_fn = jax.jit(lambda Q, R, m0, z: batched(Q, R, m0, z).marginal_loglik)  # noqa: N803
 
     def loglik() -> np.ndarray:
-        return np.asarray(ll_fn(*args), dtype=np.float64)
+        return np.asarray(ll_fn(Q0, R0, m0s, zs), dtype=np.float64)
 
     return DynamaxRun(run=run, compile_s=compile_s, loglik=loglik)

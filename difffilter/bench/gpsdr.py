@@ -14,7 +14,7 @@ walk scale.  Four nonlinear measurements (p000, with its [fix] of the odometer):
 
 The yaw rate is in deg/s (not rad/s) so that the drift state is O(1e-2) rather than O(1e-4),
 which keeps the covariance conditioning within reach of float32.  ``Q`` and ``R`` are
-learnable (full log-Cholesky) so that forward+backward timings differentiate w.r.t. ``Q``/``R``.
+learnable (full log-Cholesky by default; the benchmark trains a diagonal ``R`` only).
 
 Also here: a linear constant-velocity model (the KF case) and the scripted-truth simulator.
 The numpy/JAX twins of ``f``/``h`` used by the peers live in :mod:`difffilter.bench.filterpy_peer`
@@ -157,14 +157,21 @@ class GpsDrMeasurement(MeasurementModel):
 
 
 def make_gpsdr_model(
-    *, dtype: torch.dtype = torch.float64, q_scale: float = 1.0, analytic_jacobian: bool = True, structure: str = "full"
+    *,
+    dtype: torch.dtype = torch.float64,
+    q_scale: float = 1.0,
+    analytic_jacobian: bool = True,
+    structure: str = "full",
+    Q_structure: str | None = None,  # noqa: N803
+    R_structure: str | None = None,  # noqa: N803
 ) -> StateSpaceModel:
-    """The benchmark's p000 GPS/DR model (``Q`` multiplied by ``q_scale``, e.g. for IMM modes)."""
+    """The benchmark's p000 GPS/DR model (``Q`` multiplied by ``q_scale``, e.g. for IMM modes);
+    ``Q_structure``/``R_structure`` override ``structure`` for one matrix."""
     c = gpsdr_constants()
     f, q, r = gpsdr_matrices(c, dtype)
     return StateSpaceModel(
-        GpsDrDynamics(F=f, Q=q * q_scale, Q_structure=structure),
-        GpsDrMeasurement(R=r, dt=c.dt, R_structure=structure, analytic_jacobian=analytic_jacobian),
+        GpsDrDynamics(F=f, Q=q * q_scale, Q_structure=Q_structure or structure),
+        GpsDrMeasurement(R=r, dt=c.dt, R_structure=R_structure or structure, analytic_jacobian=analytic_jacobian),
     )
 
 
@@ -180,10 +187,16 @@ def cv_matrices(c: GpsDrConstants, dtype: torch.dtype = torch.float64) -> tuple[
     return f.to(dtype), h.to(dtype), q.to(dtype), r.to(dtype)
 
 
-def make_cv_model(*, dtype: torch.dtype = torch.float64, structure: str = "full") -> LinearModel:
+def make_cv_model(
+    *,
+    dtype: torch.dtype = torch.float64,
+    structure: str = "full",
+    Q_structure: str | None = None,
+    R_structure: str | None = None,  # noqa: N803
+) -> LinearModel:
     """Linear CV model on the GPS positions (the Kalman-filter case)."""
     f, h, q, r = cv_matrices(gpsdr_constants(), dtype)
-    return LinearModel(F=f, H=h, Q=q, R=r, Q_structure=structure, R_structure=structure)
+    return LinearModel(F=f, H=h, Q=q, R=r, Q_structure=Q_structure or structure, R_structure=R_structure or structure)
 
 
 @dataclass

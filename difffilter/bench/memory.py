@@ -27,24 +27,37 @@ from typing import Any
 
 import torch
 
+from ..filters import FusedFilter
 from ..filters.base import detach_belief
+from .cases import builtin_case
 from .gpsdr import simulate_gpsdr
-from .runner import DTYPES, BenchSettings, _inputs, make_difffilter
+from .runner import DTYPES, BenchSettings
 from .timing import MemoryProbe, read_status_mb
 
 __all__ = ["measure_training_memory", "training_step_memory"]
 
 
 def training_step_memory(
-    *, kind: str, dtype: str, steps: int, batch: int, window: int, threads: int = 2, max_windows: int | None = None, seed: int = 0
+    *,
+    kind: str,
+    dtype: str,
+    steps: int,
+    batch: int,
+    window: int,
+    threads: int = 2,
+    max_windows: int | None = None,
+    seed: int = 0,
+    engine: str = "reference",
 ) -> dict[str, Any]:
-    """Run one TBPTT training step in this process; return timings and memory (MiB)."""
+    """Run one TBPTT training step in this process; return timings and memory (MiB).
+
+    ``engine``: ``"reference"`` (the filter itself) or a :class:`FusedFilter` engine name."""
     torch.set_num_threads(threads)
     dt = DTYPES[dtype]
-    data = simulate_gpsdr(batch_size=batch, steps=steps, seed=seed, dtype=dt)
-    filt = make_difffilter(kind, dt, BenchSettings())
-    z, m0, p0 = _inputs(kind, data)
-    opt = torch.optim.Adam(filt.parameters(), lr=1e-3)
+    case = builtin_case(kind, dt, simulate_gpsdr(batch_size=batch, steps=steps, seed=seed, dtype=dt), BenchSettings())
+    filt = case.filter if engine == "reference" else FusedFilter(case.filter, engine=engine, threads=threads)
+    z, m0, p0 = case.measurements, case.initial_mean, case.initial_cov
+    opt = torch.optim.Adam([p for p in case.filter.parameters() if p.requires_grad], lr=1e-3)
     n_win = (steps + window - 1) // window
     if max_windows is not None:
         n_win = min(n_win, max_windows)
@@ -68,6 +81,7 @@ def training_step_memory(
     done = min(n_win * window, steps)
     return {
         "filter": kind,
+        "engine": engine,
         "dtype": dtype,
         "T": steps,
         "B": batch,
@@ -109,10 +123,12 @@ def _main() -> None:
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--max-windows", type=int, default=None)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--engine", default="reference")
     a = p.parse_args()
     out = training_step_memory(
-        kind=a.kind, dtype=a.dtype, steps=a.steps, batch=a.batch, window=a.window, threads=a.threads, max_windows=a.max_windows, seed=a.seed
-    )
+        kind=a.kind, dtype=a.dtype, steps=a.steps, batch=a.batch, window=a.window, threads=a.threads, max_windows=a.max_windows,
+        seed=a.seed, engine=a.engine,
+    )  # fmt: skip
     print(json.dumps(out))
 
 

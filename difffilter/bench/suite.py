@@ -10,7 +10,8 @@ from typing import Any
 
 from omegaconf import OmegaConf
 
-from .compiled import compile_experiment
+from .cases import CaseFactory
+from .compiled import compile_costs
 from .memory import measure_training_memory
 from .report import write_report
 from .runner import BenchSettings, _Bench, run_benchmark
@@ -35,26 +36,39 @@ def settings_from_config(cfg: Mapping[str, Any]) -> BenchSettings:
     return BenchSettings(**{k: v for k, v in cfg.items() if k in names})
 
 
-def run_suite(cfg: Mapping[str, Any], outdir: str | os.PathLike[str], *, command: str = "", log: Callable[[str], None] = print) -> str:
-    """Run the throughput cases, then the compile, smoother and memory sections if enabled; write
-    the report into ``outdir`` and return its markdown."""
+def run_suite(
+    cfg: Mapping[str, Any],
+    outdir: str | os.PathLike[str],
+    *,
+    command: str = "",
+    log: Callable[[str], None] = print,
+    cases: Mapping[str, CaseFactory] | None = None,
+) -> str:
+    """Run the throughput cases (``cases`` adds filter kinds beyond the built-in ones), then the
+    compile-cost, smoother and memory sections if enabled; write the report into ``outdir`` and
+    return its markdown."""
     cfg = dict(_plain(cfg))
     settings = settings_from_config(cfg)
-    report = run_benchmark(settings, log=log)
+    report = run_benchmark(settings, log=log, cases=cases)
     comp = cfg.get("compile") or {}
     if comp.get("enabled"):
         rows: list[dict[str, Any]] = []
-        for kind in comp.get("filters", ["ekf", "ukf"]):
-            log(f"torch.compile experiment: {kind}")
-            rows += compile_experiment(
-                kind, batch=int(comp.get("batch_size", 256)), steps=int(comp.get("steps", 100)), dtype=comp.get("dtype", "float64"),
-                mode=comp.get("mode", "default"), seed=settings.seed,
-            )  # fmt: skip
+        for kind in comp.get("filters", ["ukf"]):
+            for engine in comp.get("engines", ["generated"]):
+                log(f"first-call cost: {kind}, engine {engine}")
+                try:
+                    rows += compile_costs(
+                        kind, engine=engine, dtype=comp.get("dtype", "float64"), batch=int(comp.get("batch_size", 256)),
+                        steps=int(comp.get("steps", 20)), threads=int(comp.get("threads", 1)), timeout_s=comp.get("timeout_s"),
+                    )  # fmt: skip
+                except Exception as exc:  # noqa: BLE001 - one failed engine must not lose the others
+                    rows.append({"filter": kind, "engine": engine, "error": f"{type(exc).__name__}: {exc}"[:300]})
+                log(f"  -> {rows[-1]}")
         report.extra_tables["compile"] = rows
     smo = cfg.get("smoothers") or {}
     if smo.get("enabled"):
         log("smoothers beside their filters")
-        bench = _Bench(settings, log=lambda s: None)  # the throughput cases' data: same trajectories
+        bench = _Bench(settings, cases or {}, log=lambda s: None)  # the throughput cases' data: same trajectories
         largest = bench.base.measurements.shape[0]
         if max(smo.get("batch_sizes", settings.batch_sizes)) > largest:
             raise ValueError(f"benchmark.smoothers.batch_sizes must not exceed the largest benchmark batch size ({largest})")
@@ -75,6 +89,7 @@ def run_suite(cfg: Mapping[str, Any], outdir: str | os.PathLike[str], *, command
                         threads=settings.threads,
                         max_windows=c.get("max_windows", mem.get("max_windows")),
                         timeout_s=mem.get("timeout_s"),
+                        engine=c.get("engine", "reference"),
                     )  # fmt: skip
                 )
             except Exception as exc:  # noqa: BLE001 - one failed configuration must not lose the others

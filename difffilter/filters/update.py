@@ -15,7 +15,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
-from ..linalg import joseph_update, psd_sqrt, safe_cholesky, symmetrize
+from ..linalg import any_set, joseph_update, psd_sqrt, safe_cholesky, symmetrize
 from ._common import StepInfo, mask_measurement_system
 from .diffuse import DIFFUSE_COV, DIFFUSE_SCALE, diffuse_update
 from .protocol import Belief
@@ -101,7 +101,7 @@ def gaussian_update(
         post_var = torch.diagonal(new_cov, dim1=-2, dim2=-1)
         if joseph_fallback is None and sigma_fallback is None:
             untrusted = ~(post_var >= std_limit * prior_var).all(-1)
-        elif bool((post_var < switch * prior_var).any()):
+        elif any_set(post_var < switch * prior_var):
             lossy = (post_var < switch * prior_var).any(-1)
             gain = torch.linalg.solve_triangular(chol.mT, w, upper=True).mT  # K = W^T L^{-1}
             if joseph_fallback is not None:

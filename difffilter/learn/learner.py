@@ -93,9 +93,9 @@ class FilterLearner(EvaluationSteps, pl.LightningModule):
         state_index, truth_index: state/truth components for ``rmse_state`` and NEES.
         figure_every_n_epochs: validation figures every n epochs (0: never).
         max_logged_elements: larger parameters log only their diagonal / norm.
-        fused: run the filter through :class:`~difffilter.filters.FusedFilter` (the compiled,
-            batch-last step; same results, faster for UKF/EKF/KF): ``True`` compiles,
-            ``"eager"`` runs the fused step uncompiled, ``False`` (default) the filter itself.
+        fused: run the filter through :class:`~difffilter.filters.FusedFilter` (same results,
+            faster): ``True`` uses its default engine (generated kernels on CPU), ``"eager"``
+            runs the batch-last step uncompiled, ``False`` (default) the filter itself.
             Parameters, their names and checkpoints are the filter's either way.
         smoother: ``None``, ``"rts"``, ``"fixed_lag"`` or a mapping (see the module docstring);
             the smoother runs on the filter's result (also a fused one).

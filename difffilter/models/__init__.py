@@ -2,6 +2,16 @@
 configs and the state layout every model carries."""
 
 from .base import Controls, DynamicsModel, FunctionalModel, LinearModel, MeasurementModel, StateSpaceModel
+from .heteroscedastic import (
+    CN0Variance,
+    ElevationVariance,
+    HeteroscedasticMeasurement,
+    MonotoneVariance,
+    RobustGate,
+    ScaledVariance,
+    SideInformationVariance,
+    SumVariance,
+)
 from .layout import ModelDefaults, StateLayout, describe, model_defaults
 from .motion import ConstantAcceleration, ConstantVelocity, CurrentStatistical, Singer, singer_process_noise, singer_transition
 from .navigation import *  # noqa: F403
@@ -11,21 +21,29 @@ from .sensors import MultiSensorMeasurement, SensorGrid, align_streams, event_ti
 from .tracking import TimeInvariantDynamics, linear_measurement, tracking_model
 
 __all__ = [
+    "CN0Variance",
     "ConstantAcceleration",
     "ConstantVelocity",
     "Controls",
     "CurrentStatistical",
     "DynamicsModel",
+    "ElevationVariance",
     "FunctionalModel",
+    "HeteroscedasticMeasurement",
     "LinearModel",
     "MeasurementModel",
     "MultiSensorMeasurement",
     "NonAdditiveModel",
     "SensorGrid",
     "ModelDefaults",
+    "MonotoneVariance",
+    "RobustGate",
+    "ScaledVariance",
+    "SideInformationVariance",
     "Singer",
     "StateLayout",
     "StateSpaceModel",
+    "SumVariance",
     "align_streams",
     "event_times",
     "TimeInvariantDynamics",

@@ -23,15 +23,17 @@ absorbed by ``Q``) and attitude the exact rotation by ``(omega - b_g) T``.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import torch
 from torch import Tensor
 
-from ...linalg import block_diag
 from ..._util import control
+from ...linalg import block_diag
 from ...params import Bounded, Positive, register_constrained, register_covariance
 from ..base import Controls, DynamicsModel, MeasurementModel, StateSpaceModel, wrap_angle
 from ..layout import StateLayout, describe
+from .antenna import antenna_offset, has_antenna, planar_rotation, register_antenna
 from .quaternion import quaternion_multiply, quaternion_to_rotation, rotation_quaternion
 
 __all__ = [
@@ -272,6 +274,9 @@ class GnssMeasurement(MeasurementModel):
             learnable ``accuracy_exponent`` (``Bounded(-4, 4)``) and scales the position block by
             the receiver's reported accuracy ``u["gnss_accuracy"] [..., 1]`` (m):
             ``R_pp,k = R_pp (a_k / sigma_gnss)^(2 gamma)``; ``gamma = 0`` is the constant ``R``.
+        lever_arm, latency: optional antenna lever arm (body forward, left, up; m) and receiver
+            time offset (s), learnable by name: the position fix is ``p + C_nb l - latency v``
+            (:mod:`~difffilter.models.navigation.antenna`; the filters then differentiate ``h``).
     """
 
     def __init__(
@@ -285,6 +290,8 @@ class GnssMeasurement(MeasurementModel):
         sigma_heading: float = GNSS_IMU_PAPER["sigma_heading"],
         R_structure: str = "diagonal",  # noqa: N803
         accuracy_exponent: float | None = None,
+        lever_arm: Sequence[float] | None = None,
+        latency: float | None = None,
         dtype: torch.dtype | None = None,
     ) -> None:
         super().__init__()
@@ -301,6 +308,7 @@ class GnssMeasurement(MeasurementModel):
             if not abs(float(accuracy_exponent)) < 4.0:
                 raise ValueError(f"accuracy_exponent must lie in (-4, 4), got {accuracy_exponent}")
             register_constrained(self, "accuracy_exponent", torch.tensor(float(accuracy_exponent), dtype=s.dtype), Bounded(-4.0, 4.0))
+        register_antenna(self, lever_arm=lever_arm, latency=latency, dtype=s.dtype)
 
     def measurement_noise(self, x: Tensor, u: Controls = None) -> Tensor:
         if not self.scales_with_accuracy:
@@ -308,11 +316,24 @@ class GnssMeasurement(MeasurementModel):
         acc = control(u, "gnss_accuracy", "GnssMeasurement(accuracy_exponent=...)")[..., 0].to(self.R.dtype)
         factor = (acc / self.accuracy_reference) ** self.accuracy_exponent  # the position std's factor
         d = 2 if self.planar else 3
-        f = torch.cat([factor[..., None].expand(*factor.shape, d), torch.ones_like(factor)[..., None].expand(*factor.shape, self.measurement_dim - d)], -1)
+        ones = torch.ones_like(factor)[..., None].expand(*factor.shape, self.measurement_dim - d)
+        f = torch.cat([factor[..., None].expand(*factor.shape, d), ones], -1)
         return self.R * f[..., :, None] * f[..., None, :]
+
+    def _antenna(self, x: Tensor) -> Tensor:
+        """``C_nb l - latency v`` in the position's components."""
+        if self.planar:
+            rot = planar_rotation(math.pi / 2 - x[..., 4])  # body yaw from east = 90 deg - azimuth
+            vel = torch.cat([x[..., 2:4], torch.zeros_like(x[..., :1])], -1)
+            return antenna_offset(self, rot, vel)[..., :2]  # type: ignore[index]
+        q = x[..., 6:10]
+        return antenna_offset(self, quaternion_to_rotation(q / q.norm(dim=-1, keepdim=True)), x[..., 3:6])  # type: ignore[return-value]
 
     def forward(self, x: Tensor, u: Controls = None) -> Tensor:
         z = x[..., self._lin]
+        if has_antenna(self):
+            d = 2 if self.planar else 3
+            z = torch.cat([z[..., :d] + self._antenna(x), z[..., d:]], -1)
         if not self.heading:
             return z
         if self.planar:
@@ -332,7 +353,7 @@ class GnssMeasurement(MeasurementModel):
         return torch.cat([r[..., :-1], wrap_angle(r[..., -1:])], -1)
 
     def matrix(self, u: Controls = None) -> Tensor | None:
-        if self.heading and not self.planar:
+        if (self.heading and not self.planar) or has_antenna(self):
             return None
         n = 8 if self.planar else 16
         rows = self._lin + ([4] if self.heading else [])
@@ -353,6 +374,8 @@ class GnssImuModel(StateSpaceModel):
         velocity, heading: extra GNSS observations (see :class:`GnssMeasurement`).
         R_structure: learnable structure of ``R``.
         accuracy_exponent: see :class:`GnssMeasurement` (``None``: constant ``R``).
+        lever_arm, latency: optional learnable antenna lever arm and receiver time offset
+            (see :class:`GnssMeasurement`).
         **settings: overrides of :data:`GNSS_IMU_PAPER` (noise levels).
 
     Learnable: the four IMU noise levels (``Q``) and ``R``.
@@ -367,6 +390,8 @@ class GnssImuModel(StateSpaceModel):
         heading: bool = False,
         R_structure: str = "diagonal",  # noqa: N803
         accuracy_exponent: float | None = None,
+        lever_arm: Sequence[float] | None = None,
+        latency: float | None = None,
         dtype: torch.dtype | None = None,
         **settings: float,
     ) -> None:
@@ -382,6 +407,8 @@ class GnssImuModel(StateSpaceModel):
             sigma_heading=opts["sigma_heading"],
             R_structure=R_structure,
             accuracy_exponent=accuracy_exponent,
+            lever_arm=lever_arm,
+            latency=latency,
             dtype=dtype,
         )
         super().__init__(cls(dt=dt, dtype=dtype, **noise), measurement)

@@ -16,16 +16,18 @@ away from the receiver and mark them False in the filter's per-component mask ``
 
 from __future__ import annotations
 
-import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from ... import geometry as geo
 from ..._util import control
-from ...params import Positive, register_constrained, register_covariance, remove_constrained
+from ...params import Positive, register_constrained, register_covariance
 from ..base import Controls, MeasurementModel
+from ..heteroscedastic import RobustGate
+from .antenna import antenna_offset, has_antenna, planar_rotation, register_antenna
 
 __all__ = ["GnssStateLayout", "PseudorangeMeasurement"]
 
@@ -44,6 +46,7 @@ class GnssStateLayout:
     clock_bias: int = 6
     clock_drift: int | None = 7
     isb: int | None = None
+    yaw: int | None = None
 
     @classmethod
     def constant_velocity(cls, *, isb: bool = False) -> GnssStateLayout:
@@ -53,11 +56,7 @@ class GnssStateLayout:
     @classmethod
     def odometry(cls, *, isb: bool = True) -> GnssStateLayout:
         """``[E, N, U, yaw, clock bias, clock drift(, ISB)]`` (smartLoc with odometry)."""
-        return cls(state_dim=7 if isb else 6, velocity=None, clock_bias=4, clock_drift=5, isb=6 if isb else None)
-
-
-_LOG_REJECT = math.log(1e6)  # the reject gate's variance factor 1e6, as a logarithm
-_MIN_GATE_SOFTNESS = 1e-3
+        return cls(state_dim=7 if isb else 6, velocity=None, clock_bias=4, clock_drift=5, isb=6 if isb else None, yaw=3)
 
 
 def _get(u: Controls, key: str) -> Tensor:
@@ -77,15 +76,26 @@ class PseudorangeMeasurement(MeasurementModel):
 
     Frames: with ``frame_origin=None`` positions are absolute ECEF.  With an ECEF
     ``frame_origin [3]`` they are relative to it, along ECEF axes (``frame="ecef"``) or local ENU
-    axes (``frame="enu"``); ``u["sat_pos"]`` must be in the same frame.  ``reduced=True``
+    axes (``frame="enu"``); ``u["sat_pos"]`` must be in the same frame.  Per-step inputs
+    ``u["frame_origin"] [..., 3]`` and ``u["frame_rotation"] [..., 3, 3]`` (rows: frame axes in
+    ECEF) override them per trajectory (one batch holding drives with different local frames).  ``reduced=True``
     predicts ``rho_j - ||s_j||`` (range from the frame origin removed; the data must be reduced
     the same way in float64), computed as ``(|p|^2 - 2 s.p) / (|s - p| + |s|)``: float32 then
     keeps millimetres instead of the ~2 m spacing of float32 numbers near 2e7 m.
 
+    Antenna (:mod:`~difffilter.models.navigation.antenna`, odometry layouts in an ENU frame):
+    ``lever_arm`` (body forward, left, up; m) and ``latency`` (receiver time offset, s) move the
+    measured position to ``p + C(yaw) l - latency v``, ``v`` the odometry velocity
+    (``u["speed"]`` along the yaw); both are learnable by name when given.
+
     Noise: ``R = sigma^2 I`` registered with ``R_structure`` (default ``"scalar"``: one learnable
     level, since a slot is not tied to one satellite), or, with ``noise_from_data=True``,
-    ``R = noise_scale * diag(u["pr_var"](, u["prr_var"]))`` with learnable ``noise_scale``.
-    The Jacobian is analytic.
+    ``R = noise_scale * diag(u["pr_var"](, u["prr_var"]))`` with learnable ``noise_scale``, or,
+    with ``noise_model`` (a variance module of :mod:`difffilter.models.heteroscedastic`, e.g.
+    ``ElevationVariance(groups=2)`` reading ``u["elevation"]``, ``u["constellation"]``),
+    ``R = diag(noise_model(u))`` (pseudoranges only).  ``robust`` adds the outlier gate
+    :attr:`robust_gate` (a :class:`~difffilter.models.heteroscedastic.RobustGate`, see
+    :meth:`robust_inflation`).  The Jacobian is analytic.
     """
 
     def __init__(
@@ -106,13 +116,18 @@ class PseudorangeMeasurement(MeasurementModel):
         gate: float = 3.0,
         gate_floor: float = 0.0,
         gate_softness: float | None = None,
+        gate_learnable: bool = False,
+        noise_model: nn.Module | None = None,
+        lever_arm: Sequence[float] | None = None,
+        latency: float | None = None,
         dtype: torch.dtype = torch.float64,
     ) -> None:
         super().__init__()
         if robust not in (None, "huber", "reject"):
             raise ValueError(f"robust must be None, 'huber' or 'reject', got {robust!r}")
-        self.robust, self.gate, self.gate_floor = robust, float(gate), float(gate_floor)
-        self.soft_gate = False
+        if noise_model is not None and (rates or noise_from_data):
+            raise ValueError("noise_model gives the pseudorange variances: it excludes rates=True and noise_from_data=True")
+        self.robust = robust
         if rates and layout.velocity is None:
             raise ValueError("pseudorange rates need a velocity in the state layout")
         if frame not in ("ecef", "enu"):
@@ -135,41 +150,93 @@ class PseudorangeMeasurement(MeasurementModel):
         var = torch.full((k,), sigma_range**2, dtype=dtype)
         if rates:
             var = torch.cat([var, torch.full((k,), sigma_rate**2, dtype=dtype)])
+        self.noise_model = noise_model
         if noise_from_data:
             register_covariance(self, "R", torch.diag(var), "fixed")
             register_constrained(self, "noise_scale", torch.ones((), dtype=dtype), Positive(1e-6))
         else:
-            register_covariance(self, "R", torch.diag(var), R_structure)
+            register_covariance(self, "R", torch.diag(var), "fixed" if noise_model is not None else R_structure)
+        if (lever_arm is not None or latency is not None) and (frame != "enu" or layout.yaw is None):
+            raise ValueError("lever_arm and latency need an ENU frame and a yaw state (GnssStateLayout.odometry)")
+        if latency is not None and rates:
+            raise ValueError("latency is not modelled for pseudorange rates")
+        register_antenna(self, lever_arm=lever_arm, latency=latency, dtype=dtype)
+        self.robust_gate = None if robust is None else RobustGate(kind=robust, threshold=gate, floor=gate_floor, dtype=dtype)
         self.set_gate_softness(gate_softness)
+        if gate_learnable:
+            self.set_gate_learnable(True)
+
+    @property
+    def soft_gate(self) -> bool:
+        """Whether the reject gate is the smooth one."""
+        return self.robust_gate is not None and self.robust_gate.soft
+
+    @property
+    def gate_softness(self) -> Tensor:
+        """The smooth gate's temperature (only when :attr:`soft_gate`)."""
+        if not self.soft_gate:
+            raise AttributeError("gate_softness exists only with the smooth gate (set_gate_softness(t > 0))")
+        return self.robust_gate.gate_softness  # type: ignore[union-attr]
 
     def set_gate_softness(self, value: float | None) -> None:
         """Hard (``None`` or ``0``) or smooth (``value > 0``) reject gate, see :meth:`robust_inflation`.
 
-        A smooth gate registers ``gate_softness`` (its temperature, in units of the normalised
-        residual ``n``) as a constrained parameter (``0.001 + softplus(raw)``), which ``learn:``
-        may select by name; the hard gate has no such parameter (the module is then exactly the
-        one built without the option).
+        A smooth gate registers ``robust_gate.gate_softness`` (its temperature, in units of the
+        normalised residual ``n``) as a constrained parameter (``0.001 + softplus(raw)``), which
+        ``learn: [gate_softness]`` selects; the hard gate has no such parameter.
         """
         if value is None or float(value) == 0.0:
-            if self.soft_gate:
-                remove_constrained(self, "gate_softness")
-            self.soft_gate = False
+            if self.robust_gate is not None:
+                self.robust_gate.set_softness(None)
             return
         if self.robust != "reject":
             raise ValueError(f"gate_softness needs robust='reject', got robust={self.robust!r}")
-        if not float(value) > _MIN_GATE_SOFTNESS:
-            raise ValueError(f"gate_softness must be None, 0 or > {_MIN_GATE_SOFTNESS}, got {value!r}")
-        dtype = self.frame_rotation.dtype
-        register_constrained(self, "gate_softness", torch.tensor(float(value), dtype=dtype), Positive(_MIN_GATE_SOFTNESS))
-        self.soft_gate = True
+        self.robust_gate.set_softness(value, dtype=self.frame_rotation.dtype)  # type: ignore[union-attr]
+
+    def set_gate_learnable(self, flag: bool) -> None:
+        """Make the smooth gate's threshold and floor learnable (``gate_threshold``, ``gate_floor``)."""
+        if self.robust_gate is None:
+            raise ValueError("a learnable gate needs robust='reject'")
+        self.robust_gate.set_learnable(flag)
 
     # -- pieces -----------------------------------------------------------------------------
     def _geometry(self, x: Tensor, u: Controls) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         s = _get(u, "sat_pos")
         p = x[..., list(self.layout.position)]
+        if has_antenna(self):
+            rot, vel = self._attitude_velocity(x, u)
+            p = p + antenna_offset(self, rot, vel)
         diff = p[..., None, :] - s  # [..., K, 3]
         rng = torch.linalg.vector_norm(diff, dim=-1)
         return p, s, diff, rng
+
+    def _attitude_velocity(self, x: Tensor, u: Controls) -> tuple[Tensor, Tensor]:
+        """Body attitude (rotation by the yaw state) and velocity (odometry speed along the yaw)."""
+        yaw = x[..., self.layout.yaw]
+        speed = _get(u, "speed")[..., 0].to(x.dtype) if "latency" in self.antenna_terms else torch.zeros_like(yaw)
+        vel = torch.stack([speed * torch.cos(yaw), speed * torch.sin(yaw), torch.zeros_like(yaw * speed)], -1)
+        return planar_rotation(yaw), vel
+
+    def _antenna_yaw_derivative(self, x: Tensor, u: Controls) -> Tensor:
+        """``d(antenna offset)/d yaw`` ``[..., 3]``."""
+        yaw = x[..., self.layout.yaw]
+        c, sn = torch.cos(yaw), torch.sin(yaw)
+        out = torch.zeros(*yaw.shape, 3, dtype=x.dtype, device=x.device)
+        if "lever_arm" in self.antenna_terms:
+            arm = self.lever_arm.to(x.dtype)
+            out = out + torch.stack([-sn * arm[0] - c * arm[1], c * arm[0] - sn * arm[1], torch.zeros_like(c)], -1)
+        if "latency" in self.antenna_terms:
+            speed = _get(u, "speed")[..., 0].to(x.dtype)
+            out = out - self.latency.to(x.dtype) * torch.stack([-speed * sn, speed * c, torch.zeros_like(c * speed)], -1)
+        return out
+
+    def _frame(self, u: Controls, like: Tensor) -> tuple[Tensor, Tensor]:
+        """Frame origin ``[..., 3]`` and rotation ``[..., 3, 3]``: per trajectory from
+        ``u["frame_origin"]`` / ``u["frame_rotation"]`` when given (batches pooling drives with
+        their own ENU frames), else the constructor's."""
+        if isinstance(u, dict) and "frame_origin" in u:
+            return u["frame_origin"].to(like.dtype), control(u, "frame_rotation").to(like.dtype)
+        return self.frame_origin, self.frame_rotation
 
     def _isb_flags(self, u: Controls, like: Tensor) -> Tensor:
         return _get(u, "glonass").to(like.dtype)
@@ -184,8 +251,9 @@ class PseudorangeMeasurement(MeasurementModel):
         else:
             rho = rng
         if self.sagnac:
-            pe = self.frame_origin + p @ self.frame_rotation
-            se = self.frame_origin + s @ self.frame_rotation
+            origin, rot = self._frame(u, x)
+            pe = origin + (p[..., None, :] @ rot)[..., 0, :]
+            se = origin[..., None, :] + s @ rot
             rho = rho + (geo.EARTH_RATE / geo.SPEED_OF_LIGHT) * (se[..., 0] * pe[..., None, 1] - se[..., 1] * pe[..., None, 0])
         rho = rho + x[..., lay.clock_bias, None]
         if lay.isb is not None:
@@ -209,10 +277,14 @@ class PseudorangeMeasurement(MeasurementModel):
         jac = x.new_zeros(*batch, self.measurement_dim, x.shape[-1])
         dpos = e
         if self.sagnac:
-            se = self.frame_origin + s @ self.frame_rotation
+            origin, rot = self._frame(u, x)
+            se = origin[..., None, :] + s @ rot
             g = (geo.EARTH_RATE / geo.SPEED_OF_LIGHT) * torch.stack([-se[..., 1], se[..., 0], torch.zeros_like(se[..., 0])], -1)
-            dpos = dpos + g @ self.frame_rotation.mT
+            dpos = dpos + g @ rot.mT
         jac[..., :k, list(lay.position)] = dpos
+        if has_antenna(self):
+            d_yaw = (dpos * self._antenna_yaw_derivative(x, u)[..., None, :]).sum(-1)
+            jac[..., :k, lay.yaw] = jac[..., :k, lay.yaw] + d_yaw
         jac[..., :k, lay.clock_bias] = 1.0
         if lay.isb is not None:
             jac[..., :k, lay.isb] = self._isb_flags(u, x).expand(*batch, k)
@@ -228,7 +300,9 @@ class PseudorangeMeasurement(MeasurementModel):
         return jac
 
     def measurement_noise(self, x: Tensor, u: Controls = None) -> Tensor:
-        if not self.noise_from_data:
+        if self.noise_model is not None:
+            r = torch.diag_embed(self.noise_model(u, x))
+        elif not self.noise_from_data:
             r = self.R
         else:
             var = _get(u, "pr_var")
@@ -240,32 +314,19 @@ class PseudorangeMeasurement(MeasurementModel):
         return self.robust_inflation(x, u, r)
 
     def robust_inflation(self, x: Tensor, u: Controls, r: Tensor) -> Tensor:
-        """Outlier gate by noise inflation (option ``robust``): ``R_ii <- f_i R_ii``.
+        """Outlier gate by noise inflation (option ``robust``): ``R_ii <- f_i R_ii`` by
+        :attr:`robust_gate` (:meth:`~difffilter.models.heteroscedastic.RobustGate.inflate`).
 
         ``n_i = |z_i - h_i(x)| / sqrt(R_ii + gate_floor^2)`` with the observed pseudoranges
         ``u["pr_obs"] [..., K]`` and ``x`` the prior mean the filter passes in; ``"huber"``:
-        ``f = max(1, n / gate)`` (the Huber M-estimator's weight ``gate / n`` as a variance
-        factor), ``"reject"``: ``f = 1e6`` when ``n > gate`` (a chi-square gate with one degree
-        of freedom that keeps shapes fixed).  ``gate_floor`` (m) allows for the prior position
-        uncertainty, which ``R`` alone ignores.
-
-        With ``gate_softness = t > 0`` (``"reject"`` only) the step is smoothed:
-        ``f = 1e6 ** sigmoid((n - gate) / t)``, which tends to the hard gate as ``t -> 0`` and is
-        differentiable in ``n``, so path-wise gradients (e.g. of a position loss) also see a range
-        moving across the gate (with the step they see only the smooth pieces between switches).
+        ``f = max(1, n / gate)``, ``"reject"``: ``f = 1e6`` when ``n > gate``.  ``gate_floor`` (m)
+        allows for the prior position uncertainty, which ``R`` alone ignores.  With
+        ``gate_softness = t > 0`` (``"reject"`` only) the step is smoothed,
+        ``f = 1e6 ** sigmoid((n - gate) / t)``, differentiable in ``n`` (so path-wise gradients
+        also see a range moving across the gate) and, with ``gate_learnable``, in the threshold
+        and floor.  Rate components are never inflated.
         """
         k = self.num_satellites
         z = _get(u, "pr_obs").to(x.dtype)
         res = z - self.forward(x, u)[..., :k]
-        var = torch.diagonal(r, dim1=-2, dim2=-1)[..., :k]
-        n = res.abs() / torch.sqrt(var + self.gate_floor**2)
-        if self.robust == "huber":
-            f = torch.clamp(n / self.gate, min=1.0)
-        elif self.soft_gate:
-            f = torch.exp(_LOG_REJECT * torch.sigmoid((n - self.gate) / self.gate_softness))  # 1e6 ** sigmoid(...)
-        else:
-            f = torch.where(n > self.gate, torch.full_like(n, 1e6), torch.ones_like(n))
-        if self.rates:
-            f = torch.cat([f, torch.ones_like(f)], -1)
-        d = torch.sqrt(f)
-        return r * d[..., :, None] * d[..., None, :]
+        return self.robust_gate.inflate(r, res)  # type: ignore[union-attr]

@@ -3,7 +3,7 @@ VEHICULAR 2016): the data loader, the snapshot least-squares baseline, the odome
 pseudorange model, synthetic drives on the real geometry, the experiment set-up
 (``experiment=smartloc_real``), its filters and the paired block-bootstrap comparison."""
 
-from .data import SmartLocBatch, SmartLocData, default_smartloc_path, load_smartloc
+from .data import SmartLocBatch, SmartLocData, default_smartloc_path, find_drives, load_drive, load_smartloc
 from .experiment import SmartLocTrajectories, smartloc_learner, smartloc_model, smartloc_simulator, smartloc_synthetic_simulator
 from .filters import Shared, SharedPsiColoredUKF, SnapshotWLS
 from .model import make_smartloc_model, smartloc_initial_belief
@@ -24,6 +24,8 @@ __all__ = [
     "calibrate_error_model",
     "compare",
     "default_smartloc_path",
+    "find_drives",
+    "load_drive",
     "load_smartloc",
     "make_smartloc_model",
     "simulate_smartloc_drives",

@@ -18,7 +18,9 @@ coupled EKF in :mod:`difffilter.papers.smartloc.model`.
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
+import warnings
+from collections.abc import Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -26,11 +28,15 @@ import torch
 from torch import Tensor
 
 from ... import geometry as geo
+from ...models.sensors import event_times
+from .librsf import Records, read_records
 
-__all__ = ["SmartLocBatch", "SmartLocData", "default_smartloc_path", "load_smartloc"]
+__all__ = ["SmartLocBatch", "SmartLocData", "default_smartloc_path", "find_drives", "load_drive", "load_smartloc"]
 
 _INPUT = "Berlin_Potsdamer_Platz_Input.txt"
 _TRUTH = "Berlin_Potsdamer_Platz_GT.txt"
+#: GNSS systems as libRSF numbers them, in the order of their group index (``constellation``).
+SYSTEMS = {1: "GPS", 4: "GLONASS", 8: "Galileo", 32: "BeiDou", 16: "QZSS", 2: "SBAS"}
 
 
 def default_smartloc_path() -> Path:
@@ -76,6 +82,9 @@ class SmartLocData:
         elevation, cn0: ``[T, K]`` degrees and dB-Hz.
         speed, yaw_rate: ``[T]`` odometry (m/s, rad/s, positive = left turn).
         origin_ecef, origin_llh: ``[3]`` ENU origin; rotation ``[3, 3]`` (``enu = C (ecef - o)``).
+        name: the drive's name (its input file's stem).
+        systems: the GNSS systems kept, in the order of their group index :attr:`constellation`.
+        issues: counts of what the loader skipped (``{what: count}``), also given as warnings.
     """
 
     times: Tensor
@@ -97,6 +106,17 @@ class SmartLocData:
     origin_ecef: Tensor
     origin_llh: Tensor
     rotation: Tensor
+    name: str = "drive"
+    systems: tuple[int, ...] = (1, 4)
+    issues: dict[str, int] = field(default_factory=dict)
+
+    @property
+    def constellation(self) -> Tensor:
+        """``[T, K]`` group index of each slot's system in :attr:`systems` (0 in empty slots)."""
+        out = torch.zeros_like(self.system)
+        for i, sys_id in enumerate(self.systems):
+            out = torch.where(self.system == sys_id, i, out)
+        return out
 
     @property
     def num_epochs(self) -> int:
@@ -140,6 +160,9 @@ class SmartLocData:
             "glonass": self.glonass.to(torch.float64),
             "pr_var": self.pr_var,
             "pr_obs": z,
+            "elevation": self.elevation,
+            "cn0": self.cn0,
+            "constellation": self.constellation.to(torch.float64),
             "speed": (0.5 * (self.speed + prev))[:, None],
             "yaw_rate": (0.5 * (self.yaw_rate + prev_w))[:, None],
             "dt": self.dt[:, None],
@@ -177,38 +200,125 @@ class SmartLocData:
         )
 
 
-def _read(path: Path) -> list[list[str]]:
-    with open(path) as fh:
-        return [line.split() for line in fh if line.strip()]
+def find_drives(folder: str | Path) -> list[tuple[str, str]]:
+    """``[(input file, reference file)]`` of the drives in ``folder``: every ``<name>_Input.txt``
+    with a ``<name>_GT.txt`` beside it (sorted by name)."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise FileNotFoundError(f"{folder}: no such folder (a folder of libRSF drives <name>_Input.txt + <name>_GT.txt)")
+    out = []
+    for inp in sorted(folder.glob("*_Input.txt")):
+        gt = inp.name[: -len("_Input.txt")] + "_GT.txt"
+        if (folder / gt).is_file():
+            out.append((inp.name, gt))
+    if not out:
+        raise FileNotFoundError(f"{folder}: no drive found (files <name>_Input.txt with <name>_GT.txt)")
+    return out
 
 
-def load_smartloc(path: str | Path | None = None, *, slots: str = "epoch") -> SmartLocData:
-    """Load the Berlin Potsdamer Platz drive.
+def _warn(data_issues: dict[str, int], key: str, count: int, message: str) -> None:
+    if count:
+        data_issues[key] = int(count)
+        warnings.warn(message, stacklevel=3)
+
+
+def _check_unique(inp: Records, pr: np.ndarray) -> None:
+    """Each (epoch, satellite) once: a repeated pair is an error naming its second line."""
+    order = np.lexsort((pr[:, 6], pr[:, 0]))
+    same = (np.diff(pr[order, 0]) == 0) & (np.diff(pr[order, 6]) == 0)
+    if same.any():
+        row = int(order[1:][same][0])
+        raise ValueError(f"{inp.where('pseudorange3', row)}: satellite {int(pr[row, 6])} appears twice at time {pr[row, 0]}")
+
+
+def _interp(times: np.ndarray, t: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """``values [N, d]`` at ``t [N]`` linearly interpolated to ``times`` (exact where they agree)."""
+    return np.stack([np.interp(times, t, values[:, j]) for j in range(values.shape[1])], -1)
+
+
+def load_drive(
+    folder: str | Path,
+    *,
+    input_file: str = _INPUT,
+    truth_file: str = _TRUTH,
+    slots: str = "epoch",
+    systems: Sequence[int] = (1, 4),
+    min_satellites: int = 4,
+) -> SmartLocData:
+    """Load one drive in the libRSF text format: ``folder/input_file`` (``pseudorange3`` and
+    ``odom3`` lines) and ``folder/truth_file`` (``point3`` reference positions).
+
+    The filter's steps are the times at which any sensor reports (the union of the pseudorange
+    epochs and the odometry times): a step without pseudoranges only predicts (its mask is
+    False), odometry and reference are interpolated linearly to the steps (exact where their
+    time stamps are the steps', as in the smartLoc drives); nothing shifts a time stamp.
 
     Args:
-        path: folder with ``Berlin_Potsdamer_Platz_Input.txt`` and ``..._GT.txt`` (default
-            :func:`default_smartloc_path`).
-        slots: ``"epoch"`` (K = most satellites in an epoch, 17, slots filled in satellite-id
-            order) or ``"satellite"`` (one fixed slot per satellite id for the whole drive).
+        folder: the drive's folder.
+        input_file, truth_file: file names in it.
+        slots: ``"epoch"`` (K = most satellites in an epoch, slots filled in satellite-id order) or
+            ``"satellite"`` (one fixed slot per satellite id for the whole drive).
+        systems: the GNSS systems used (libRSF numbers, default GPS and GLONASS, the systems the
+            model's single inter-system bias covers); the group index ``constellation`` follows
+            this order.  Pseudoranges of other systems are skipped with a counted warning.
+        min_satellites: epochs with fewer usable pseudoranges are not used for updates (their
+            slots are masked) and counted in a warning; odometry still predicts through them.
+
+    Raises:
+        FileNotFoundError: a missing folder or file.
+        ValueError: malformed lines, time stamps that go back, a satellite twice in one epoch, a
+            reference track that does not cover the drive's time span (messages name file and line).
     """
-    folder = Path(path) if path is not None else default_smartloc_path()
-    if not (folder / _INPUT).exists():
-        raise FileNotFoundError(f"smartLoc data not found in {folder} (set DIFFFILTER_SMARTLOC)")
+    folder = Path(folder)
     if slots not in ("epoch", "satellite"):
         raise ValueError(f"slots must be 'epoch' or 'satellite', got {slots!r}")
-    rows = _read(folder / _INPUT)
-    odom = np.array([[float(v) for v in r[1:8]] for r in rows if r[0] == "odom3"])
-    pr = np.array([[float(v) for v in r[1:11]] for r in rows if r[0] == "pseudorange3"])
-    gt = np.array([[float(v) for v in r[1:5]] for r in _read(folder / _TRUTH) if r[0] == "point3"])
-    times = np.unique(pr[:, 0])
+    unknown = sorted(set(int(s) for s in systems) - set(SYSTEMS))
+    if unknown or not systems:
+        raise ValueError(f"systems must be libRSF system numbers {sorted(SYSTEMS)}, got {list(systems)}")
+    if not folder.is_dir():
+        raise FileNotFoundError(f"{folder}: no such folder")
+    inp = read_records(folder / input_file, {"pseudorange3": 11, "odom3": 8}, role="input (pseudorange3 + odom3)")
+    ref = read_records(folder / truth_file, {"point3": 5}, role="reference (point3)")
+    pr, odom, gt = inp.values["pseudorange3"], inp.values["odom3"], ref.values["point3"]
+    for rec, kind, arr in ((inp, "pseudorange3", pr), (inp, "odom3", odom), (ref, "point3", gt)):
+        if len(arr) == 0:
+            raise ValueError(f"{rec.path}: no {kind} line")
+    issues: dict[str, int] = {}
+    for kind, count in {**inp.skipped, **ref.skipped}.items():
+        _warn(issues, f"skipped {kind} lines", count, f"{folder}: {count} {kind} lines skipped (record type not read)")
+    _check_unique(inp, pr)
+    systems = tuple(int(s) for s in systems)
+    keep = np.isin(pr[:, 7].astype(np.int64), systems)
+    _warn(
+        issues,
+        "pseudoranges of other systems",
+        int((~keep).sum()),
+        f"{inp.path}: {int((~keep).sum())} pseudoranges of systems other than {systems} skipped",
+    )
+    pr = pr[keep]
+    # the filter's steps: every time a sensor reports (odometry at its own rate only predicts)
+    streams = {
+        "gnss": (torch.from_numpy(pr[:, 0]), torch.empty(len(pr), 0)),
+        "odometry": (torch.from_numpy(odom[:, 0]), torch.empty(len(odom), 0)),
+    }
+    times = event_times(streams).numpy()
+    for rec, kind, t in ((ref, "point3", gt[:, 0]), (inp, "odom3", odom[:, 0])):
+        if t[0] > times[0] or t[-1] < times[-1]:
+            raise ValueError(f"{rec.path}: the {kind} time stamps [{t[0]}, {t[-1]}] do not cover the drive's [{times[0]}, {times[-1]}]")
     epoch_of = np.searchsorted(times, pr[:, 0])
-    odom = odom[np.argsort(odom[:, 0], kind="stable")]
-    gt = gt[np.argsort(gt[:, 0], kind="stable")]
-    if not (np.array_equal(odom[:, 0], times) and np.array_equal(gt[:, 0], times)):
-        raise ValueError("odometry, pseudorange and reference time stamps differ")
     sat_ids = pr[:, 6].astype(np.int64)
     order = np.lexsort((sat_ids, epoch_of))
     pr, epoch_of, sat_ids = pr[order], epoch_of[order], sat_ids[order]
+    counts = np.bincount(epoch_of, minlength=len(times))
+    few = (counts > 0) & (counts < int(min_satellites))
+    first_few = times[few][0] if few.any() else 0.0
+    _warn(
+        issues,
+        f"epochs with fewer than {min_satellites} satellites",
+        int(few.sum()),
+        f"{inp.path}: {int(few.sum())} epochs with fewer than {min_satellites} satellites (first at t = {first_few}): "
+        "their pseudoranges are not used",
+    )
     if slots == "epoch":
         first = np.searchsorted(epoch_of, epoch_of, side="left")
         slot = np.arange(len(pr)) - first
@@ -221,8 +331,9 @@ def load_smartloc(path: str | Path | None = None, *, slots: str = "epoch") -> Sm
         out[epoch_of, slot] = col
         return out
 
-    mask = grid(np.ones(len(pr), dtype=bool), False)
-    truth_ecef = torch.from_numpy(gt[:, 1:4].copy())
+    mask = grid(np.ones(len(pr), dtype=bool), False) & ~few[:, None]
+    truth_ecef = torch.from_numpy(_interp(times, gt[:, 0], gt[:, 1:4]))
+    odo = _interp(times, odom[:, 0], odom[:, 1:7])
     origin = truth_ecef[0].clone()
     llh0 = geo.ecef_to_geodetic(origin)
     rot = geo.enu_rotation(llh0[0], llh0[1])
@@ -247,9 +358,21 @@ def load_smartloc(path: str | Path | None = None, *, slots: str = "epoch") -> Sm
         mask=torch.from_numpy(mask),
         elevation=torch.from_numpy(grid(pr[:, 8], 0.0)),
         cn0=torch.from_numpy(grid(pr[:, 9], 0.0)),
-        speed=torch.from_numpy(odom[:, 1].copy()),
-        yaw_rate=torch.from_numpy(odom[:, 6].copy()),
+        speed=torch.from_numpy(odo[:, 0].copy()),
+        yaw_rate=torch.from_numpy(odo[:, 5].copy()),
         origin_ecef=origin,
         origin_llh=llh0,
         rotation=rot,
+        name=input_file[: -len("_Input.txt")] if input_file.endswith("_Input.txt") else Path(input_file).stem,
+        systems=systems,
+        issues=issues,
     )
+
+
+def load_smartloc(path: str | Path | None = None, *, slots: str = "epoch") -> SmartLocData:
+    """Load the Berlin Potsdamer Platz drive (:func:`load_drive` on ``Berlin_Potsdamer_Platz_Input.txt``
+    and ``..._GT.txt`` in ``path``, default :func:`default_smartloc_path`)."""
+    folder = Path(path) if path is not None else default_smartloc_path()
+    if not (folder / _INPUT).exists():
+        raise FileNotFoundError(f"smartLoc data not found in {folder} (set DIFFFILTER_SMARTLOC)")
+    return load_drive(folder, input_file=_INPUT, truth_file=_TRUTH, slots=slots)

@@ -43,6 +43,8 @@ def make_smartloc_model(
     gate_floor: float = 8.0,
     gate_gradient: bool = True,
     gate_softness: float | None = None,
+    gate_learnable: bool = False,
+    noise_model: torch.nn.Module | None = None,
     **dynamics_kwargs: float,
 ) -> torch.nn.Module:
     """Odometry + pseudorange model of the README's tightly coupled filter.
@@ -65,7 +67,12 @@ def make_smartloc_model(
     ``gate_softness`` (``robust="reject"``; ``None`` or ``0``: the hard gate, the default) makes
     the gate smooth, ``R_jj x 1e6 ** sigmoid((n_j - gate) / gate_softness)`` with ``n_j`` the
     normalised prior residual, and registers the temperature as the learnable-by-name parameter
-    ``gate_softness`` (see ``PseudorangeMeasurement.set_gate_softness``).
+    ``gate_softness`` (see ``PseudorangeMeasurement.set_gate_softness``); ``gate_learnable`` also
+    makes the threshold and floor learnable (``gate_threshold``, ``gate_floor``).
+
+    ``noise_model`` (a variance module, :mod:`difffilter.models.heteroscedastic`, reading
+    ``elevation``, ``cn0``, ``constellation``, ``pr_var`` from the batch controls) replaces
+    ``noise_scale * pr_var`` (``noise_from_data`` is then ignored).
     """
     if not isinstance(gate_gradient, bool):
         raise TypeError(f"gate_gradient must be a bool, got {type(gate_gradient).__name__}")
@@ -75,6 +82,8 @@ def make_smartloc_model(
         raise ValueError(_NO_SOFT_CONSTANT_GATE)
     dynamics_kwargs = {"vertical_psd": 1e-2, **dynamics_kwargs}
 
+    if noise_model is not None:
+        noise_from_data = False
     dyn = OdometryClockDynamics(dtype=dtype, **dynamics_kwargs)
     cls = PseudorangeMeasurement if gate_gradient else _constant_gate_measurement_class()
     meas = cls(
@@ -89,13 +98,15 @@ def make_smartloc_model(
         gate=gate,
         gate_floor=gate_floor,
         gate_softness=gate_softness,
+        gate_learnable=gate_learnable,
+        noise_model=noise_model,
         dtype=dtype,
     )
     sd = [30.0, 30.0, 2.0, float(np.radians(10.0)), 30.0, 2.0, 10.0]  # smartloc_initial_belief's spreads
     return describe(
         StateSpaceModel(dyn, meas),
         layout=SMARTLOC_LAYOUT,
-        learn=[n for n in _LEARN if n != "noise_scale" or noise_from_data],
+        learn=[n for n in _LEARN if n != "noise_scale" or noise_from_data] + (["*noise_model.*"] if noise_model is not None else []),
         initial_mean=[0.0] * 7,
         initial_var=[s * s for s in sd],
         controls=DriveWindows(data=data),

@@ -1,0 +1,14 @@
+"""Fast engines for the Kalman-family filters (see :class:`FusedFilter`).
+
+* :mod:`.filter` - :class:`FusedFilter`, the front: validation, engine choice, fallback;
+* generated engine: :mod:`.trace` (trace a filter's step), :mod:`.graph`, :mod:`.lower`,
+  :mod:`.adjoint` (scalar graph, lowering of ATen operations, reverse mode), :mod:`.codegen`
+  (C++ source), :mod:`.build` (compiler and on-disk cache), :mod:`.kernel` (autograd),
+  :mod:`.generated` (batch packing);
+* inductor engine: :mod:`.step` (batch-last, branch-free step), :mod:`.inductor`.
+"""
+
+from .build import cache_dir
+from .filter import ENGINES, FusedFilter, fuse
+
+__all__ = ["ENGINES", "FusedFilter", "cache_dir", "fuse"]

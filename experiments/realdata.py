@@ -1,0 +1,47 @@
+"""The real-data protocol on libRSF drives (smartLoc format): train on contiguous blocks, choose on
+a held-out validation block from several seeds, test with paired block-bootstrap intervals.
+
+    python experiments/realdata.py                                   # smartLoc Berlin, folds A and B, 5 seeds
+    python experiments/realdata.py folder=/data/drives               # every <name>_Input.txt + <name>_GT.txt of a folder
+    python experiments/realdata.py transfer_from=outputs/realdata/smartloc/<run> folder=/data/other
+    python experiments/realdata.py realdata.horizons=[1,2,4]          # stability check (4x the epochs)
+    python experiments/realdata.py evaluate_from=outputs/realdata/smartloc/<run>   # recompute a run's test tables (no training)
+
+The logic is in difffilter.papers.smartloc.protocol / .report; results.md, summary.json, the
+noise-model figures and TensorBoard events go to the Hydra run directory.
+"""
+
+from __future__ import annotations
+
+import logging
+import warnings
+
+import hydra
+import torch
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import DictConfig, OmegaConf
+
+from difffilter.papers.smartloc.report import resolve_config, run_evaluation, run_protocol, run_transfer
+
+log = logging.getLogger(__name__)
+
+
+@hydra.main(version_base="1.3", config_path="../conf", config_name="realdata")
+def main(cfg: DictConfig) -> None:
+    """Run the protocol (or a transfer evaluation, or a re-evaluation of a finished run) and print the report."""
+    torch.set_num_threads(int(cfg.threads))
+    warnings.filterwarnings("ignore", module="pytorch_lightning")
+    out = HydraConfig.get().runtime.output_dir
+    spec = resolve_config(OmegaConf.to_container(cfg.realdata, resolve=True), cfg.folder)  # type: ignore[arg-type]
+    if cfg.evaluate_from:
+        run_evaluation(cfg.evaluate_from, out)
+    elif cfg.transfer_from:
+        run_transfer(cfg.transfer_from, spec, out)
+    else:
+        run_protocol(spec, out, workers=int(cfg.workers))
+    print(open(f"{out}/results.md").read())
+    log.info("results written to %s", out)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,120 @@
+"""The real-data protocol end to end on small drives cut from the real smartLoc files: it runs on
+any folder of libRSF drives, selects on validation, writes its report, and the transfer command
+evaluates the selected filters on a second folder (a "second processing": the same epochs with
+different pseudorange corrections)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from omegaconf import OmegaConf
+
+from difffilter.papers.smartloc import load_drive
+from difffilter.papers.smartloc.report import resolve_config, run_evaluation, run_protocol, run_transfer
+
+from .librsf_fixture import HAVE_DATA, write_drive
+
+pytestmark = pytest.mark.skipif(not HAVE_DATA, reason="smartLoc data folder ../shared/data/real not present")
+ROOT = Path(__file__).resolve().parents[1]
+SMALL = {
+    "epochs": 1,
+    "seeds": 1,
+    "variants": ["elev_cn0"],
+    "windows": {"length": 30, "stride": 15},
+    "val_windows": {"length": 30, "stride": 15},
+}
+SMALL_BOOT = {"block": 10, "draws": 200, "seed": 0}
+
+
+def _reprocessed(lines: list[str]) -> list[str]:
+    """Every GLONASS pseudorange +7 m and every GPS one -2 m (other corrections, same epochs)."""
+    out = []
+    for ln in lines:
+        f = ln.split()
+        if f[0] == "pseudorange3":
+            f[2] = repr(float(f[2]) + (7.0 if f[9] == "4" else -2.0))
+        out.append(" ".join(f))
+    return out
+
+
+def _hydra(value: object) -> str:
+    """A value in Hydra's override grammar (unquoted keys and strings)."""
+    if isinstance(value, dict):
+        return "{" + ",".join(f"{k}:{_hydra(v)}" for k, v in value.items()) + "}"
+    if isinstance(value, list):
+        return "[" + ",".join(_hydra(v) for v in value) + "]"
+    return str(value)
+
+
+def _config(folder: Path) -> dict:
+    base = OmegaConf.to_container(OmegaConf.load(ROOT / "conf" / "realdata" / "smartloc.yaml"), resolve=True)
+    base.update(SMALL, bootstrap=SMALL_BOOT)
+    return resolve_config(base, str(folder))
+
+
+def test_protocol_on_a_folder_and_transfer_to_a_second_processing(tmp_path) -> None:
+    drives, second = tmp_path / "drives", tmp_path / "second"
+    write_drive(drives, "Cut", start=100.0, stop=140.0)
+    write_drive(second, "Cut", start=100.0, stop=140.0, edit=_reprocessed)
+    run = tmp_path / "run"
+    summary = run_protocol(_config(drives), run, workers=1)
+    assert summary["drives"] == ["Cut"] and set(summary["folds"]) == {"A", "B"}
+    for fold in summary["folds"].values():
+        names = [r["filter"] for r in fold["test"]]
+        assert names == ["hand-tuned", "learned-elev_cn0", "ekf-no-gate", "snapshot-wls"]
+        sel = fold["selection"]["learned-elev_cn0"]
+        assert sel["seed"] in (0, "start") and sel["epoch"] in (0, 1)
+        scores = fold["val_scores"]["elev_cn0/seed0"]
+        assert len(scores) == 2 and sel["val_score"] <= min(scores) + 1e-12
+        assert all(k in fold["test"][1] for k in ("d_median_lo", "d_rms_hi"))
+    for name in ("results.md", "summary.json", "selected.pt", "noise_model_fold_A.png", "noise_model_fold_B.png"):
+        assert (run / name).exists(), name
+    assert any((run / "tb").rglob("events.out.tfevents.*"))
+    again = run_evaluation(run, tmp_path / "eval")  # rebuilt from the saved selections: the same test tables
+    for fold, fs in summary["folds"].items():
+        assert again["folds"][fold]["tables"]["hand-tuned"] == fs["test"]
+        ref = again["folds"][fold]["tables"]["ekf-no-gate"]
+        assert [r["filter"] for r in ref] == names and "d_rms" not in ref[2] and "d_rms" in ref[0]
+        assert again["folds"][fold]["validation"]["hand-tuned"] == pytest.approx(fs["hand_val"], rel=1e-12)
+    out = tmp_path / "transfer"
+    result = run_transfer(run, _config(second), out)
+    whole = load_drive(second, input_file="Cut_Input.txt", truth_file="Cut_GT.txt").num_epochs
+    assert result["drives"] == ["Cut"] and result["epochs"] == whole  # every epoch of the drive is tested
+    assert [r["filter"] for r in result["test"]][:3] == ["hand-tuned", "learned-elev_cn0 (fold A)", "learned-elev_cn0 (fold B)"]
+    assert json.loads((out / "transfer.json").read_text())["trained_in"] == str(run)
+
+
+@pytest.mark.slow
+def test_the_commands_run_given_only_a_folder(tmp_path) -> None:
+    """`experiments/realdata.py folder=...` and the transfer command, as README gives them."""
+    drives, second = tmp_path / "drives", tmp_path / "second"
+    write_drive(drives, "Cut", start=100.0, stop=140.0)
+    write_drive(second, "Cut", start=100.0, stop=140.0, edit=_reprocessed)
+    small = [f"realdata.{k}={_hydra(v)}" for k, v in SMALL.items()]
+    small += [f"realdata.bootstrap.{k}={v}" for k, v in SMALL_BOOT.items()]
+    cmd = [
+        sys.executable,
+        str(ROOT / "experiments" / "realdata.py"),
+        f"folder={drives}",
+        "workers=1",
+        f"hydra.run.dir={tmp_path / 'run'}",
+        *small,
+    ]
+    done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(ROOT)}, check=False)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "Fold A: test blocks" in done.stdout
+    cmd = [
+        sys.executable,
+        str(ROOT / "experiments" / "realdata.py"),
+        f"transfer_from={tmp_path / 'run'}",
+        f"folder={second}",
+        f"hydra.run.dir={tmp_path / 'tr'}",
+    ]
+    done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(ROOT)}, check=False)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "Transfer: filters trained in" in done.stdout and (tmp_path / "tr" / "transfer.json").exists()

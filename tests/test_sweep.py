@@ -136,3 +136,23 @@ def test_multirun_over_seeds_writes_summary(tmp_path):
     assert float(r["estimate"]) == pytest.approx(learned.mean()) and r["seeds"] == "3"
     md = (sweep / "summary.md").read_text()
     assert "## all jobs (seeds 0, 1, 2; jobs 0, 1, 2)" in md and "learner.init_perturbation=0.2" in md
+
+
+def test_extra_test_sets_are_groups_of_their_own(tmp_path):
+    # <job>/extra_tests/<name>/per_run.csv: the job's overrides plus test=<name>; the main sets read test=main
+    rng = np.random.default_rng(1)
+    hand, scripted = 5 + rng.normal(0, 1, 10), 9 + rng.normal(0, 1, 10)
+    learned = 4 + rng.normal(0, 0.5, (3, 10))
+    for s in range(3):
+        _job(tmp_path, s, ["experiment=x", f"seed={s}"], {"hand-tuned": {"rmse_pos": hand}, "learned": {"rmse_pos": learned[s]}}, band=0.9)
+        extra = tmp_path / str(s) / "extra_tests" / "scripted"
+        extra.mkdir(parents=True)
+        runs = {"hand-tuned": {"rmse_pos": torch.tensor(scripted)}, "learned": {"rmse_pos": torch.tensor(scripted - 1.0 - s)}}
+        write_per_run(runs, extra / "per_run.csv")
+    _, csv_path = summarize_sweep(tmp_path, draws=200)
+    rows = _rows(csv_path)
+    assert float(rows[("test=main", "learned", "rmse_pos")]["estimate"]) == pytest.approx(learned.mean())
+    assert float(rows[("test=scripted", "hand-tuned", "rmse_pos")]["estimate"]) == pytest.approx(scripted.mean())
+    assert float(rows[("test=scripted", "learned", "diff")]["estimate"]) == pytest.approx(-2.0)
+    md = (tmp_path / "summary.md").read_text()
+    assert "## test=scripted (seeds 0, 1, 2; jobs 0, 1, 2)" in md

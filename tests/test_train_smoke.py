@@ -14,11 +14,12 @@ import pytorch_lightning as pl
 import torch
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
-from omegaconf import OmegaConf
+from omegaconf import OmegaConf, open_dict
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from difffilter.filters import KalmanFilter
 from difffilter.learn import FilterLearner, TrajectoryDataModule
+from difffilter.learn.evaluation import EXTRA_TESTS_DIR, PER_RUN_FILE, read_per_run
 from difffilter.learn.experiment import _oracle, build_filter, run_experiment
 from difffilter.models import tracking_model
 from difffilter.models.motion import ConstantVelocity
@@ -147,3 +148,22 @@ def test_oracle_specifications():
     torch.testing.assert_close(oracle.model.R.diagonal(), torch.tensor([1.0, 2.0], dtype=f64))
     cfg.experiment.oracle = None
     assert _oracle(cfg, hand, test, f64) is None
+
+
+def test_extra_test_sets_get_their_own_results(tmp_path):
+    # experiment.extra_tests: every filter is evaluated again on each extra set (test size and seed);
+    # the same simulator gives the same per-run numbers as the main test set, another one others.
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        cfg = compose("train", overrides=["debug=smoke", f"paths.output_dir={tmp_path}", f"paths.log_dir={tmp_path}/logs", "logger=csv"])
+    with open_dict(cfg):
+        cfg.experiment.extra_tests = {"same": OmegaConf.to_container(cfg.scenario), "masked": {**OmegaConf.to_container(cfg.scenario)}}
+        cfg.experiment.extra_tests.masked.missing_prob = 0.3
+    run_experiment(cfg)
+    main_runs = read_per_run(tmp_path / "per_run.csv")
+    same = read_per_run(tmp_path / EXTRA_TESTS_DIR / "same" / PER_RUN_FILE)
+    other = read_per_run(tmp_path / EXTRA_TESTS_DIR / "masked" / PER_RUN_FILE)
+    assert set(same) == set(main_runs) == {"hand-tuned", "learned", "oracle"}
+    for name in main_runs:
+        torch.testing.assert_close(same[name]["rmse_pos"], main_runs[name]["rmse_pos"], rtol=0, atol=0)
+    assert not torch.equal(other["hand-tuned"]["nll"], main_runs["hand-tuned"]["nll"])
+    assert "test set `masked`" in (tmp_path / EXTRA_TESTS_DIR / "masked" / "results.md").read_text()

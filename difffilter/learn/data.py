@@ -334,12 +334,18 @@ class TrajectoryDataModule(pl.LightningDataModule):
             raise ValueError(f"split must be 'train', 'val' or 'test', got {split!r}")
         if split not in self._sets:
             sim = self.test_simulator if split == "test" and self.test_simulator is not None else self.simulator
-            kwargs: dict[str, Any] = {"batch_size": self.sizes[split], "seed": self.seeds[split], "dtype": self.dtype}
-            if self.max_steps is not None and _accepts(sim, "num_steps"):
-                kwargs["num_steps"] = int(self.max_steps)
-            raw = sim(**kwargs)
-            self._sets[split] = TrajectorySet.from_simulation(raw, self.dtype, self.max_steps)
+            self._sets[split] = self.simulate(sim, split)
         return self._sets[split]
+
+    def simulate(self, simulator: Callable[..., Any], split: str = "test") -> TrajectorySet:
+        """A set drawn from ``simulator`` with the size, seed, dtype and ``max_steps`` of
+        ``split`` (not cached): e.g. a second test family on the test runs' seed."""
+        if split not in self.sizes:
+            raise ValueError(f"split must be 'train', 'val' or 'test', got {split!r}")
+        kwargs: dict[str, Any] = {"batch_size": self.sizes[split], "seed": self.seeds[split], "dtype": self.dtype}
+        if self.max_steps is not None and _accepts(simulator, "num_steps"):
+            kwargs["num_steps"] = int(self.max_steps)
+        return TrajectorySet.from_simulation(simulator(**kwargs), self.dtype, self.max_steps)
 
     def setup(self, stage: str | None = None) -> None:
         splits = {"fit": ("train", "val"), "validate": ("val",), "test": ("test",)}.get(stage or "", ("train", "val", "test"))

@@ -45,6 +45,7 @@ from .metrics import component_error, finalize_metrics, metric_sums, nees, nll_p
 from .stability import bounded_jitter
 
 __all__ = [
+    "EXTRA_TESTS_DIR",
     "PER_RUN_FILE",
     "Evaluation",
     "consistency_table",
@@ -55,6 +56,8 @@ __all__ = [
 ]
 
 PER_RUN_FILE = "per_run.csv"
+#: Subdirectory of a run directory holding one directory per extra test set (``experiment.extra_tests``).
+EXTRA_TESTS_DIR = "extra_tests"
 
 Indices = Sequence[int] | None
 Blocks = Mapping[str, Sequence[int]]

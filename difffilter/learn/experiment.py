@@ -35,6 +35,11 @@ The ``experiment`` config node (per-paper overlays set it)::
       eval_batch_size: null       # test trajectories per evaluation batch (null: all)
       error_quantiles: null       # e.g. [0.5, 0.95]: extra columns pos_err_p50, pos_err_p95 =
                                   # quantiles of the position error norm over all test steps
+      test_name: null             # the test set's label in sweep summaries (null: "main" when extra tests exist)
+      extra_tests: {}             # {name: simulator config}: more held-out test sets (another scenario
+                                  # family), drawn with the test set's size and seed; each gets the same
+                                  # filters and files in <output_dir>/extra_tests/<name>/ (the oracle row
+                                  # keeps the main test set's true parameters)
 
 With a smoother configured (``smoother=rts``, ``cfg.smoother.evaluate``), every filter that a
 smoother supports gets a second row ``"<name> (smoothed)"``: the same metrics of the smoothed
@@ -74,7 +79,7 @@ from ..selection import assign_parameters, parameter_owners
 from ..smoothers import Smoother, make_smoother, smoother_spec
 from .callbacks import EpochSummary, GracefulInterrupt
 from .data import TrajectorySet
-from .evaluation import PER_RUN_FILE, consistency_table, evaluate_runs, write_per_run
+from .evaluation import EXTRA_TESTS_DIR, PER_RUN_FILE, consistency_table, evaluate_runs, write_per_run
 from .learner import FilterLearner
 from .reporting import log_results, parameter_summary, parameter_values
 from .runs import checkpoint_config, resume_checkpoint, run_status
@@ -343,10 +348,20 @@ def _run(cfg: DictConfig, train: bool) -> dict[str, Any]:
         trainer.test(learner, datamodule=datamodule, ckpt_path=str(cfg.ckpt_path))
     if not trainer.is_global_zero:
         return {}
-    rows, note = evaluate_experiment(cfg, hand, learner, datamodule.dataset("test"))
+    test = datamodule.dataset("test")
+    rows, note = evaluate_experiment(cfg, hand, learner, test)
     title = f"difffilter results: {exp.get('name', '')}"
     output_dir = Path(cfg.paths.output_dir)
     write_results(rows, output_dir, title=title, note=note)
+    for test_name, sim_cfg in (_plain(exp.get("extra_tests")) or {}).items():
+        log.info("extra test set %s", test_name)
+        extra = datamodule.simulate(instantiate(sim_cfg, _convert_="all"), "test")
+        extra_dir = output_dir / EXTRA_TESTS_DIR / str(test_name)
+        extra_dir.mkdir(parents=True, exist_ok=True)
+        extra_rows, extra_note = evaluate_experiment(
+            cfg, hand, learner, extra, output_dir=extra_dir, label=str(test_name), oracle_source=test
+        )
+        write_results(extra_rows, extra_dir, title=title, note=extra_note)
     text = format_results(rows, title=f"results ({output_dir})", note=note)
     print(text)
     log_results(
@@ -369,13 +384,24 @@ def best_logged_value(trainer: pl.Trainer, name: str) -> float:
     return float(trainer.callback_metrics[name])
 
 
-def evaluate_experiment(cfg: DictConfig, hand: Filter, learner: FilterLearner, test: TrajectorySet) -> tuple[list[dict[str, Any]], str]:
+def evaluate_experiment(
+    cfg: DictConfig,
+    hand: Filter,
+    learner: FilterLearner,
+    test: TrajectorySet,
+    *,
+    output_dir: str | Path | None = None,
+    label: str = "",
+    oracle_source: TrajectorySet | None = None,
+) -> tuple[list[dict[str, Any]], str]:
     """The results rows of the hand-tuned, learned, oracle and baseline filters on the test set
-    (``per_run.csv`` written to ``cfg.paths.output_dir``) and the table's note."""
+    (``per_run.csv`` written to ``output_dir``, default ``cfg.paths.output_dir``) and the table's
+    note; ``label`` names an extra test set in the note, whose oracle keeps the true parameters of
+    ``oracle_source`` (the main test set)."""
     dtype = as_dtype(cfg.dtype)
     exp = cfg.experiment
     filters: dict[str, Filter] = {"hand-tuned": hand, "learned": learner.filter}
-    oracle = _oracle(cfg, hand, test, dtype)
+    oracle = _oracle(cfg, hand, oracle_source if oracle_source is not None else test, dtype)
     if oracle is not None:
         filters["oracle"] = oracle
     for name, spec in (_plain(exp.get("baselines")) or {}).items():
@@ -429,9 +455,10 @@ def evaluate_experiment(cfg: DictConfig, hand: Filter, learner: FilterLearner, t
             for key in ("parameters", "parameter_values"):
                 if key in row:
                     rows[-1][key] = row[key]
-    write_per_run(per_run, Path(cfg.paths.output_dir) / PER_RUN_FILE)
+    write_per_run(per_run, Path(output_dir if output_dir is not None else cfg.paths.output_dir) / PER_RUN_FILE)
     note = (
-        f"experiment `{exp.get('name', '')}`: {len(test)} held-out test trajectories x {test.num_steps} steps, "
+        f"experiment `{exp.get('name', '')}`{f' (test set `{label}`)' if label else ''}: {len(test)} held-out test trajectories "
+        f"x {test.num_steps} steps, "
         f"loss `{cfg.loss.get('_target_', cfg.loss)}`, learned {learned_names}; rmse in the truth's units; "
         "anees/nis: run-level means with 95 % t-intervals over runs (_run_ci_lo/hi) and the fraction of steps inside the "
         "per-step chi-square band (_step_band_frac); nll per observed step (nats); time_per_step_ms for the whole test batch; "

@@ -45,7 +45,7 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 from torch import Tensor
 
-from .evaluation import PER_RUN_FILE, read_per_run
+from .evaluation import EXTRA_TESTS_DIR, PER_RUN_FILE, read_per_run
 from .intervals import GapClosed, Interval, crossed_interval, gap_closed, nested_interval
 
 __all__ = ["SUMMARY_CSV", "SUMMARY_MD", "SweepSummary", "load_jobs", "main", "summarize_sweep", "unfinished_jobs"]
@@ -75,24 +75,36 @@ def _key(override: str) -> str:
 
 def load_jobs(sweep_dir: str | Path, *, replicate_key: str = "seed") -> list[Job]:
     """Every job below ``sweep_dir`` that wrote a ``per_run.csv``, in directory order, grouped by
-    the overrides that differ between jobs (the replicate key aside)."""
+    the overrides that differ between jobs (the replicate key aside).  A run's extra test sets
+    (``<run>/extra_tests/<name>/per_run.csv``) are jobs of their own with the run's overrides plus
+    ``test=<name>``; when a sweep has them, the main test sets read ``test=<experiment.test_name>``
+    (default ``main``)."""
     root = Path(sweep_dir)
     if not root.is_dir():
         raise FileNotFoundError(f"no sweep directory {root}")
     jobs = []
-    for path in sorted(root.rglob(PER_RUN_FILE), key=lambda p: [int(s) if s.isdigit() else s for s in p.parent.relative_to(root).parts]):
+    paths = sorted(root.rglob(PER_RUN_FILE), key=lambda p: [int(s) if s.isdigit() else s for s in p.parent.relative_to(root).parts])
+    extra = any(p.parent.parent.name == EXTRA_TESTS_DIR for p in paths)
+    for path in paths:
         job_dir = path.parent
+        test = ""
+        if job_dir.parent.name == EXTRA_TESTS_DIR:  # an extra test set of the run two levels up
+            test, job_dir = job_dir.name, job_dir.parent.parent
+        elif extra:
+            config = job_dir / ".hydra" / "config.yaml"
+            label = OmegaConf.select(OmegaConf.load(config), "experiment.test_name", default=None) if config.exists() else None
+            test = str(label or "main")
         overrides_file = job_dir / ".hydra" / "overrides.yaml"
         overrides = [str(o) for o in OmegaConf.load(overrides_file)] if overrides_file.exists() else []
-        rest = sorted(o for o in overrides if _key(o) != replicate_key)
+        rest = sorted(o for o in overrides if _key(o) != replicate_key) + ([f"test={test}"] if test else [])
         rep = [o.split("=", 1)[1] for o in overrides if _key(o) == replicate_key]
         if not rep:
             config = job_dir / ".hydra" / "config.yaml"
             value = OmegaConf.load(config).get(replicate_key) if config.exists() else None
             rep = [str(value) if value is not None else job_dir.name]
         results: dict[str, dict[str, str]] = {}
-        if (job_dir / "results.csv").exists():
-            with (job_dir / "results.csv").open(newline="") as fh:
+        if (path.parent / "results.csv").exists():
+            with (path.parent / "results.csv").open(newline="") as fh:
                 results = {r["filter"]: r for r in csv.DictReader(fh)}
         jobs.append(Job(job_dir, rest, rep[0], read_per_run(path), results))
     common = set.intersection(*(set(j.overrides) for j in jobs)) if jobs else set()

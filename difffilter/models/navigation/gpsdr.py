@@ -21,6 +21,7 @@ from ..layout import StateLayout, describe
 from ..motion import ConstantAcceleration, CurrentStatistical, Singer, _Kinematic
 
 __all__ = [
+    "A_MAX_VEHICLE",
     "GPSDR_LAYOUT",
     "GPSDR_PAPER",
     "GpsDrDynamics",
@@ -29,8 +30,15 @@ __all__ = [
     "gpsdr_paper_initial_belief",
 ]
 
-#: p000's published settings (SI units).  ``sigma_a`` is not given by the paper: 0.5 m/s^2 is our
-#: choice for the manoeuvre acceleration standard deviation of the hand-tuned filter.
+#: Largest acceleration expected of a passenger car in ordinary driving (m/s^2): the deceleration
+#: AASHTO's "A Policy on Geometric Design of Highways and Streets" (Green Book, 2011, sec. 3.2.2)
+#: takes as comfortable for most drivers (3.4 m/s^2, the stopping-sight-distance design value).
+A_MAX_VEHICLE = 3.4
+
+#: p000's published settings (SI units).  p000 gives no manoeuvre std ``sigma_a``: it follows from
+#: the current-statistical model of its ref. [3] (Zhou Hongren), ``sigma_a^2 = (4 - pi)/pi a_max^2``
+#: (the variance of the modified Rayleigh acceleration density at zero mean acceleration) with
+#: ``a_max`` = :data:`A_MAX_VEHICLE`: ``sigma_a = 1.777 m/s^2``.
 GPSDR_PAPER: dict[str, float] = {
     "dt": 0.1,
     "sigma_gps": 15.0,
@@ -40,8 +48,8 @@ GPSDR_PAPER: dict[str, float] = {
     "sigma_psi": 0.005,
     "tau": 100.0,
     "tau_eps": 100.0,
-    "sigma_a": 0.5,
-    "a_max": 3.0,
+    "sigma_a": math.sqrt((4.0 - math.pi) / math.pi) * A_MAX_VEHICLE,
+    "a_max": A_MAX_VEHICLE,
 }
 
 

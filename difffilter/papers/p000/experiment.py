@@ -13,7 +13,7 @@ model, so there is no oracle parameter set: ``true_params`` is left out on purpo
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -22,6 +22,7 @@ from torch import Tensor
 
 from ..._util import as_dtype
 from ...models.navigation.gpsdr import GpsDrModel
+from .errors import SensorErrors
 from .simulator import GpsDrScenario, simulate_p000
 
 __all__ = ["P000Trajectories", "p000_simulator"]
@@ -63,6 +64,7 @@ def p000_simulator(
     scenario: str = "random",
     initial_std: Sequence[float] | None = None,
     gps_outages: Sequence[Sequence[float]] = (),
+    errors: Mapping[str, Any] | None = None,
     **options: Any,
 ) -> P000Trajectories:
     """Simulate p000 drives for learning.
@@ -75,6 +77,8 @@ def p000_simulator(
         scenario: ``"straight"``, ``"scripted"`` or ``"random"``.
         initial_std: ``[8]`` standard deviations of ``P(0|0)`` (default p000's ``I_8``).
         gps_outages: ``(start, end)`` windows in seconds without GPS.
+        errors: keyword arguments of :class:`~difffilter.papers.p000.errors.SensorErrors` (the
+            error processes of a mis-specified family; ranges as ``[lo, hi]`` lists); ``None``: none.
         **options: further :func:`simulate_p000` arguments (``g``, ``sigma_gps``, ...).
     """
     dt = as_dtype(dtype)
@@ -84,6 +88,7 @@ def p000_simulator(
         scenario=scenario,
         steps=int(num_steps if num_steps is not None else steps),
         gps_outages=[tuple(w) for w in gps_outages],  # type: ignore[misc]
+        errors=None if errors is None else SensorErrors(**{k: tuple(v) if isinstance(v, Sequence) else v for k, v in errors.items()}),
         dtype=dt,
         **options,
     )

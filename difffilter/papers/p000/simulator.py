@@ -42,6 +42,7 @@ from torch import Tensor
 from ..._util import generator
 from ...models.navigation.gpsdr import GPSDR_PAPER, GpsDrModel
 from ...sim.signals import cumtrapz, moving_average
+from .errors import SensorErrors, gauss_markov
 
 __all__ = ["GpsDrScenario", "SCRIPTED_DRIVE", "simulate_p000"]
 
@@ -150,17 +151,6 @@ def _random_segments(gen: torch.Generator, horizon: float, speed0: float) -> lis
     return segs
 
 
-def _gauss_markov(gen: torch.Generator, shape: tuple[int, int], dt: float, std: float, tau: float, start: Tensor) -> Tensor:
-    """``[B, steps + 1]`` first-order Gauss-Markov samples starting at ``start [B]``."""
-    b, steps = shape
-    phi = math.exp(-dt / tau)
-    w = torch.randn(b, steps, generator=gen, dtype=torch.float64) * std * math.sqrt(1.0 - phi * phi)
-    out = [start]
-    for k in range(steps):
-        out.append(phi * out[-1] + w[:, k])
-    return torch.stack(out, -1)
-
-
 def simulate_p000(
     *,
     batch_size: int = 1,
@@ -177,6 +167,7 @@ def simulate_p000(
     sigma_psi: float = GPSDR_PAPER["sigma_psi"],
     gps_outages: Sequence[tuple[float, float]] = (),
     random_outages: int = 0,
+    errors: SensorErrors | None = None,
     substeps: int = 10,
     dtype: torch.dtype = torch.float32,
 ) -> GpsDrScenario:
@@ -192,6 +183,9 @@ def simulate_p000(
         sigma_*: sensor noise levels (SI units; p000's values by default), ``tau_eps`` (s).
         gps_outages: ``(start, end)`` windows in seconds without GPS, for every trajectory.
         random_outages: number of extra outages per trajectory, 10-30 s long at random times.
+        errors: error processes the paper's filter does not model (:class:`SensorErrors`: gyro
+            bias instability, wheel slip, GPS multipath/NLOS/outages); ``None``: none.  The odometer
+            scale error of the "odometer" family is ``sigma_psi``.
         substeps: fine integration steps per sample.
         dtype: dtype of the returned tensors (the simulation runs in float64).
     """
@@ -231,7 +225,7 @@ def simulate_p000(
 
     straight = scenario == "straight"
     eps0 = torch.zeros(b, dtype=f64) if straight else sigma_eps * torch.randn(b, generator=gen, dtype=f64)
-    eps = _gauss_markov(gen, (b, steps), dt, sigma_eps, tau_eps, eps0)
+    eps = gauss_markov(gen, (b, steps), dt, sigma_eps, tau_eps, eps0)
     psi = torch.ones(b, dtype=f64) if straight else 1.0 + sigma_psi * torch.randn(b, generator=gen, dtype=f64)
     state = torch.cat([kin, eps[..., None], psi[:, None, None].expand(b, steps + 1, 1)], -1)
 
@@ -241,6 +235,13 @@ def simulate_p000(
     clean = torch.stack([truth[..., 0], truth[..., 3], rate[:, 1:] + truth[..., 6], truth[..., 7] * dt * speed_g], -1)
     z = clean + noise
 
+    if errors is not None:  # drawn after everything else: errors=None keeps the nominal data bit for bit
+        bias = errors.gyro_bias(gen, (b, steps), dt)[:, 1:]
+        truth = torch.cat([truth[..., :6], truth[..., 6:7] + bias[..., None], truth[..., 7:]], -1)
+        slip = errors.slip(gen, acc[:, idx][:, 1:], dt)
+        z = torch.stack([z[..., 0], z[..., 1], z[..., 2] + bias, z[..., 3] + slip * clean[..., 3]], -1)
+        z = torch.cat([z[..., :2] + errors.gps_error(gen, (b, steps), dt), z[..., 2:]], -1)
+
     times = dt * torch.arange(1, steps + 1, dtype=f64)
     gps_ok = torch.ones(b, steps, dtype=torch.bool)
     for start, end in gps_outages:
@@ -249,6 +250,8 @@ def simulate_p000(
         length = 10.0 + 20.0 * torch.rand(b, generator=gen, dtype=f64)
         start = torch.rand(b, generator=gen, dtype=f64) * (steps * dt - length).clamp_min(0.0)
         gps_ok &= ~((times[None] >= start[:, None]) & (times[None] < (start + length)[:, None]))
+    if errors is not None:
+        gps_ok &= errors.gps_available(gen, (b, steps), dt)
     mask = torch.ones(b, steps, 4, dtype=torch.bool)
     mask[..., :2] = gps_ok[..., None]
     z = torch.where(mask, z, torch.full_like(z, float("nan")))

@@ -1,16 +1,24 @@
-"""p002's table from a sweep: ``python experiments/train.py -m experiment=p002_pdr
-scenario.blockage_prob=0.8,0.6,0.4,0.2,0.05`` writes one run per blockage probability ``P``;
-``python -m difffilter.papers.p002.report <multirun dir> [column...]`` prints the ``filter x P``
-table next to p002's published numbers."""
+"""p002's table from a seed sweep: position RMSE by filter and outage probability P.
+
+    python experiments/train.py -m experiment=p002_pdr seed=0,1,2,3,4 scenario=p002_pdr,p002_disturbed \\
+        filter=p002_rcukf,p002_ukf hydra/launcher=joblib hydra.sweep.dir=outputs/p002_sweep
+    python -m difffilter.papers.p002.report outputs/p002_sweep
+
+The sweep's ``summary.csv`` (:mod:`difffilter.learn.sweep`) holds, per group (``filter``,
+``scenario`` and test set ``test=P=...``), each filter's RMSE as the mean over seeds and test runs
+with its 95 % interval and the paired difference to the group's hand-tuned filter.
+:func:`sweep_table` arranges them as p002's table (rows GPS only, PDR only, UKF and RC-UKF
+hand-tuned and learned; columns P) with p002's published value in brackets, and a second table of
+paired differences with their intervals.
+"""
 
 from __future__ import annotations
 
 import csv
 import math
 import sys
+from collections.abc import Sequence
 from pathlib import Path
-
-from omegaconf import OmegaConf
 
 __all__ = ["PAPER_RMSE", "sweep_table"]
 
@@ -22,50 +30,92 @@ PAPER_RMSE: dict[str, dict[float, float]] = {
     "RC-UKF": {0.8: 6.78, 0.6: 6.42, 0.4: 3.12, 0.2: 2.60, 0.05: 1.94},
 }
 
-_ROW_NAMES = {"hand-tuned": "RC-UKF (hand-tuned)", "learned": "RC-UKF (learned)"}
-_PAPER_ROW = {"GPS only": "GPS only", "PDR only": "PDR only", "UKF": "UKF", "RC-UKF (hand-tuned)": "RC-UKF"}
+_FILTERS = {"p002_rcukf": "RC-UKF", "p002_ukf": "UKF"}
 
 
-def _blockage_prob(run_dir: Path) -> float | None:
-    overrides = run_dir / ".hydra" / "overrides.yaml"
-    if overrides.exists():
-        for line in overrides.read_text().splitlines():
-            if "scenario.blockage_prob=" in line:
-                return float(line.split("=", 1)[1].strip().strip("'\""))
-    config = run_dir / ".hydra" / "config.yaml"
-    if config.exists():
-        return float(OmegaConf.load(config).scenario.blockage_prob)
-    return None
+def _group_keys(group: str) -> dict[str, str]:
+    out = {}
+    for part in group.split():
+        key, _, value = part.partition("=")
+        out[key.lstrip("+~")] = value
+    return out
 
 
-def sweep_table(multirun_dir: str | Path, column: str = "rmse_pos") -> str:
-    """Markdown table ``filter x P`` of ``column`` from every ``results.csv`` below
-    ``multirun_dir`` (one sweep job per ``P``), with p002's published RMSE in brackets."""
-    table: dict[str, dict[float, float]] = {}
-    for csv_path in sorted(Path(multirun_dir).rglob("results.csv")):
-        prob = _blockage_prob(csv_path.parent)
-        if prob is None:
+def _cell(row: dict[str, str] | None, *, pct: bool = False) -> str:
+    if row is None:
+        return "-"
+    est, lo, hi = (float(row[k]) if row[k] not in ("", None) else math.nan for k in ("estimate", "lo", "hi"))
+    unit = " %" if pct else ""
+    if not (math.isfinite(lo) and math.isfinite(hi)):
+        return f"{est:.3g}{unit}"
+    return f"{est:.3g} [{lo:.3g}, {hi:.3g}]{unit}"
+
+
+def sweep_table(sweep_dir: str | Path, *, metric: str = "rmse_pos") -> str:
+    """Markdown tables per scenario family from ``<sweep_dir>/summary.csv`` (module docstring)."""
+    with (Path(sweep_dir) / "summary.csv").open(newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    index: dict[tuple[str, str, str, str, str], dict[str, str]] = {}
+    families: list[str] = []
+    probs: set[float] = set()
+    for r in rows:
+        keys = _group_keys(r["group"])
+        family, test = keys.get("scenario", ""), keys.get("test", "")
+        filt = _FILTERS.get(keys.get("filter", "p002_rcukf"), keys.get("filter", ""))
+        if not test.startswith("P="):
             continue
-        with csv_path.open() as fh:
-            for row in csv.DictReader(fh):
-                name = _ROW_NAMES.get(row["filter"], row["filter"])
-                value = row.get(column, "")
-                table.setdefault(name, {})[prob] = float(value) if value not in ("", None) else math.nan
-    probs = sorted({p for v in table.values() for p in v}, reverse=True)
-    head = f"{column} (m) [p002]" if column == "rmse_pos" else column
-    lines = [f"| {head} | " + " | ".join(f"P={p:g}" for p in probs) + " |", "|---|" + "---|" * len(probs)]
-    for name, vals in table.items():
-        paper = PAPER_RMSE.get(_PAPER_ROW.get(name, ""), {})
-        cells = []
-        for p in probs:
-            cell = f"{vals[p]:.3g}" if p in vals else "-"
-            if p in paper and column == "rmse_pos":
-                cell += f" [{paper[p]:.2f}]"
-            cells.append(cell)
-        lines.append(f"| {name} | " + " | ".join(cells) + " |")
-    return "\n".join(lines) + "\n"
+        if family not in families:
+            families.append(family)
+        probs.add(float(test[2:]))
+        index[(family, test, filt, r["filter"], r["quantity"])] = r
+    cols = sorted(probs, reverse=True)
+    out: list[str] = []
+    for family in families:
+
+        def get(filt: str, row: str, quantity: str, p: float, family: str = family) -> dict[str, str] | None:
+            return index.get((family, f"P={p:g}", filt, row, quantity))
+
+        head = f"| {metric} (m) [p002] | " + " | ".join(f"P={p:g}" for p in cols) + " |"
+        out += [f"### scenario={family or '(default)'}", "", head, "|---|" + "---|" * len(cols)]
+        lines = [
+            ("GPS only", "RC-UKF", "GPS only", "GPS only"),
+            ("PDR only", "RC-UKF", "PDR only", "PDR only"),
+            ("UKF hand-tuned", "UKF", "hand-tuned", "UKF"),
+            ("UKF learned", "UKF", "learned", ""),
+            ("RC-UKF hand-tuned", "RC-UKF", "hand-tuned", "RC-UKF"),
+            ("RC-UKF learned", "RC-UKF", "learned", ""),
+        ]
+        for label, filt, row, paper in lines:
+            cells = []
+            for p in cols:
+                cell = _cell(get(filt, row, metric, p))
+                if paper and p in PAPER_RMSE[paper]:
+                    cell += f" [{PAPER_RMSE[paper][p]:.2f}]"
+                cells.append(cell)
+            out.append(f"| {label} | " + " | ".join(cells) + " |")
+        out += ["", "Paired differences (same test runs; mean over seeds x runs [95 % interval], m and % of the reference):", ""]
+        out += ["| difference | " + " | ".join(f"P={p:g}" for p in cols) + " |", "|---|" + "---|" * len(cols)]
+        diffs = [
+            ("RC-UKF learned - RC-UKF hand-tuned", "RC-UKF", "learned"),
+            ("UKF learned - UKF hand-tuned", "UKF", "learned"),
+            ("UKF hand-tuned - RC-UKF hand-tuned", "RC-UKF", "UKF"),
+        ]
+        for label, filt, row in diffs:
+            cells = [f"{_cell(get(filt, row, 'diff', p))}; {_cell(get(filt, row, 'diff_pct', p), pct=True)}" for p in cols]
+            out.append(f"| {label} | " + " | ".join(cells) + " |")
+        out.append("")
+    return "\n".join(out)
+
+
+def main(argv: Sequence[str] | None = None) -> str:
+    """``python -m difffilter.papers.p002.report <sweep dir> [metric]``: print :func:`sweep_table`."""
+    args = list(sys.argv[1:] if argv is None else argv)
+    if not args:
+        raise SystemExit("usage: python -m difffilter.papers.p002.report <sweep dir> [metric]")
+    text = sweep_table(args[0], metric=args[1] if len(args) > 1 else "rmse_pos")
+    print(text)
+    return text
 
 
 if __name__ == "__main__":  # pragma: no cover - command-line helper
-    for arg in sys.argv[2:] or ["rmse_pos"]:
-        print(sweep_table(sys.argv[1], arg))
+    main()

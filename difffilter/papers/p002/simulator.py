@@ -40,9 +40,10 @@ from torch import Tensor
 
 from ..._util import generator
 from ...models.navigation.pdr import PDRModel, default_pdr_measurement_noise, wrap_angle
+from .disturbances import arc_bursts, turn_heading_error
 from .track import Track, p002_track
 
-__all__ = ["BLOCKAGE_PROBS", "PDRScenario", "simulate_p002", "simulate_p002_random"]
+__all__ = ["BLOCKAGE_PROBS", "PDRScenario", "gps_availability", "simulate_p002", "simulate_p002_random"]
 
 #: The outage probabilities of p002's table.
 BLOCKAGE_PROBS: tuple[float, ...] = (0.8, 0.6, 0.4, 0.2, 0.05)
@@ -117,6 +118,31 @@ def _gauss_markov(gen: torch.Generator, dt: Tensor, std: Tensor, tau: float) -> 
     return out
 
 
+def gps_availability(
+    gen: torch.Generator, times: Tensor, cold_start: Tensor, blockage_prob: Tensor, *, gps_interval: float, outage_window: float
+) -> tuple[Tensor, Tensor]:
+    """p002's GPS availability at step events ``times [B, T + 1]`` (event 0 = the start): fixes at
+    ``cold_start + j gps_interval``, reported at the first event after them; time cut into
+    ``outage_window`` windows, each blocked with probability ``blockage_prob [B]``, which loses
+    the fixes inside it.  Returns ``gps_ok [B, T]`` (a fresh, unblocked fix at events ``1..T``)
+    and ``blocked [B, T]`` (the event lies in a blocked window)."""
+    B = times.shape[0]
+
+    def fixes_until(t: Tensor) -> Tensor:  # the fix count up to time t
+        k = torch.floor((t - cold_start[:, None]) / gps_interval) + 1.0
+        return k.clamp_min(0.0)
+
+    count = fixes_until(times)
+    fresh = count[:, 1:] > count[:, :-1]
+    fix_time = cold_start[:, None] + (count[:, 1:] - 1.0).clamp_min(0.0) * gps_interval
+    num_windows = int(torch.floor(times.max() / outage_window).item()) + 2
+    window_blocked = torch.rand(B, num_windows, generator=gen, dtype=torch.float64) < blockage_prob[:, None]
+    win = lambda t: torch.floor(t / outage_window).long().clamp(0, num_windows - 1)  # noqa: E731
+    fix_blocked = torch.gather(window_blocked, 1, win(fix_time))
+    blocked = torch.gather(window_blocked, 1, win(times[:, 1:]))
+    return fresh & ~fix_blocked, blocked
+
+
 def _simulate(
     gen: torch.Generator,
     *,
@@ -138,6 +164,11 @@ def _simulate(
     compass_correlated_std: float,
     compass_corr_time: float,
     interference_std: float,
+    interference_burst_rate: float,
+    interference_burst_min: float,
+    interference_burst_max: float,
+    turn_scale_std: float,
+    turn_threshold: float,
     gps_std: float,
     gps_interval: float,
     outage_window: float,
@@ -166,12 +197,17 @@ def _simulate(
     truth = torch.stack([east[:, 1:], north[:, 1:], lengths[:, 1:], psi[:, 1:]], -1)
     initial_state = torch.stack([east[:, 0], north[:, 0], lengths[:, 0], psi[:, 0]], -1)
 
-    dtheta = psi.diff(dim=1) + gyro_bias[:, None] * periods + gyro_arw * periods.sqrt() * n(B, T)
+    dpsi = psi.diff(dim=1)
+    dtheta = dpsi + gyro_bias[:, None] * periods + gyro_arw * periods.sqrt() * n(B, T)
+    if turn_scale_std > 0.0:
+        dtheta = dtheta + turn_heading_error(gen, dpsi, turn_scale_std, turn_threshold)
 
     white_std = math.sqrt(max(compass_std**2 - compass_correlated_std**2, 0.0))
     err = _gauss_markov(gen, periods, torch.full((B,), compass_correlated_std, **f64), compass_corr_time) + white_std * n(B, T)
     s_evt = arc[:, 1:]
     inside = (s_evt >= interference[:, :1]) & (s_evt < interference[:, 1:])
+    if interference_burst_rate > 0.0:
+        inside = inside | arc_bursts(gen, s_evt, interference_burst_rate, (interference_burst_min, interference_burst_max))
     err = err + inside * _gauss_markov(gen, periods, torch.full((B,), interference_std, **f64), 3.0)
     compass_raw = wrap_angle(psi[:, 1:] + err)
 
@@ -188,20 +224,7 @@ def _simulate(
     reference = init_mean[:, 3:4] + dtheta.cumsum(1)
     compass = reference + wrap_angle(compass_raw - reference)
 
-    # GPS fixes at cold_start + j * gps_interval; the fix count up to time t is n(t).
-    def fixes_until(t: Tensor) -> Tensor:
-        k = torch.floor((t - cold_start[:, None]) / gps_interval) + 1.0
-        return k.clamp_min(0.0)
-
-    count = fixes_until(times)
-    fresh = count[:, 1:] > count[:, :-1]
-    fix_time = cold_start[:, None] + (count[:, 1:] - 1.0).clamp_min(0.0) * gps_interval
-    num_windows = int(torch.floor(times.max() / outage_window).item()) + 2
-    window_blocked = u(B, num_windows) < blockage_prob[:, None]
-    win = lambda t: torch.floor(t / outage_window).long().clamp(0, num_windows - 1)  # noqa: E731
-    fix_blocked = torch.gather(window_blocked, 1, win(fix_time))
-    blocked = torch.gather(window_blocked, 1, win(times[:, 1:]))
-    gps_ok = fresh & ~fix_blocked
+    gps_ok, blocked = gps_availability(gen, times, cold_start, blockage_prob, gps_interval=gps_interval, outage_window=outage_window)
     gps = truth[..., :2] + gps_std * n(B, T, 2)
     gps = torch.where(gps_ok[..., None], gps, torch.full_like(gps, float("nan")))
 
@@ -244,6 +267,11 @@ def _defaults(**kw: float) -> dict[str, float]:
         "compass_correlated_std": math.radians(8.0),
         "compass_corr_time": 10.0,
         "interference_std": math.radians(math.sqrt(49.7**2 - 11.4**2)),
+        "interference_burst_rate": 0.0,
+        "interference_burst_min": 5.0,
+        "interference_burst_max": 20.0,
+        "turn_scale_std": 0.0,
+        "turn_threshold": math.radians(0.5),
         "gps_std": 2.67,
         "gps_interval": 1.0,
         "outage_window": 5.0,
@@ -282,6 +310,10 @@ def simulate_p002(
         heading_offset: rotation of the whole path (rad, clockwise).
         **sensor: overrides of ``gyro_arw`` (rad/sqrt(s)), ``compass_std``,
             ``compass_correlated_std``, ``interference_std`` (rad), ``compass_corr_time`` (s),
+            ``interference_burst_rate`` (compass-interference bursts per metre walked, each
+            ``U(interference_burst_min, interference_burst_max)`` m long: :func:`arc_bursts`),
+            ``turn_scale_std`` (relative error of the gyro's heading change over each turn) and
+            ``turn_threshold`` (rad per step: what counts as turning; :func:`turn_heading_error`),
             ``gps_std`` (m, per axis), ``gps_interval``, ``outage_window`` (s),
             ``step_scale_std``, ``step_noise_std``, ``initial_position_std`` (m),
             ``initial_heading_std`` (rad).

@@ -52,11 +52,15 @@ def test_psi_zero_reduces_to_the_ukf(sp):
 def _dense_posteriors(F, H_seq, Q, R, psi, m0, P0, z):
     """Exact ``E[x_t | z_1..t]``, ``Cov`` and ``log p(z_1..T)`` for ``x_t = F x_{t-1} + w``,
     ``z_t = H_t x_t + v_t``, ``v_t = Psi v_{t-1} + eta_t``, ``v_1`` stationary, by conditioning
-    the dense joint Gaussian of the latent vector ``[x_0, w_1..w_T, v_1, eta_2..eta_T]``."""
+    the dense joint Gaussian of the latent vector ``[x_0, w_1..w_T, v_1, eta_2..eta_T]``.
+    ``psi [m]`` or per step ``[T, m]``; ``R [m, m]`` or per step ``[T, m, m]`` (``Cov(eta_t)``;
+    ``v_1`` has ``R_1 / (1 - psi_1 psi_1^T)``)."""
     T, m = z.shape
     n = F.shape[0]
-    V = R / (1.0 - np.outer(psi, psi))
-    blocks = [P0] + [Q] * T + [V] + [R] * (T - 1)
+    psi_t = np.broadcast_to(psi, (T, m))
+    R_t = np.broadcast_to(R, (T, m, m))
+    V = R_t[0] / (1.0 - np.outer(psi_t[0], psi_t[0]))
+    blocks = [P0] + [Q] * T + [V] + list(R_t[1:])
     D = n * (T + 1) + m * T
     cov = np.zeros((D, D))
     i = 0
@@ -71,7 +75,7 @@ def _dense_posteriors(F, H_seq, Q, R, psi, m0, P0, z):
     for t in range(T):
         ax = F @ ax
         ax[:, n * (t + 1) : n * (t + 2)] += np.eye(n)
-        av = np.diag(psi) @ av if t > 0 else av
+        av = np.diag(psi_t[t]) @ av if t > 0 else av
         av[:, n * (T + 1) + m * t : n * (T + 1) + m * (t + 1)] += np.eye(m)
         xs.append(ax.copy())
         zs.append(H_seq[t] @ ax + av)

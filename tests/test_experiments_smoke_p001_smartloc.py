@@ -137,7 +137,7 @@ def test_shared_psi_and_snapshot_baseline() -> None:
 @pytest.mark.parametrize(
     ("experiment", "rows", "extra"),
     [
-        ("p001_colored", ["hand-tuned", "learned", "oracle", "standard-ukf", "standard-sr-ukf", "white-ukf-stationary-R"], []),
+        ("p001_colored", ["hand-tuned", "learned", "oracle", "standard-ukf", "white-ukf-stationary-R"], []),
         pytest.param(
             "smartloc_real",
             ["hand-tuned", "learned", "ekf-gated", "ekf-no-gate", "snapshot-wls"],

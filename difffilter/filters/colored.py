@@ -50,9 +50,15 @@ class ColoredNoiseUKF(UKF):
     step when ``v_1`` is stationary; after a gap it ignores the correlation with older
     measurements (documented approximation).
 
+    Per-step coefficients: with ``psi=None`` the filter registers no ``psi`` and asks the
+    measurement model for ``Psi`` at every update, ``model.measurement.ar_coefficient(u) [..., m]``
+    (e.g. an elevation-dependent correlation time); the differenced measurement then uses the
+    coefficient of the newer step, ``z_k - Psi_k z_{k-1}`` (``v_k = Psi_k v_{k-1} + eta_k``).
+
     Args:
         model: the state-space model; ``R`` is the covariance of the driving noise ``eta``.
-        psi: AR coefficient(s), a float or ``[m]``, learnable ``Bounded(-1, 1)``.
+        psi: AR coefficient(s), a float or ``[m]``, learnable ``Bounded(-1, 1)``; ``None``: from
+            the measurement model per step (see above).
         sigma_points: the (``n``-dimensional) sigma-point set.
 
     Learnable: ``psi`` and the model's parameters.
@@ -60,8 +66,13 @@ class ColoredNoiseUKF(UKF):
 
     memory_keys = ("prev_measurement", "prev_observed")
 
-    def __init__(self, model: StateSpaceModel, *, psi: float | Tensor = 0.0, sigma_points: SigmaPoints | None = None) -> None:
+    def __init__(self, model: StateSpaceModel, *, psi: float | Tensor | None = 0.0, sigma_points: SigmaPoints | None = None) -> None:
         super().__init__(model, sigma_points=sigma_points, redraw_after_predict=True, noise="additive")
+        self.psi_from_model = psi is None
+        if self.psi_from_model:
+            if not callable(getattr(model.measurement, "ar_coefficient", None)):
+                raise TypeError("psi=None needs a measurement model with an ar_coefficient(u) method")
+            return
         m = self.measurement_dim
         dtype = self._param_dtype() or torch.get_default_dtype()
         psi_t = torch.as_tensor(psi, dtype=dtype).detach().clone()
@@ -72,6 +83,13 @@ class ColoredNoiseUKF(UKF):
         if not bool(((psi_t > -1) & (psi_t < 1)).all()):
             raise ValueError(f"psi must lie in (-1, 1), got {psi_t.tolist()}")
         register_constrained(self, "psi", psi_t, Bounded(-1.0, 1.0))
+
+    def ar_coefficients(self, u: Controls) -> Tensor:
+        """``Psi`` of the step whose controls are ``u``: ``[m]``, or ``[..., m]`` from the
+        measurement model when the filter was built with ``psi=None``."""
+        if self.psi_from_model:
+            return self.model.measurement.ar_coefficient(u)  # type: ignore[operator]
+        return self.psi
 
     def init_belief(self, mean: Tensor, cov: Tensor) -> Belief:
         m = self.measurement_dim
@@ -140,12 +158,13 @@ class ColoredNoiseUKF(UKF):
         zb = hm(pts_b, expand_controls(self._previous_controls(belief, u)))
         za_hat, zb_hat = weighted_mean(za, wm, hm), weighted_mean(zb, wm, hm)
         diff = belief["prev_observed"].to(mean.dtype)
-        coef = diff * self.psi  # [B, m], zero for undifferenced components
+        psi = self.ar_coefficients(u)
+        coef = diff * psi  # [B, m], zero for undifferenced components
         dg = hm.residual(za, za_hat[..., None, :]) - coef[..., None, :] * hm.residual(zb, zb_hat[..., None, :])
         innovation = hm.residual(z, za_hat) - coef * hm.residual(belief["prev_measurement"], zb_hat)
         r = hm.measurement_noise(mean, u)
         undiff = 1.0 - diff
-        pp = self.psi[:, None] * self.psi[None, :]
+        pp = psi[..., :, None] * psi[..., None, :]
         r_eff = r / (1.0 - undiff[..., :, None] * undiff[..., None, :] * pp)
         pzz = (dg * wc[:, None]).mT @ dg + r_eff
         dyn = self.model.dynamics

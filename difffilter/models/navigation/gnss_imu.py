@@ -28,8 +28,9 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
+from ..._util import control
 from ...linalg import block_diag
-from ...params import Positive, register_constrained, register_covariance
+from ...params import Bounded, Positive, register_constrained, register_covariance
 from ..base import Controls, DynamicsModel, MeasurementModel, StateSpaceModel, wrap_angle
 from ..layout import StateLayout, describe
 from .antenna import antenna_offset, has_antenna, planar_rotation, register_antenna
@@ -57,10 +58,11 @@ GRAVITY = 9.80665
 #: variance 1 deg^2 (the optional dual-antenna heading).  Our choices: GNSS position noise 0.1 m
 #: for the paper's "20 dB" (10^(-20/20) of a 1 m reference, which fits the published cm-level
 #: RMSEs), GNSS velocity noise 0.05 m/s, gyro white noise 0.1 deg/s on each 1 s mean.  The bias
-#: random walks of the filter are set to (nearly) zero to match the constant biases: 1e-9
-#: m/s^2/sqrt(s) and 1e-12 rad/s/sqrt(s) add less than 1e-6 of the bias priors' variance in
-#: 400 s (the parameters are ``Positive``, so not exactly 0; the earlier 1e-5 / 1e-6 grew the
-#: gyro-bias variance ~1700x beyond the constant true bias, NEES of ``b_g`` 0.005 instead of 1).
+#: random walks of the filter encode p004's constant biases by a stated rule: a walk that adds 1 %
+#: of the bias prior's variance over the 400 s drive, sigma_walk = 0.1 sigma_bias / sqrt(400 s):
+#: 2.45e-6 m/s^2/sqrt(s) and 2.42e-9 rad/s/sqrt(s) (the parameters are ``Positive``, so not 0; the
+#: earlier 1e-5 / 1e-6 grew the gyro-bias variance ~1700x beyond the constant true bias, NEES of
+#: ``b_g`` 0.005 instead of 1; 1e-9 / 1e-12 were out of reach of a learner in ~100 steps).
 #: ``sigma_position_step`` (m per step): std of the trapezoidal position step's own error, 1 cm
 #: measured on p004's drives (rms 0.010 m on the fixed script, 0.011 m on randomised ones).
 GNSS_IMU_PAPER: dict[str, float] = {
@@ -69,8 +71,8 @@ GNSS_IMU_PAPER: dict[str, float] = {
     "sigma_gyro": math.radians(0.1),
     "sigma_accel_bias": 0.05e-3 * GRAVITY,
     "sigma_gyro_bias": math.radians(0.1) / 3600.0,
-    "sigma_accel_bias_walk": 1e-9,
-    "sigma_gyro_bias_walk": 1e-12,
+    "sigma_accel_bias_walk": 0.1 * 0.05e-3 * GRAVITY / 20.0,
+    "sigma_gyro_bias_walk": 0.1 * math.radians(0.1) / 3600.0 / 20.0,
     "sigma_position_step": 0.01,
     "sigma_gnss": 0.1,
     "sigma_gnss_velocity": 0.05,
@@ -268,6 +270,10 @@ class GnssMeasurement(MeasurementModel):
         velocity, heading: whether the fix includes velocity / heading.
         sigma_gnss, sigma_gnss_velocity, sigma_heading: noise stds giving a diagonal ``R``,
             learnable with ``R_structure``.
+        accuracy_exponent: ``None`` (default): ``R`` is constant.  A number ``gamma`` registers a
+            learnable ``accuracy_exponent`` (``Bounded(-4, 4)``) and scales the position block by
+            the receiver's reported accuracy ``u["gnss_accuracy"] [..., 1]`` (m):
+            ``R_pp,k = R_pp (a_k / sigma_gnss)^(2 gamma)``; ``gamma = 0`` is the constant ``R``.
         lever_arm, latency: optional antenna lever arm (body forward, left, up; m) and receiver
             time offset (s), learnable by name: the position fix is ``p + C_nb l - latency v``
             (:mod:`~difffilter.models.navigation.antenna`; the filters then differentiate ``h``).
@@ -283,6 +289,7 @@ class GnssMeasurement(MeasurementModel):
         sigma_gnss_velocity: float = GNSS_IMU_PAPER["sigma_gnss_velocity"],
         sigma_heading: float = GNSS_IMU_PAPER["sigma_heading"],
         R_structure: str = "diagonal",  # noqa: N803
+        accuracy_exponent: float | None = None,
         lever_arm: Sequence[float] | None = None,
         latency: float | None = None,
         dtype: torch.dtype | None = None,
@@ -295,7 +302,23 @@ class GnssMeasurement(MeasurementModel):
         self.measurement_dim = len(sig)
         s = torch.tensor(sig, dtype=dtype or torch.get_default_dtype())
         register_covariance(self, "R", torch.diag(s * s), R_structure)
+        self.accuracy_reference = float(sigma_gnss)
+        self.scales_with_accuracy = accuracy_exponent is not None
+        if accuracy_exponent is not None:
+            if not abs(float(accuracy_exponent)) < 4.0:
+                raise ValueError(f"accuracy_exponent must lie in (-4, 4), got {accuracy_exponent}")
+            register_constrained(self, "accuracy_exponent", torch.tensor(float(accuracy_exponent), dtype=s.dtype), Bounded(-4.0, 4.0))
         register_antenna(self, lever_arm=lever_arm, latency=latency, dtype=s.dtype)
+
+    def measurement_noise(self, x: Tensor, u: Controls = None) -> Tensor:
+        if not self.scales_with_accuracy:
+            return self.R
+        acc = control(u, "gnss_accuracy", "GnssMeasurement(accuracy_exponent=...)")[..., 0].to(self.R.dtype)
+        factor = (acc / self.accuracy_reference) ** self.accuracy_exponent  # the position std's factor
+        d = 2 if self.planar else 3
+        ones = torch.ones_like(factor)[..., None].expand(*factor.shape, self.measurement_dim - d)
+        f = torch.cat([factor[..., None].expand(*factor.shape, d), ones], -1)
+        return self.R * f[..., :, None] * f[..., None, :]
 
     def _antenna(self, x: Tensor) -> Tensor:
         """``C_nb l - latency v`` in the position's components."""
@@ -350,6 +373,7 @@ class GnssImuModel(StateSpaceModel):
         dt: sample interval (s).
         velocity, heading: extra GNSS observations (see :class:`GnssMeasurement`).
         R_structure: learnable structure of ``R``.
+        accuracy_exponent: see :class:`GnssMeasurement` (``None``: constant ``R``).
         lever_arm, latency: optional learnable antenna lever arm and receiver time offset
             (see :class:`GnssMeasurement`).
         **settings: overrides of :data:`GNSS_IMU_PAPER` (noise levels).
@@ -365,6 +389,7 @@ class GnssImuModel(StateSpaceModel):
         velocity: bool = False,
         heading: bool = False,
         R_structure: str = "diagonal",  # noqa: N803
+        accuracy_exponent: float | None = None,
         lever_arm: Sequence[float] | None = None,
         latency: float | None = None,
         dtype: torch.dtype | None = None,
@@ -381,6 +406,7 @@ class GnssImuModel(StateSpaceModel):
             sigma_gnss_velocity=opts["sigma_gnss_velocity"],
             sigma_heading=opts["sigma_heading"],
             R_structure=R_structure,
+            accuracy_exponent=accuracy_exponent,
             lever_arm=lever_arm,
             latency=latency,
             dtype=dtype,

@@ -7,6 +7,9 @@ the data module's ``num_steps``) whose ``true_params`` name the filter's paramet
 
 * ``psi`` - the AR(1) coefficient of the pseudorange noise (0.7),
 * ``R`` - the variance of the white driving noise ``eta`` per satellite (``[K]``, 9 m^2),
+* the same noise as the elevation law's values (``sigma_zenith``, ``tau_zenith``, exponents 0;
+  :func:`~difffilter.papers.p001.elevation.paper_law`), or, under an elevation-dependent noise
+  (``config["elevation_noise"]``), only the law's four values,
 * ``clock_bias_psd``, ``clock_drift_psd`` - the simulator's receiver clock random walk,
 * ``accel_psd`` - the receiver does not move, so the true acceleration PSD is zero; the filter's
   ``Positive`` constraint needs a positive value, hence ``static_accel_psd`` (1e-10 m^2/s^3).
@@ -30,7 +33,8 @@ from ...filters.protocol import Filter
 from ...learn.data import SimulatedTrajectories
 from ...learn.learner import FilterLearner
 from ...selection import assign_parameters
-from .simulator import P001Scenario, make_p001_model, simulate_p001
+from .elevation import paper_law
+from .simulator import LAW_KEYS, P001Scenario, make_p001_model, simulate_p001
 
 __all__ = ["P001Trajectories", "p001_simulator", "start_learner"]
 
@@ -55,12 +59,15 @@ class P001Trajectories(SimulatedTrajectories):
     model_options: dict[str, Any] = field(default_factory=dict)
 
     def make_model(self) -> torch.nn.Module:
-        """The p001 CV + clock pseudorange model with the true ``R``/``Q`` of this data."""
+        """The p001 CV + clock pseudorange model with the true ``R``/``Q`` of this data (its
+        elevation law under an elevation-dependent noise)."""
         tp = self.true_params
+        law = self.scenario.config.get("elevation_noise")
         return make_p001_model(
             num_satellites=int(self.measurements.shape[-1]),
             dt=float(self.scenario.dt),
-            eta_sigma=float(tp["R"][0]) ** 0.5,
+            eta_sigma=None if law else float(tp["R"][0]) ** 0.5,
+            elevation_noise={n: tp[n] for n in LAW_KEYS} if law else None,
             accel_psd=float(tp["accel_psd"]),
             clock_bias_psd=float(tp["clock_bias_psd"]),
             clock_drift_psd=float(tp["clock_drift_psd"]),
@@ -105,17 +112,22 @@ def p001_simulator(
         config=dict(config or {}),
     )
     k = int(sc.measurements.shape[-1])
-    psi = sc.psi.to(torch.float64)
-    if not bool(torch.allclose(psi, psi[0].expand_as(psi))):
-        raise ValueError("p001_simulator draws one Psi for the whole set (random_psi is not supported: no single oracle)")
     cfg = sc.config
-    true_params = {
-        "psi": float(psi[0]),
-        "R": [float(sc.eta_var)] * k,
+    true_params: dict[str, Any] = {
         "clock_bias_psd": float(cfg["clock_bias_psd"]),  # type: ignore[arg-type]
         "clock_drift_psd": float(cfg["clock_drift_psd"]),  # type: ignore[arg-type]
         "accel_psd": float(static_accel_psd),
     }
+    law = cfg.get("elevation_noise")
+    if law:
+        true_params.update({n: float(law[n]) for n in LAW_KEYS})  # type: ignore[index]
+    else:
+        psi = sc.psi.to(torch.float64)
+        if not bool(torch.allclose(psi, psi[0].expand_as(psi))):
+            raise ValueError("p001_simulator draws one Psi for the whole set (random_psi is not supported: no single oracle)")
+        true_params.update({"psi": float(psi[0]), "R": [float(sc.eta_var)] * k})
+        # the same truth in the elevation family's names (exponents 0)
+        true_params.update(paper_law(psi=float(psi[0]), eta_sigma=float(sc.eta_var) ** 0.5, dt=float(sc.dt)))
     return P001Trajectories(
         truth=sc.truth,
         measurements=sc.measurements,

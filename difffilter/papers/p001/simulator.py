@@ -13,6 +13,13 @@ with ``v_1`` drawn from the stationary law ``N(0, R_eta / (1 - Psi^2))``, and th
 ``(b, d)`` a two-state random walk (bias PSD ``clock_bias_psd``, drift PSD ``clock_drift_psd``),
 independent of the filter.  The receiver is static (zero velocity).
 
+Noise families (``config``): one ``Psi`` (``psi``) and ``R_eta = eta_sigma^2`` for every
+satellite (the paper: 0.7 and 3 m; ``p001_multipath``: 0.9 and 1.5 m), or, with
+``config["elevation_noise"] = {sigma_zenith, sigma_exponent, tau_zenith, tau_exponent}``, per
+satellite from its elevation (:func:`~difffilter.papers.p001.elevation.elevation_noise`).  The
+elevations are inputs too (``controls["elevation"]``, rad), as a receiver knows them from the
+ephemeris.
+
 Coordinates: positions are ECEF *offsets* from the known point ``frame_origin`` (ECEF axes), and
 measurements are reduced pseudoranges ``rho - ||s - origin||`` computed in float64, so float32
 filters keep millimetre resolution.  ``PseudorangeMeasurement(reduced=True)`` predicts exactly
@@ -22,6 +29,7 @@ these; ``reduced=False`` gives absolute ECEF positions and raw pseudoranges inst
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import torch
@@ -33,8 +41,12 @@ from ...models.base import StateSpaceModel
 from ...models.layout import StateLayout, describe
 from ...models.navigation.clock import ConstantVelocityClock
 from ...models.navigation.pseudorange import GnssStateLayout, PseudorangeMeasurement
+from .elevation import ElevationPseudorange, elevation_noise
 
-__all__ = ["P001_CONFIG", "P001_LAYOUT", "P001Geometry", "P001Scenario", "make_p001_model", "simulate_p001"]
+__all__ = ["LAW_KEYS", "P001_CONFIG", "P001_LAYOUT", "P001Geometry", "P001Scenario", "make_p001_model", "simulate_p001"]
+
+#: Keys of ``config["elevation_noise"]`` (:func:`~difffilter.papers.p001.elevation.elevation_noise`).
+LAW_KEYS = ("sigma_zenith", "sigma_exponent", "tau_zenith", "tau_exponent")
 
 P001_CONFIG: dict[str, float | tuple[float, ...]] = {
     "lat_deg": 30.5283,  # a known point (chosen; the paper's location was lost)
@@ -57,7 +69,11 @@ P001_CONFIG: dict[str, float | tuple[float, ...]] = {
     "p0_clock_var": 100.0,  # m^2
     "p0_drift_var": 1.0,  # (m/s)^2
     "start_offset": 10.0,  # m, norm of the initial position error
-    "filter_accel_psd": 1e-4,  # m^2/s^3, "small Q for a static receiver"
+    # The paper's Q was lost; its receiver is static by design (one receiver on a known point), so
+    # the CV model's acceleration PSD is the truth, 0 (1e-10: the parameter is Positive).  The
+    # earlier 1e-4 ("small Q") was a project choice the learned filters only undid.
+    "filter_accel_psd": 1e-10,  # m^2/s^3
+    "elevation_noise": None,  # or {sigma_zenith, sigma_exponent, tau_zenith, tau_exponent}
 }
 
 
@@ -94,6 +110,8 @@ class P001Scenario:
     initial_truth: Tensor
     frame_origin: Tensor
     dt: float
+    ar_coefficient: Tensor
+    eta_variance: Tensor
     config: dict[str, object] = field(default_factory=dict)
 
 
@@ -151,12 +169,20 @@ def simulate_p001(
     psi = torch.full((bsz,), float(cfg["psi"]), dtype=f64)
     if random_psi is not None:
         psi = random_psi[0] + (random_psi[1] - random_psi[0]) * rand(bsz)
-    eta_sd = float(cfg["eta_sigma"])
+    eta_sd: float | Tensor = float(cfg["eta_sigma"])
+    psi_k, eta_var_k = psi[:, None].expand(bsz, k), torch.full((bsz, k), float(cfg["eta_sigma"]) ** 2, dtype=f64)
+    law = cfg.get("elevation_noise")
+    if law:
+        if random_psi is not None:
+            raise ValueError("random_psi and config['elevation_noise'] exclude each other")
+        psi_k, eta_var_k = elevation_noise(el, dt, **{n: float(law[n]) for n in LAW_KEYS})
+        eta_sd = eta_var_k.sqrt()[:, None, :]
+        psi = torch.full((bsz,), math.nan, dtype=f64)
     eta = randn(bsz, steps, k) * eta_sd
     v = torch.empty(bsz, steps, k, dtype=f64)
-    v[:, 0] = eta[:, 0] / torch.sqrt(1 - psi**2)[:, None]
+    v[:, 0] = eta[:, 0] / torch.sqrt(1 - psi_k**2)
     for t in range(1, steps):
-        v[:, t] = psi[:, None] * v[:, t - 1] + eta[:, t]
+        v[:, t] = psi_k * v[:, t - 1] + eta[:, t]
 
     qb, qd = float(cfg["clock_bias_psd"]), float(cfg["clock_drift_psd"])
     qc = torch.tensor([[qb * dt + qd * dt**3 / 3, qd * dt**2 / 2], [qd * dt**2 / 2, qd * dt]], dtype=f64)
@@ -188,15 +214,21 @@ def simulate_p001(
         truth=truth0[:, 1:].to(dtype),
         measurements=z.to(dtype),
         mask=torch.ones(bsz, steps, k, dtype=torch.bool),
-        controls={"sat_pos": sat_ctrl[:, None].expand(bsz, steps, k, 3).to(dtype), "dt": torch.full((bsz, steps, 1), dt, dtype=dtype)},
+        controls={
+            "sat_pos": sat_ctrl[:, None].expand(bsz, steps, k, 3).to(dtype),
+            "dt": torch.full((bsz, steps, 1), dt, dtype=dtype),
+            "elevation": el[:, None].expand(bsz, steps, k).to(dtype),
+        },
         noise=v.to(dtype),
         psi=psi.to(dtype),
-        eta_var=eta_sd**2,
+        eta_var=math.nan if law else float(eta_sd) ** 2,  # type: ignore[arg-type]
         initial_mean=init.to(dtype),
         initial_cov=torch.diag(p0).to(dtype),
         initial_truth=truth0[:, 0].to(dtype),
         frame_origin=origin,
         dt=dt,
+        ar_coefficient=psi_k.to(dtype),
+        eta_variance=eta_var_k.to(dtype),
         config={**cfg, "num_satellites": k, "reduced": reduced},
     )
 
@@ -211,6 +243,7 @@ def make_p001_model(
     clock_drift_psd: float | None = None,
     R_structure: str = "scalar",
     reduced: bool = True,
+    elevation_noise: Mapping[str, float] | None = None,
     dtype: torch.dtype = torch.float64,
 ) -> torch.nn.Module:
     """CV + clock dynamics and reduced pseudoranges with the configured (hand-tuned) Q and R.
@@ -218,6 +251,12 @@ def make_p001_model(
     ``R = eta_sigma^2 I`` is the noise of a *white*-noise filter (the standard UKF of p001); a
     coloured-noise filter wraps this model with its own ``Psi``.  The clock PSDs default to the
     simulator's truth, the acceleration PSD to ``filter_accel_psd``.
+
+    ``elevation_noise`` (``{sigma_zenith, sigma_exponent, tau_zenith, tau_exponent}``): the
+    measurement is an :class:`~difffilter.papers.p001.elevation.ElevationPseudorange` with these
+    starting values instead (``eta_sigma``, ``R_structure`` unused; a
+    :class:`~difffilter.filters.ColoredNoiseUKF` with ``psi=None`` reads ``Psi`` from it), and the
+    learnable set is the law's four values and Q.
     """
     cfg = P001_CONFIG
     dyn = ConstantVelocityClock(
@@ -228,19 +267,22 @@ def make_p001_model(
         dtype=dtype,
     )
     sigma = float(cfg["eta_sigma"]) if eta_sigma is None else eta_sigma  # type: ignore[arg-type]
-    meas = PseudorangeMeasurement(
-        num_satellites=num_satellites,
-        layout=GnssStateLayout.constant_velocity(),
-        sigma_range=sigma,
-        reduced=reduced,
-        R_structure=R_structure,
-        dtype=dtype,
-    )
+    layout = GnssStateLayout.constant_velocity()
+    meas: PseudorangeMeasurement
+    if elevation_noise is not None:
+        law = {n: float(elevation_noise[n]) for n in LAW_KEYS}
+        meas = ElevationPseudorange(num_satellites=num_satellites, layout=layout, dt=dyn.dt, reduced=reduced, dtype=dtype, **law)
+        noise_names = list(LAW_KEYS)
+    else:
+        meas = PseudorangeMeasurement(
+            num_satellites=num_satellites, layout=layout, sigma_range=sigma, reduced=reduced, R_structure=R_structure, dtype=dtype
+        )
+        noise_names = ["R"]
     cfg_var = [cfg["p0_position_var"]] * 3 + [cfg["p0_velocity_var"]] * 3 + [cfg["p0_clock_var"], cfg["p0_drift_var"]]
     return describe(
         StateSpaceModel(dyn, meas),
         layout=P001_LAYOUT,
-        learn=["accel_psd", "clock_bias_psd", "clock_drift_psd", "R"],
+        learn=["accel_psd", "clock_bias_psd", "clock_drift_psd", *noise_names],
         initial_mean=[0.0] * 6 + [float(cfg["clock_bias"]), 0.0],  # type: ignore[arg-type]
         initial_var=cfg_var,  # type: ignore[arg-type]
         controls=P001Geometry(num_satellites=num_satellites),

@@ -68,6 +68,9 @@ class P004Trajectories(SimulatedTrajectories):
 
 
 def _true_params(data: GnssImuScenario) -> dict[str, Any]:
+    """The simulator's noise by filter parameter name.  Bias walks only where the truth's biases
+    walk (constant biases: the filter keeps its own near-zero walks); nothing about the urban
+    canyon's correlated GNSS error, which no white-noise filter represents."""
     p = data.params
     d = 2 if data.planar else 3
     r = [p["sigma_gnss"] ** 2] * d
@@ -75,7 +78,11 @@ def _true_params(data: GnssImuScenario) -> dict[str, Any]:
         r += [p["sigma_gnss_velocity"] ** 2] * d
     if p["heading"]:
         r += [p["sigma_heading"] ** 2]
-    return {"sigma_accel": p["sigma_accel"], "sigma_gyro": p["sigma_gyro"], "R": r}
+    out: dict[str, Any] = {"sigma_accel": p["sigma_accel"], "sigma_gyro": p["sigma_gyro"], "R": r}
+    for name in ("accel", "gyro"):
+        if p.get(f"true_{name}_bias_walk", 0.0) > 0.0:
+            out[f"sigma_{name}_bias_walk"] = p[f"true_{name}_bias_walk"]
+    return out
 
 
 def p004_simulator(
@@ -102,7 +109,8 @@ def p004_simulator(
             (else the simulator's 1 deg, p004's azimuth error).
         initial_error: draw the belief's mean of position, velocity and heading (3-D: position
             and velocity) from ``N(truth, P0)``; ``False``: the mean is the truth (biases 0).
-        **options: further :func:`simulate_p004` arguments (``velocity``, noise levels...).
+        **options: further :func:`simulate_p004` arguments (``velocity``, noise levels,
+            ``bias_walk``, ``canyon_windows``...).
     """
     dt = as_dtype(dtype)
     gen = generator(seed)

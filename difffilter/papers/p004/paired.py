@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
 from ...learn.checkpoints import best_checkpoint
@@ -31,9 +32,9 @@ __all__ = ["BLOCKS", "paired_report", "per_run_errors"]
 BLOCKS = {"position": [0, 1], "velocity": [2, 3], "heading": [4], "accel_bias": [5, 6], "gyro_bias": [7]}
 
 
-def _blend(delta: float, options: Mapping[str, float]) -> torch.nn.Module:
+def _blend(delta: float, options: Mapping[str, float], sigma_points: Any = None) -> torch.nn.Module:
     model = GnssImuModel(planar=True, dtype=torch.float64, **options)
-    return blend_filter(model=model, delta=delta).to(torch.float64)
+    return blend_filter(model=model, delta=delta, sigma_points=sigma_points).to(torch.float64)
 
 
 def per_run_errors(filt: torch.nn.Module, data: Any) -> dict[str, torch.Tensor]:
@@ -79,10 +80,15 @@ def paired_report(
         initial_error=initial_error,
     )
     options = dict(model_options or {})
-    hand = _blend(float(cfg.filter.delta), options)
+    points = cfg.filter.get("sigma_points")  # the run's own set (p004: Julier, lambda = 3 - n)
+
+    def blend() -> torch.nn.Module:
+        return _blend(float(cfg.filter.delta), options, None if points is None else instantiate(points))
+
+    hand = blend()
     assign_parameters(hand, OmegaConf.to_container(cfg.experiment.hand_tuned, resolve=True))
-    learned = _blend(float(cfg.filter.delta), options)
-    learned_state = load_filter(str(ckpt), filter=_blend(float(cfg.filter.delta), options)).state_dict()
+    learned = blend()
+    learned_state = load_filter(str(ckpt), filter=blend()).state_dict()
     # values overridden by model_options stay as given (they are not learned in p004_blend)
     keep = [n.removeprefix("sigma_") for n in options]
     learned_state = {k: v for k, v in learned_state.items() if not any(n in k for n in keep)}

@@ -35,6 +35,17 @@ and ``gyro = Delta theta / T + b_g + N(0, sigma_gyro^2)`` with per-trajectory co
 (``sigma_gnss``, 0.1 m for "20 dB", see ``GNSS_IMU_PAPER``), optionally velocity and heading.
 The vehicle is level (``z = 0``, no roll or pitch); the truth is integrated on a 100x finer grid.
 
+Families beyond the paper's sensors (keyword arguments; defaults reproduce the paper's draws):
+
+* ``bias_walk = (accel, gyro)``: the biases also walk during the drive (in-run instability of a
+  MEMS IMU), ``b_k = b_{k-1} + sigma_walk sqrt(T) n_k``; the reading over ``(t_{k-1}, t_k]``
+  carries ``b_{k-1}`` and the truth at ``t_k`` holds ``b_k`` (the filter's convention).
+* ``canyon_windows``: ``(start, end)`` seconds in an urban canyon, where the GNSS error is a
+  first-order Gauss-Markov process (std ``canyon_sigma`` per axis, correlation time
+  ``canyon_tau``: multipath) instead of white ``sigma_gnss``.  The receiver's reported accuracy,
+  ``controls["gnss_accuracy"] [B, T, 1]`` (always present), is ``sigma_gnss`` in open sky and
+  ``canyon_sigma`` in the canyon: it knows the size of its error, not its correlation.
+
 Indexing: ``initial_state`` is the truth at ``t = 0``; ``truth[:, k - 1]``, ``measurements[:, k - 1]``
 and ``controls[...][:, k - 1]`` (the IMU over ``(t_{k-1}, t_k]``) belong to ``t_k = k T``.
 """
@@ -205,6 +216,29 @@ def _solve_speeds(hats: Tensor, heading: Tensor, knots: Sequence[tuple[float, fl
     return values @ hats, free
 
 
+def _in_windows(times: Tensor, windows: Sequence[tuple[float, float]]) -> Tensor:
+    """``[T]`` True where a time lies in one of the ``(start, end)`` windows."""
+    inside = torch.zeros(times.shape, dtype=torch.bool)
+    for start, end in windows:
+        if not float(start) < float(end):
+            raise ValueError(f"windows must be (start, end) with start < end, got {(start, end)}")
+        inside |= (times >= float(start)) & (times < float(end))
+    return inside
+
+
+def _gauss_markov(b: int, steps: int, d: int, sigma: float, tau: float, dt: float, gen: torch.Generator) -> Tensor:
+    """``[b, steps, d]`` stationary first-order Gauss-Markov samples (std ``sigma``, correlation time ``tau``)."""
+    if not (sigma > 0.0 and tau > 0.0):
+        raise ValueError(f"canyon_sigma and canyon_tau must be positive, got {sigma}, {tau}")
+    phi = math.exp(-dt / tau)
+    drive = torch.randn(b, steps, d, generator=gen, dtype=torch.float64)
+    out = torch.empty_like(drive)
+    out[:, 0] = sigma * drive[:, 0]
+    for k in range(1, steps):
+        out[:, k] = phi * out[:, k - 1] + sigma * math.sqrt(1.0 - phi * phi) * drive[:, k]
+    return out
+
+
 def _random_script(gen: torch.Generator) -> tuple[list[tuple[float, float, str, float, float]], list[tuple[float, float | str]]]:
     def u(lo: float, hi: float) -> float:
         return lo + (hi - lo) * float(torch.rand((), generator=gen, dtype=torch.float64))
@@ -228,6 +262,10 @@ def simulate_p004(
     velocity: bool = False,
     heading: bool = False,
     gnss_outages: Sequence[tuple[float, float]] = (),
+    bias_walk: tuple[float, float] = (0.0, 0.0),
+    canyon_windows: Sequence[tuple[float, float]] = (),
+    canyon_sigma: float = 1.0,
+    canyon_tau: float = 10.0,
     substeps: int = 100,
     dtype: torch.dtype = torch.float32,
     **settings: float,
@@ -241,6 +279,9 @@ def simulate_p004(
         planar: planar state layout / IMU (see :class:`~difffilter.models.navigation.gnss_imu.PlanarGnssImuDynamics`).
         velocity, heading: add GNSS velocity / dual-antenna heading observations.
         gnss_outages: ``(start, end)`` windows in seconds without GNSS.
+        bias_walk: true in-run bias random walks ``(accel m/s^2/sqrt(s), gyro rad/s/sqrt(s))``.
+        canyon_windows, canyon_sigma, canyon_tau: urban-canyon windows (s), their GNSS error std
+            (m) and correlation time (s) (module docstring).
         substeps: fine integration steps per sample.
         dtype: dtype of the returned tensors (the simulation runs in float64).
         **settings: overrides of :data:`~difffilter.models.navigation.gnss_imu.GNSS_IMU_PAPER`.
@@ -283,15 +324,22 @@ def simulate_p004(
     bg = p["sigma_gyro_bias"] * torch.randn(b, 3, generator=gen, dtype=f64)
     na = p["sigma_accel"] * torch.randn(b, steps, 3, generator=gen, dtype=f64)
     ng = p["sigma_gyro"] * torch.randn(b, steps, 3, generator=gen, dtype=f64)
+    walk_a, walk_g = (float(w) for w in bias_walk)
+    if not (walk_a >= 0.0 and walk_g >= 0.0 and math.isfinite(walk_a + walk_g)):
+        raise ValueError(f"bias_walk must be two non-negative numbers, got {bias_walk}")
+    ba_t, bg_t = ba[:, None].expand(b, steps + 1, 3), bg[:, None].expand(b, steps + 1, 3)  # biases at t_0..t_T
+    if walk_a > 0.0 or walk_g > 0.0:
+        steps_a = walk_a * math.sqrt(dt) * torch.randn(b, steps, 3, generator=gen, dtype=f64)
+        steps_g = walk_g * math.sqrt(dt) * torch.randn(b, steps, 3, generator=gen, dtype=f64)
+        ba_t = ba[:, None] + torch.cat([torch.zeros(b, 1, 3, dtype=f64), steps_a.cumsum(1)], 1)
+        bg_t = bg[:, None] + torch.cat([torch.zeros(b, 1, 3, dtype=f64), steps_g.cumsum(1)], 1)
     zeros = torch.zeros_like(f_fwd)
-    accel = torch.stack([f_fwd, f_left, zeros + GRAVITY], -1) + ba[:, None] + na
-    gyro = torch.stack([zeros, zeros, yaw_rate], -1) + bg[:, None] + ng
+    accel = torch.stack([f_fwd, f_left, zeros + GRAVITY], -1) + ba_t[:, :-1] + na
+    gyro = torch.stack([zeros, zeros, yaw_rate], -1) + bg_t[:, :-1] + ng
 
     zero_t = torch.zeros_like(psi)
     if planar:
-        state = torch.cat(
-            [pos, vel, psi[..., None], ba[:, None, :2].expand(-1, steps + 1, 2), bg[:, None, 2:].expand(-1, steps + 1, 1)], -1
-        )
+        state = torch.cat([pos, vel, psi[..., None], ba_t[..., :2], bg_t[..., 2:]], -1)
         controls = {"accel": accel[..., :2], "gyro": gyro[..., 2:]}
     else:
         yaw = 0.5 * (math.pi / 2 - psi)
@@ -303,8 +351,8 @@ def simulate_p004(
                 vel,
                 zero_t[..., None],
                 quat,
-                ba[:, None].expand(-1, steps + 1, 3),
-                bg[:, None].expand(-1, steps + 1, 3),
+                ba_t,
+                bg_t,
             ],
             -1,
         )
@@ -312,20 +360,26 @@ def simulate_p004(
 
     d = 2 if planar else 3
     truth = state[:, 1:]
-    parts = [truth[..., :d] + p["sigma_gnss"] * torch.randn(b, steps, d, generator=gen, dtype=f64)]
+    times = dt * torch.arange(1, steps + 1, dtype=f64)
+    gnss_err = p["sigma_gnss"] * torch.randn(b, steps, d, generator=gen, dtype=f64)
+    accuracy = torch.full((b, steps, 1), float(p["sigma_gnss"]), dtype=f64)
+    if canyon_windows:
+        canyon = _in_windows(times, canyon_windows)
+        gnss_err = torch.where(canyon[None, :, None], _gauss_markov(b, steps, d, canyon_sigma, canyon_tau, dt, gen), gnss_err)
+        accuracy[:, canyon] = float(canyon_sigma)
+    parts = [truth[..., :d] + gnss_err]
     if velocity:
         parts.append(truth[..., d : 2 * d] + p["sigma_gnss_velocity"] * torch.randn(b, steps, d, generator=gen, dtype=f64))
     if heading:
         noisy = psi[:, 1:] + p["sigma_heading"] * torch.randn(b, steps, generator=gen, dtype=f64)
         parts.append(wrap_angle(noisy)[..., None])
     z = torch.cat(parts, -1)
-    times = dt * torch.arange(1, steps + 1, dtype=f64)
-    ok = torch.ones(steps, dtype=torch.bool)
-    for start, end in gnss_outages:
-        ok &= ~((times >= start) & (times < end))
+    ok = ~_in_windows(times, gnss_outages)
     mask = ok[None, :, None].expand(b, steps, z.shape[-1]).clone()
     z = torch.where(mask, z, torch.full_like(z, float("nan")))
     params = {**p, "planar": float(planar), "velocity": float(velocity), "heading": float(heading), "randomize": float(randomize)}
+    params.update({"true_accel_bias_walk": walk_a, "true_gyro_bias_walk": walk_g, "canyon": float(bool(canyon_windows))})
+    controls["gnss_accuracy"] = accuracy
     return GnssImuScenario(
         truth=truth.to(dtype),
         measurements=z.to(dtype),

@@ -96,6 +96,7 @@ def test_smoke_fused_rows_agree_with_the_reference(tmp_path: Path) -> None:
 def test_smoke_generated_engine_and_extra_case(tmp_path: Path) -> None:
     """The generated engine's rows, and a filter kind passed in by the caller (as the entry point
     does for p003's bank)."""
+
     def tiny(*, dtype: torch.dtype, batch: int, steps: int, seed: int) -> BenchCase:
         case = builtin_case("kf", dtype, simulate_gpsdr(batch_size=batch, steps=steps, seed=seed, dtype=dtype), BenchSettings())
         mask = torch.ones(case.measurements.shape[:2], dtype=torch.bool)

@@ -14,14 +14,28 @@ import torch
 from difffilter.filters import ColoredNoiseUKF, Julier, MerweScaled
 from difffilter.models import FunctionalModel
 from difffilter.models.base import MeasurementModel, StateSpaceModel
-from difffilter.papers.p001 import LAW_KEYS, P001_CONFIG, ElevationPseudorange, elevation_noise, make_p001_model, p001_simulator, paper_law, simulate_p001
+from difffilter.papers.p001 import (
+    LAW_KEYS,
+    P001_CONFIG,
+    ElevationPseudorange,
+    elevation_noise,
+    make_p001_model,
+    p001_simulator,
+    paper_law,
+    simulate_p001,
+)
 from difffilter.selection import assign_parameters
 
 from .filter_contract import cv_matrices, make_data
 from .test_colored import _dense_posteriors
 
 F64 = torch.float64
-ELEVATION_LAW = {"sigma_zenith": 3.0, "sigma_exponent": 1.0, "tau_zenith": 28.036732520571, "tau_exponent": 1.0}  # conf/scenario/p001_elevation_*.yaml
+ELEVATION_LAW = {
+    "sigma_zenith": 3.0,
+    "sigma_exponent": 1.0,
+    "tau_zenith": 28.036732520571,
+    "tau_exponent": 1.0,
+}  # conf/scenario/p001_elevation_*.yaml
 
 
 def _ar1_statistics(v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -173,6 +187,8 @@ def test_oracle_values_of_each_family() -> None:
     assign_parameters(oracle, {k: elev.true_params[k] for k in LAW_KEYS})
     u = {k: v[:, 0] for k, v in elev.controls.items()}
     torch.testing.assert_close(oracle.ar_coefficients(u), elev.scenario.ar_coefficient)
-    torch.testing.assert_close(torch.diagonal(oracle.model.measurement.measurement_noise(None, u), dim1=-2, dim2=-1), elev.scenario.eta_variance)
+    torch.testing.assert_close(
+        torch.diagonal(oracle.model.measurement.measurement_noise(None, u), dim1=-2, dim2=-1), elev.scenario.eta_variance
+    )
     model = elev.make_model()
     assert isinstance(model.measurement, ElevationPseudorange) and float(model.measurement.sigma_exponent.detach()) == pytest.approx(1.0)

@@ -43,7 +43,9 @@ def test_mems_biases_walk_with_the_stated_statistics_and_stay_in_the_family() ->
     assert bool(((ratio - 1).abs() < 5 / math.sqrt(2 * n)).all()), ratio
     # turn-on biases: drawn from the datasheet spread that the initial belief states
     _, cov0 = data.initial_belief()
-    torch.testing.assert_close(cov0.diagonal()[5:], torch.tensor([MEMS["sigma_accel_bias"] ** 2] * 2 + [MEMS["sigma_gyro_bias"] ** 2], dtype=F64))
+    torch.testing.assert_close(
+        cov0.diagonal()[5:], torch.tensor([MEMS["sigma_accel_bias"] ** 2] * 2 + [MEMS["sigma_gyro_bias"] ** 2], dtype=F64)
+    )
     nominal = simulate_p004(batch_size=2, seed=4, planar=True, dtype=F64)
     assert bool((nominal.truth[:, :, 5:] == nominal.initial_state[:, None, 5:]).all())  # p004: constant biases
     with pytest.raises(ValueError, match="bias_walk"):
@@ -85,13 +87,17 @@ def test_accuracy_scaled_r_reduces_to_p004s_constant_r() -> None:
     for i, a in enumerate((0.1, 1.0, 0.3)):
         expected = torch.diag(torch.tensor([0.01 * (a / 0.1) ** 2] * 2 + [0.05**2] * 2, dtype=F64))
         torch.testing.assert_close(r[i], expected)
-    assert "accuracy_exponent" not in dict(plain.named_parameters()) and "parametrizations.accuracy_exponent.original" in dict(scaled.named_parameters())
+    assert "accuracy_exponent" not in dict(plain.named_parameters()) and "parametrizations.accuracy_exponent.original" in dict(
+        scaled.named_parameters()
+    )
     with pytest.raises(ValueError, match="accuracy_exponent"):
         GnssMeasurement(planar=True, accuracy_exponent=4.5)
     with pytest.raises(KeyError, match="gnss_accuracy"):
         scaled.measurement_noise(None, {})
     model = GnssImuModel(planar=True, accuracy_exponent=0.5, dtype=F64)
-    torch.testing.assert_close(model.measurement.measurement_noise(None, {"gnss_accuracy": torch.tensor([0.4], dtype=F64)}), 0.01 * 4 * torch.eye(2, dtype=F64))
+    torch.testing.assert_close(
+        model.measurement.measurement_noise(None, {"gnss_accuracy": torch.tensor([0.4], dtype=F64)}), 0.01 * 4 * torch.eye(2, dtype=F64)
+    )
 
 
 def test_oracle_values_of_each_family() -> None:

@@ -99,7 +99,9 @@ class ElevationPseudorange(PseudorangeMeasurement):
         reduced: bool = True,
         dtype: torch.dtype = torch.float64,
     ) -> None:
-        super().__init__(num_satellites=num_satellites, layout=layout, sigma_range=float(sigma_zenith), reduced=reduced, R_structure="fixed", dtype=dtype)
+        super().__init__(
+            num_satellites=num_satellites, layout=layout, sigma_range=float(sigma_zenith), reduced=reduced, R_structure="fixed", dtype=dtype
+        )
         for name, value in (("sigma_zenith", sigma_zenith), ("tau_zenith", tau_zenith)):
             if not (math.isfinite(float(value)) and float(value) > 0.0):
                 raise ValueError(f"{name} must be a positive number, got {value}")

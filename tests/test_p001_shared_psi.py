@@ -1,0 +1,87 @@
+"""p001's in-family follow-up (``experiment=p001_multipath_shared``): the coloured-noise UKF with one
+Psi shared by every pseudorange equals p001's per-channel filter at equal values, keeps one
+value under learning and under the seeded start perturbation, and the overlay runs end to end."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+
+from difffilter._util import as_dtype
+from difffilter.filters.colored import ColoredNoiseUKF
+from difffilter.filters.sigma_points import Julier
+from difffilter.learn.experiment import apply_model_defaults, build_filter, build_learner, run_experiment
+from difffilter.papers.p001 import p001_simulator
+from difffilter.papers.smartloc import SharedPsiColoredUKF
+
+ROOT = Path(__file__).resolve().parents[1]
+CONF = str(ROOT / "conf")
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def _compose(overrides: list[str]):
+    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
+        return compose("train", overrides=overrides)
+
+
+def test_shared_psi_equals_the_per_channel_filter_at_equal_values() -> None:
+    data = p001_simulator(batch_size=4, seed=3, randomize=True, num_steps=30, config={"psi": 0.9, "eta_sigma": 1.5})
+    model = data.make_model()
+    args = (data.measurements, data.initial_mean, data.initial_cov)
+    with torch.no_grad():
+        per = ColoredNoiseUKF(model, psi=0.9, sigma_points=Julier(kappa=-5.0))(*args, mask=data.mask, controls=data.controls)
+        one = SharedPsiColoredUKF(model, psi=0.9, sigma_points=Julier(kappa=-5.0))(*args, mask=data.mask, controls=data.controls)
+    assert torch.equal(per.mean, one.mean) and torch.equal(per.log_likelihood, one.log_likelihood)
+
+
+def test_overlay_differs_from_p001_multipath_only_in_the_filter() -> None:
+    shared, per = _compose(["experiment=p001_multipath_shared"]), _compose(["experiment=p001_multipath"])
+    assert shared.filter._target_.endswith("SharedPsiColoredUKF") and per.filter._target_.endswith(".ColoredNoiseUKF")
+    for key in ("learn", "data", "trainer", "optimizer", "learner", "scenario", "loss"):
+        assert shared[key] == per[key], key
+    assert {k: v for k, v in shared.experiment.items() if k != "name"} == {k: v for k, v in per.experiment.items() if k != "name"}
+
+
+@pytest.mark.parametrize("seed", [0, 3])
+def test_learner_starts_from_one_psi_inside_the_bounds(seed: int) -> None:
+    cfg = _compose(["experiment=p001_multipath_shared", f"seed={seed}"])
+    hand = build_filter(cfg.filter, dtype=as_dtype(cfg.dtype), params=cfg.experiment.hand_tuned)
+    apply_model_defaults(cfg, hand)
+    learner = build_learner(cfg, hand)
+    psi = learner.filter.psi.detach()
+    assert torch.allclose(hand.psi.detach(), torch.full((7,), 0.7, dtype=psi.dtype))
+    assert bool((psi == psi[0]).all()) and 0.0 < float(psi[0]) < 0.99 and float(psi[0]) != pytest.approx(0.7)
+    # one raw scalar is trained, its gradient is the sum over the seven channels
+    assert learner.filter.parametrizations.psi.original.shape == ()
+
+
+@pytest.mark.slow
+def test_p001_multipath_shared_smoke(tmp_path: Path) -> None:
+    cfg = _compose(["experiment=p001_multipath_shared", "debug=smoke", f"paths.output_dir={tmp_path}", f"paths.log_dir={tmp_path}/logs"])
+    out = run_experiment(cfg)
+    text = (tmp_path / "results.md").read_text()
+    assert all(f"| {row} |" in text for row in ("hand-tuned", "learned", "oracle", "standard-ukf"))
+    assert out["metric"] > 0 and os.path.exists(tmp_path / "results.csv")
+
+
+@pytest.mark.parametrize(("seed", "channel"), [(2, 4), (3, 3)])
+def test_per_channel_start_of_the_failed_seeds_sits_at_the_bound(seed: int, channel: int) -> None:
+    """results/p001_multipath.md: in the per-channel sweep the seeded start 0.7 exp(0.2 z) of one
+    channel exceeds 1 for seeds 2 and 3 and is clamped to the bound, the channel the trained
+    filter left at 0.9999; the other seeds start inside."""
+    cfg = _compose(["experiment=p001_multipath", f"seed={seed}"])
+    hand = build_filter(cfg.filter, dtype=as_dtype(cfg.dtype), params=cfg.experiment.hand_tuned)
+    apply_model_defaults(cfg, hand)
+    psi = build_learner(cfg, hand).filter.psi.detach()
+    assert float(psi[channel]) > 0.99999 and int((psi > 0.99).sum()) == 1

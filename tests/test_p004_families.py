@@ -6,9 +6,12 @@ accuracy-scaled R reduces to p004's constant R at gamma = 0, and the oracle's va
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import pytest
 import torch
+from hydra import compose, initialize_config_dir
+from hydra.utils import instantiate
 
 from difffilter.models.navigation.gnss_imu import GNSS_IMU_PAPER, GnssImuModel, GnssMeasurement
 from difffilter.papers.p004 import p004_simulator, simulate_p004
@@ -108,3 +111,22 @@ def test_oracle_values_of_each_family() -> None:
     assert mems.true_params["sigma_accel_bias_walk"] == WALK[0] and mems.true_params["sigma_gyro_bias_walk"] == WALK[1]
     urban = p004_simulator(batch_size=2, seed=1, canyon_windows=CANYON)
     assert set(urban.true_params) == {"sigma_accel", "sigma_gyro", "R"}  # the canyon's correlated error has no filter value
+
+
+def test_cold_start_family_has_the_stated_outage_and_heading_spread() -> None:
+    """conf/scenario/p004_outage_*.yaml: no GNSS before t = 30 s, a fix every second after, and
+    the belief's heading error drawn with the stated 30 deg std (its variance says so too)."""
+    with initialize_config_dir(config_dir=str(Path(__file__).resolve().parents[1] / "conf"), version_base="1.3"):
+        cfg = compose("train", overrides=["experiment=p004_outage"])
+    assert cfg.data.test_simulator.randomize is False and cfg.scenario.randomize is True
+    for sim in (cfg.data.test_simulator, cfg.scenario):
+        d = instantiate(sim, _convert_="all")(batch_size=60, seed=3, dtype="float64")
+        t = torch.arange(1, d.mask.shape[1] + 1, dtype=F64)
+        assert bool((~d.mask[:, t < 30]).all()) and bool(d.mask[:, t >= 30].all())
+        assert bool(torch.isnan(d.measurements[:, t < 30]).all())
+        assert float(d.initial_cov[4, 4]) == pytest.approx(math.radians(30.0) ** 2)
+        err = math.degrees(float((d.initial_mean[:, 4] - d.scenario.initial_state[:, 4]).std()))
+        assert abs(err - 30.0) < 5 * 30.0 / math.sqrt(120)  # 5 standard errors of a 60-draw std
+    # the family keeps p004's noise: hand-tuned noise = the simulator's truth
+    assert cfg.experiment.hand_tuned.sigma_accel == pytest.approx(d.true_params["sigma_accel"])
+    assert list(cfg.experiment.hand_tuned.R) == pytest.approx(d.true_params["R"])

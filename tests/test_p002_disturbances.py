@@ -11,6 +11,7 @@ import torch
 
 from difffilter.models.navigation.pdr import wrap_angle
 from difffilter.papers.p002 import arc_bursts, gps_availability, p002_infamily, pdr_model, simulate_p002, sweep_table, turn_heading_error
+from difffilter.papers.p002.report import main
 
 f64 = torch.float64
 
@@ -104,3 +105,26 @@ def test_sweep_table_arranges_the_summary(tmp_path):
     assert "| RC-UKF hand-tuned | 3 [2.5, 3.5] [6.78] | - [1.94] |" in text
     assert "| UKF hand-tuned | 2.9 [2.4, 3.4] [7.38] |" in text and "| GPS only | - [12.17] | 2.7 [2.6, 2.8] [2.67] |" in text
     assert "| RC-UKF learned - RC-UKF hand-tuned | -1 [-1.2, -0.8]; -33 [-40, -26] % |" in text
+
+
+def test_sweep_table_of_one_sweep_per_filter(tmp_path):
+    """Single-filter sweeps keep filter= and scenario= only in summary.md's "Overrides of every job" line."""
+    head = ["group", "filter", "quantity", "estimate", "lo", "hi", "seeds", "runs", "reference"]
+    for name, filt, hand in (("rc", "p002_rcukf", "3.0"), ("ukf", "p002_ukf", "2.9")):
+        d = tmp_path / name
+        d.mkdir()
+        with (d / "summary.csv").open("w", newline="") as fh:
+            w = csv.writer(fh)
+            w.writerow(head)
+            w.writerow(["test=P=0.8", "hand-tuned", "rmse_pos", hand, "2.4", "3.5", "1", "50", ""])
+            w.writerow(["test=P=0.8", "learned", "rmse_pos", "2.0", "1.8", "2.2", "5", "50", ""])
+        (d / "summary.md").write_text(
+            "# Sweep summary\n\nOverrides of every job: "
+            f"`experiment=p002_pdr filter={filt} learn=[Q,R] scenario=p002_pdr ~experiment.hand_tuned.rho=null`.\n"
+        )
+    text = sweep_table([tmp_path / "rc", tmp_path / "ukf"])
+    assert "### scenario=p002_pdr" in text
+    assert "| RC-UKF hand-tuned | 3 [2.4, 3.5] [6.78] |" in text and "| UKF hand-tuned | 2.9 [2.4, 3.5] [7.38] |" in text
+    assert "| UKF learned | 2 [1.8, 2.2] |" in text and "| RC-UKF learned | 2 [1.8, 2.2] |" in text
+    # the command line: several directories, then an optional metric
+    assert main([str(tmp_path / "rc"), str(tmp_path / "ukf")]) == text

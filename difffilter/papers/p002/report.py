@@ -3,13 +3,17 @@
     python experiments/train.py -m experiment=p002_pdr seed=0,1,2,3,4 scenario=p002_pdr,p002_disturbed \\
         filter=p002_rcukf,p002_ukf hydra/launcher=joblib hydra.sweep.dir=outputs/p002_sweep
     python -m difffilter.papers.p002.report outputs/p002_sweep
+    python -m difffilter.papers.p002.report outputs/final/p002_pdr_rcukf outputs/final/p002_pdr_ukf   # one sweep per filter
+
 
 The sweep's ``summary.csv`` (:mod:`difffilter.learn.sweep`) holds, per group (``filter``,
 ``scenario`` and test set ``test=P=...``), each filter's RMSE as the mean over seeds and test runs
 with its 95 % interval and the paired difference to the group's hand-tuned filter.
 :func:`sweep_table` arranges them as p002's table (rows GPS only, PDR only, UKF and RC-UKF
 hand-tuned and learned; columns P) with p002's published value in brackets, and a second table of
-paired differences with their intervals.
+paired differences with their intervals.  Several sweep directories may be given (e.g. one per
+filter): a sweep whose jobs all share ``filter=``/``scenario=`` keeps them only in the
+"Overrides of every job" line of its ``summary.md``; they are read from there.
 """
 
 from __future__ import annotations
@@ -51,15 +55,35 @@ def _cell(row: dict[str, str] | None, *, pct: bool = False) -> str:
     return f"{est:.3g} [{lo:.3g}, {hi:.3g}]{unit}"
 
 
-def sweep_table(sweep_dir: str | Path, *, metric: str = "rmse_pos") -> str:
-    """Markdown tables per scenario family from ``<sweep_dir>/summary.csv`` (module docstring)."""
-    with (Path(sweep_dir) / "summary.csv").open(newline="") as fh:
+def _common_overrides(sweep_dir: Path) -> dict[str, str]:
+    """``filter=``/``scenario=`` shared by every job of a sweep (the "Overrides of every job" line of its ``summary.md``)."""
+    md = sweep_dir / "summary.md"
+    if not md.exists():
+        return {}
+    for line in md.read_text().splitlines():
+        if line.startswith("Overrides of every job:"):
+            keys = _group_keys(line.split(":", 1)[1].strip().strip(".").strip("`"))
+            return {k: v for k, v in keys.items() if k in ("filter", "scenario")}
+    return {}
+
+
+def _summary_rows(sweep_dir: Path) -> list[dict[str, str]]:
+    with (sweep_dir / "summary.csv").open(newline="") as fh:
         rows = list(csv.DictReader(fh))
+    common = _common_overrides(sweep_dir)
+    return [{**r, "_keys": {**common, **_group_keys(r["group"])}} for r in rows]  # type: ignore[dict-item]
+
+
+def sweep_table(sweep_dir: str | Path | Sequence[str | Path], *, metric: str = "rmse_pos") -> str:
+    """Markdown tables per scenario family from ``<sweep_dir>/summary.csv`` (module docstring); a
+    sequence of sweep directories is read as one sweep."""
+    dirs = [sweep_dir] if isinstance(sweep_dir, str | Path) else list(sweep_dir)
+    rows = [r for d in dirs for r in _summary_rows(Path(d))]
     index: dict[tuple[str, str, str, str, str], dict[str, str]] = {}
     families: list[str] = []
     probs: set[float] = set()
     for r in rows:
-        keys = _group_keys(r["group"])
+        keys: dict[str, str] = r["_keys"]  # type: ignore[assignment]
         family, test = keys.get("scenario", ""), keys.get("test", "")
         filt = _FILTERS.get(keys.get("filter", "p002_rcukf"), keys.get("filter", ""))
         if not test.startswith("P="):
@@ -108,11 +132,14 @@ def sweep_table(sweep_dir: str | Path, *, metric: str = "rmse_pos") -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> str:
-    """``python -m difffilter.papers.p002.report <sweep dir> [metric]``: print :func:`sweep_table`."""
+    """``python -m difffilter.papers.p002.report <sweep dir> [<sweep dir> ...] [metric]``: print :func:`sweep_table`."""
     args = list(sys.argv[1:] if argv is None else argv)
     if not args:
-        raise SystemExit("usage: python -m difffilter.papers.p002.report <sweep dir> [metric]")
-    text = sweep_table(args[0], metric=args[1] if len(args) > 1 else "rmse_pos")
+        raise SystemExit("usage: python -m difffilter.papers.p002.report <sweep dir> [<sweep dir> ...] [metric]")
+    metric = "rmse_pos"
+    if len(args) > 1 and not Path(args[-1]).is_dir():
+        metric = args.pop()
+    text = sweep_table(args, metric=metric)
     print(text)
     return text
 

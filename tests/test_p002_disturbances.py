@@ -9,9 +9,10 @@ import math
 import pytest
 import torch
 
+from difffilter.learn.intervals import crossed_interval
 from difffilter.models.navigation.pdr import wrap_angle
 from difffilter.papers.p002 import arc_bursts, gps_availability, p002_infamily, pdr_model, simulate_p002, sweep_table, turn_heading_error
-from difffilter.papers.p002.report import main
+from difffilter.papers.p002.report import between_sweeps, main
 
 f64 = torch.float64
 
@@ -128,3 +129,21 @@ def test_sweep_table_of_one_sweep_per_filter(tmp_path):
     assert "| UKF learned | 2 [1.8, 2.2] |" in text and "| RC-UKF learned | 2 [1.8, 2.2] |" in text
     # the command line: several directories, then an optional metric
     assert main([str(tmp_path / "rc"), str(tmp_path / "ukf")]) == text
+
+
+def test_between_sweeps_pairs_seeds_and_runs(tmp_path):
+    """learned of one sweep - learned of another on the same seeds and test runs: the crossed interval of the differences."""
+    vals = {"a": [[1.0, 2.0, 3.0], [1.5, 2.5, 2.0]], "b": [[2.0, 2.0, 4.0], [2.5, 3.0, 3.5]]}
+    for name, seeds in vals.items():
+        for s, runs in enumerate(seeds):
+            job = tmp_path / name / str(s)
+            (job / ".hydra").mkdir(parents=True)
+            (job / ".hydra" / "overrides.yaml").write_text(f"- seed={s}\n")
+            rows = "".join(f"learned,{r},{v}\n" for r, v in enumerate(runs))
+            (job / "per_run.csv").write_text("filter,run,rmse_pos\n" + rows)
+    text = between_sweeps(tmp_path / "a", tmp_path / "b")
+    ref = crossed_interval(torch.tensor(vals["a"], dtype=torch.float64) - torch.tensor(vals["b"], dtype=torch.float64))
+    assert f"| main | {ref.estimate:.3g} [{ref.lo:.3g}, {ref.hi:.3g}] |" in text
+    (tmp_path / "b" / "1" / "per_run.csv").write_text("filter,run,rmse_pos\nlearned,0,1.0\n")
+    with pytest.raises(ValueError, match="different test runs"):
+        between_sweeps(tmp_path / "a", tmp_path / "b")

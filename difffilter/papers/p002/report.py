@@ -24,7 +24,12 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-__all__ = ["PAPER_RMSE", "sweep_table"]
+import torch
+
+from ...learn.intervals import crossed_interval
+from ...learn.sweep import load_jobs
+
+__all__ = ["PAPER_RMSE", "between_sweeps", "sweep_table"]
 
 #: p002's position RMSE table (m), by row and outage probability P.
 PAPER_RMSE: dict[str, dict[float, float]] = {
@@ -131,9 +136,44 @@ def sweep_table(sweep_dir: str | Path | Sequence[str | Path], *, metric: str = "
     return "\n".join(out)
 
 
+def _by_test(sweep_dir: str | Path, row: str, metric: str) -> dict[str, dict[str, torch.Tensor]]:
+    """``{test set: {seed: per-run metric [N]}}`` of filter ``row`` in a sweep."""
+    out: dict[str, dict[str, torch.Tensor]] = {}
+    for job in load_jobs(sweep_dir):
+        test = next((o.split("=", 1)[1] for o in job.overrides if o.startswith("test=")), "main")
+        out.setdefault(test, {})[job.replicate] = job.per_run[row][metric]
+    return out
+
+
+def between_sweeps(
+    sweep_a: str | Path, sweep_b: str | Path, *, row_a: str = "learned", row_b: str = "learned", metric: str = "rmse_pos"
+) -> str:
+    """Paired difference ``row_a`` of ``sweep_a`` minus ``row_b`` of ``sweep_b`` per test set: both
+    sweeps' seeds tested on the same runs (fixed test seed), so the differences form a seeds x runs
+    matrix with the crossed interval of :mod:`difffilter.learn.sweep`.  Markdown table."""
+    a, b = _by_test(sweep_a, row_a, metric), _by_test(sweep_b, row_b, metric)
+    lines = [f"| test | {row_a} ({Path(sweep_a).name}) - {row_b} ({Path(sweep_b).name}) | in % of the second |", "|---|---|---|"]
+    for test in sorted(set(a) & set(b), key=lambda t: -float(t[2:]) if t.startswith("P=") else 0.0):
+        seeds = sorted(set(a[test]) & set(b[test]))
+        if set(a[test]) != set(b[test]):
+            raise ValueError(f"the sweeps have different seeds on {test}: {sorted(a[test])} vs {sorted(b[test])}")
+        sizes = {int(m[s].numel()) for m in (a[test], b[test]) for s in seeds}
+        if len(sizes) != 1:
+            raise ValueError(f"the sweeps have different test runs on {test}: run counts {sorted(sizes)}")
+        ma, mb = torch.stack([a[test][s] for s in seeds]), torch.stack([b[test][s] for s in seeds])
+        d, pct = crossed_interval(ma - mb), crossed_interval(100.0 * (ma - mb) / mb.mean(0, keepdim=True))
+        lines.append(f"| {test} | {d.estimate:.3g} [{d.lo:.3g}, {d.hi:.3g}] | {pct.estimate:.3g} [{pct.lo:.3g}, {pct.hi:.3g}] |")
+    return "\n".join(lines)
+
+
 def main(argv: Sequence[str] | None = None) -> str:
-    """``python -m difffilter.papers.p002.report <sweep dir> [<sweep dir> ...] [metric]``: print :func:`sweep_table`."""
+    """``python -m difffilter.papers.p002.report <sweep dir> [<sweep dir> ...] [metric]``: print :func:`sweep_table`;
+    ``--between <sweep a> <sweep b>``: print :func:`between_sweeps` (learned of a - learned of b)."""
     args = list(sys.argv[1:] if argv is None else argv)
+    if args[:1] == ["--between"]:  # --between <sweep a> <sweep b>: learned of a - learned of b, paired
+        text = between_sweeps(args[1], args[2])
+        print(text)
+        return text
     if not args:
         raise SystemExit("usage: python -m difffilter.papers.p002.report <sweep dir> [<sweep dir> ...] [metric]")
     metric = "rmse_pos"

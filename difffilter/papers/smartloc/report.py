@@ -40,8 +40,10 @@ from .protocol import (
     hand_tuned_filter,
     horizontal_errors,
     learned_filter,
+    selected_filter,
     start_candidate,
     train_jobs,
+    validation_score,
 )
 
 __all__ = ["format_tables", "resolve_config", "run_evaluation", "run_protocol", "run_transfer"]
@@ -121,12 +123,24 @@ def run_protocol(cfg: Mapping[str, Any], output_dir: str | Path, *, workers: int
         sets = fold_data(cfg, drives, fold)
         filters: dict[str, Any] = {"hand-tuned": hand_tuned_filter(cfg, drives)}
         fold_sum: dict[str, Any] = {"selection": {}}
+        hand_score, hand_extra = validation_score(filters["hand-tuned"], sets["val"])
+        fold_sum["hand_val"] = dict(hand_extra)
+        # The hand-tuned filter as a candidate of its own: it keeps its place unless a learned model validates strictly better.
+        fallback = bool(dict(cfg.get("selection") or {}).get("hand_tuned_candidate", False))
         for variant in cfg["variants"]:
             mine = [r for r in runs if r["fold"] == fold and r["variant"] == variant]
             for h in horizons:
                 rep, ep = select_candidate([r["scores"] for r in mine], int(cfg["epochs"]) * h)
                 run = mine[rep]
                 name = f"learned-{variant}" + ("" if h == horizons[0] else f" ({h}x epochs)")
+                if fallback and not run["scores"][ep] < hand_score:
+                    filters[name] = filters["hand-tuned"]
+                    fold_sum["selection"][name] = {"seed": "hand-tuned", "epoch": 0, "val_score": hand_score, "values": {}}
+                    fold_sum["selection"][name] |= {f"val_{k}": v for k, v in hand_extra.items()}
+                    fold_sum["selection"][name]["best_learned"] = {"seed": run["seed"], "epoch": ep, "val_score": run["scores"][ep]}
+                    if h == horizons[0]:
+                        selected[f"{fold}/{variant}"] = {"hand_tuned": True}
+                    continue
                 filt = learned_filter(cfg, drives, variant, coefs[(fold, variant)], run["snapshots"][ep])
                 filters[name] = filt
                 fold_sum["selection"][name] = {
@@ -139,8 +153,6 @@ def run_protocol(cfg: Mapping[str, Any], output_dir: str | Path, *, workers: int
                 if h == horizons[0]:
                     selected[f"{fold}/{variant}"] = {"coefficients": coefs[(fold, variant)], "snapshot": run["snapshots"][ep]}
             fold_sum["val_scores"] = fold_sum.get("val_scores", {}) | {f"{variant}/seed{r['seed']}": r["scores"] for r in mine}
-        hand_val = horizontal_errors(filters["hand-tuned"], sets["val"])
-        fold_sum["hand_val"] = {"median": float(hand_val.median()), "rms": float(hand_val.pow(2).mean().sqrt())}
         errors = _test_errors(filters, drives, sets["test"], cfg)
         boot = dict(cfg["bootstrap"])
         fold_sum["test"] = paired_error_table(
@@ -175,7 +187,7 @@ def run_transfer(run_dir: str | Path, cfg: Mapping[str, Any], output_dir: str | 
     filters: dict[str, Any] = {"hand-tuned": hand_tuned_filter(trained, drives)}
     for key, sel in selected.items():
         fold, variant = key.split("/")
-        filters[f"learned-{variant} (fold {fold})"] = learned_filter(trained, drives, variant, sel["coefficients"], sel["snapshot"])
+        filters[f"learned-{variant} (fold {fold})"] = selected_filter(trained, drives, variant, sel)
     errors = _test_errors(filters, drives, sets, cfg)
     boot = dict(cfg["bootstrap"])
     rows = paired_error_table(errors, "hand-tuned", block=int(boot["block"]), draws=int(boot["draws"]), seed=int(boot["seed"]))
@@ -214,7 +226,7 @@ def run_evaluation(
         for key, sel in selected.items():
             f, variant = key.split("/")
             if f == fold:
-                filters[f"learned-{variant}"] = learned_filter(cfg, drives, variant, sel["coefficients"], sel["snapshot"])
+                filters[f"learned-{variant}"] = selected_filter(cfg, drives, variant, sel)
         errors = _test_errors(filters, drives, sets["test"], cfg)
         # Validation windows are pooled across drives; the baselines (built per drive) join when there is one drive.
         on_val = dict(filters) | (_baselines(drives[0], cfg) if len(drives) == 1 else {})
@@ -258,6 +270,9 @@ def format_tables(summary: Mapping[str, Any]) -> str:
         parts.append(f"Validation (median + RMS, m): hand-tuned {hv['median']:.2f} + {hv['rms']:.2f}.")
         for name, sel in fs["selection"].items():
             vals = "; ".join(f"{k} {v if len(v) > 1 else v[0]}" for k, v in sel["values"].items())
+            if sel["seed"] == "hand-tuned":
+                b = sel["best_learned"]
+                vals = f"no learned model validates better (best: seed {b['seed']}, epoch {b['epoch']}, {b['val_score']:.2f})"
             parts.append(
                 f"- {name}: seed {sel['seed']}, epoch {sel['epoch']}, validation {sel['val_median']:.2f} + {sel['val_rms']:.2f}; {vals}"
             )

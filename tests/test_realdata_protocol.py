@@ -182,3 +182,21 @@ def test_the_fallback_row_is_the_hand_tuned_filter_and_rebuilds(tmp_path, monkey
     again = run_evaluation(run, tmp_path / "eval")
     for fold, fs in summary["folds"].items():
         assert again["folds"][fold]["tables"]["hand-tuned"] == fs["test"]
+
+
+def test_evaluation_compares_two_runs_paired(tmp_path) -> None:
+    """``compare_with``: the other run's selected rows join and serve as references; a run compared
+    with itself differs by exactly zero; a run on other folds is refused."""
+    drives = tmp_path / "drives"
+    write_drive(drives, "Cut", start=100.0, stop=140.0)
+    cfg = _v2_config(drives)
+    run_protocol(cfg, tmp_path / "run", workers=1)
+    out = run_evaluation(tmp_path / "run", tmp_path / "eval", compare_with=tmp_path / "run")
+    for fs in out["folds"].values():
+        rows = {r["filter"]: r for r in fs["tables"]["run/learned-elev_cn0"]}
+        assert rows["learned-elev_cn0"]["d_rms"] == 0.0 and rows["learned-elev_cn0"]["d_median"] == 0.0
+        assert rows["hand-tuned"]["rms"] == fs["tables"]["hand-tuned"][0]["rms"]
+    cfg["folds"] = {"A": cfg["folds"]["A"]}
+    run_protocol(cfg, tmp_path / "one_fold", workers=1)
+    with pytest.raises(ValueError, match="compare_with"):
+        run_evaluation(tmp_path / "run", tmp_path / "eval2", compare_with=tmp_path / "one_fold")

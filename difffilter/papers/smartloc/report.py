@@ -205,20 +205,37 @@ def run_transfer(run_dir: str | Path, cfg: Mapping[str, Any], output_dir: str | 
 
 
 def run_evaluation(
-    run_dir: str | Path, output_dir: str | Path, *, references: Sequence[str] = ("hand-tuned", "ekf-no-gate", "learned-scale")
+    run_dir: str | Path,
+    output_dir: str | Path,
+    *,
+    references: Sequence[str] = ("hand-tuned", "ekf-no-gate", "learned-scale"),
+    compare_with: str | Path | None = None,
 ) -> dict[str, Any]:
     """Rebuild a finished run's hand-tuned, baseline and selected learned filters (first horizon)
     from its ``summary.json`` + ``selected.pt`` and evaluate them again on every fold's test block:
     one paired table per reference row in ``references`` (those a fold lacks are skipped), and the
     validation median and RMS of every row (of the baselines only for a single drive).  Nothing is trained or
-    selected here, so the tables with reference ``hand-tuned`` must equal the run's own."""
+    selected here, so the tables with reference ``hand-tuned`` must equal the run's own.
+
+    ``compare_with``: another finished run on the same drives and folds (e.g. an earlier protocol
+    version); its selected filters join as rows ``<its folder name>/learned-<variant>`` and each is
+    also a reference, so the tables give this run's rows minus the other run's, paired."""
     run_dir, out_dir = Path(run_dir), Path(output_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     cfg = json.loads((run_dir / "summary.json").read_text())["config"]
     selected = torch.load(run_dir / "selected.pt", weights_only=False)
     cfg, drives = cached_drives(json.dumps(cfg, sort_keys=True))
     boot = dict(cfg["bootstrap"])
+    other: dict[str, Any] = {}
+    if compare_with is not None:
+        other_dir = Path(compare_with)
+        other_cfg = json.loads((other_dir / "summary.json").read_text())["config"]
+        if other_cfg["folds"] != cfg["folds"] or _drive_files(other_cfg) != _drive_files(cfg):
+            raise ValueError(f"compare_with must be a run on the same drives and folds as {run_dir}, got {other_dir}")
+        other = {"tag": other_dir.name, "cfg": other_cfg, "selected": torch.load(other_dir / "selected.pt", weights_only=False)}
     summary: dict[str, Any] = {"evaluated": str(run_dir), "drives": [d.data.name for d in drives], "folds": {}}
+    if other:
+        summary["compared_with"] = str(compare_with)
     parts = [f"# Re-evaluation of {run_dir} (selections as saved, nothing trained)", ""]
     for fold in cfg["folds"]:
         sets = fold_data(cfg, drives, fold)
@@ -227,6 +244,12 @@ def run_evaluation(
             f, variant = key.split("/")
             if f == fold:
                 filters[f"learned-{variant}"] = selected_filter(cfg, drives, variant, sel)
+        extra_refs = []
+        for key, sel in (other.get("selected") or {}).items():
+            f, variant = key.split("/")
+            if f == fold:
+                extra_refs.append(f"{other['tag']}/learned-{variant}")
+                filters[extra_refs[-1]] = selected_filter(other["cfg"], drives, variant, sel)
         errors = _test_errors(filters, drives, sets["test"], cfg)
         # Validation windows are pooled across drives; the baselines (built per drive) join when there is one drive.
         on_val = dict(filters) | (_baselines(drives[0], cfg) if len(drives) == 1 else {})
@@ -234,7 +257,7 @@ def run_evaluation(
         fold_sum: dict[str, Any] = {"test_epochs": int(errors["hand-tuned"].numel()), "tables": {}, "validation": {}}
         for name, e in val.items():
             fold_sum["validation"][name] = {"median": float(e.median()), "rms": float(e.pow(2).mean().sqrt())}
-        for ref in (r for r in references if r in errors):
+        for ref in (r for r in [*references, *extra_refs] if r in errors):
             rows = paired_error_table(errors, ref, block=int(boot["block"]), draws=int(boot["draws"]), seed=int(boot["seed"]))
             fold_sum["tables"][ref] = rows
             title = f"Fold {fold}: test blocks ({fold_sum['test_epochs']} epochs), paired against {ref}"
@@ -245,6 +268,10 @@ def run_evaluation(
     (out_dir / "evaluation.json").write_text(json.dumps(summary, indent=1, default=float))
     (out_dir / "results.md").write_text("\n".join(parts) + "\n")
     return summary
+
+
+def _drive_files(cfg: Mapping[str, Any]) -> list[tuple[str, Any, Any]]:
+    return [(str(Path(str(d["folder"])).resolve()), d.get("input_file"), d.get("truth_file")) for d in cfg["drives"]]
 
 
 def _table(rows: Sequence[Mapping[str, Any]], title: str, ref: str = "hand") -> str:

@@ -20,6 +20,7 @@ import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
+from difffilter.learn.data import TrajectorySet
 from difffilter.learn.holdout import contiguous_blocks
 from difffilter.learn.metrics import nll_per_step
 from difffilter.papers.smartloc.protocol import block_sets, cached_drives, fold_coefficients, hand_tuned_filter, train_jobs
@@ -90,7 +91,7 @@ def main() -> None:
             print(r["fold"], r["variant"], " ".join(f"{s:.1f}" for s in r["scores"]))
 
 
-def _errors(filt: torch.nn.Module, s) -> torch.Tensor:  # noqa: ANN001
+def _errors(filt: torch.nn.Module, s: TrajectorySet) -> torch.Tensor:
     with torch.no_grad():
         res = filt(s.measurements, s.initial_mean, s.initial_cov, mask=s.mask, controls=s.controls)
     return (res.mean[..., :2] - s.truth[..., :2]).norm(dim=-1).reshape(-1)

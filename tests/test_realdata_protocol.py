@@ -147,7 +147,7 @@ def test_v2_keeps_the_hard_gate_and_falls_back_to_hand_tuned_only_when_it_valida
     assert not any("gate" in n for n in protocol.learned_names(filt, spec["learn"]))
     run = tmp_path / "run"
     summary = run_protocol(cfg, run, workers=1)
-    for fold, fs in summary["folds"].items():
+    for fs in summary["folds"].values():
         sel = fs["selection"]["learned-elev_cn0"]
         hand = fs["hand_val"]["median"] + fs["hand_val"]["rms"]
         best = min(min(s) for k, s in fs["val_scores"].items() if k.startswith("elev_cn0/"))

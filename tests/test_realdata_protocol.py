@@ -182,6 +182,8 @@ def test_the_fallback_row_is_the_hand_tuned_filter_and_rebuilds(tmp_path, monkey
     again = run_evaluation(run, tmp_path / "eval")
     for fold, fs in summary["folds"].items():
         assert again["folds"][fold]["tables"]["hand-tuned"] == fs["test"]
+    moved = {r["filter"]: r for r in run_transfer(run, cfg, tmp_path / "transfer")["test"]}  # the transfer command rebuilds it too
+    assert moved["learned-elev_cn0 (fold A)"]["d_rms"] == 0.0 and moved["learned-elev_cn0 (fold B)"]["d_median"] == 0.0
 
 
 def test_evaluation_compares_two_runs_paired(tmp_path) -> None:

@@ -198,6 +198,9 @@ def test_evaluation_compares_two_runs_paired(tmp_path) -> None:
         rows = {r["filter"]: r for r in fs["tables"]["run/learned-elev_cn0"]}
         assert rows["learned-elev_cn0"]["d_rms"] == 0.0 and rows["learned-elev_cn0"]["d_median"] == 0.0
         assert rows["hand-tuned"]["rms"] == fs["tables"]["hand-tuned"][0]["rms"]
+        val = {r["filter"]: r for r in fs["validation_paired"]}
+        assert val["hand-tuned"]["rms"] == pytest.approx(fs["validation"]["hand-tuned"]["rms"], rel=1e-12)
+        assert val["learned-elev_cn0"]["d_rms_lo"] <= val["learned-elev_cn0"]["d_rms"] <= val["learned-elev_cn0"]["d_rms_hi"]
     cfg["folds"] = {"A": cfg["folds"]["A"]}
     run_protocol(cfg, tmp_path / "one_fold", workers=1)
     with pytest.raises(ValueError, match="compare_with"):

@@ -219,7 +219,11 @@ def run_evaluation(
 
     ``compare_with``: another finished run on the same drives and folds (e.g. an earlier protocol
     version); its selected filters join as rows ``<its folder name>/learned-<variant>`` and each is
-    also a reference, so the tables give this run's rows minus the other run's, paired."""
+    also a reference, so the tables give this run's rows minus the other run's, paired.
+
+    Each fold also gets the paired intervals of every row against the hand-tuned filter on the
+    validation windows (``validation_paired``): how well the block used for selection resolves
+    the differences it chose between."""
     run_dir, out_dir = Path(run_dir), Path(output_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     cfg = json.loads((run_dir / "summary.json").read_text())["config"]
@@ -264,6 +268,11 @@ def run_evaluation(
             parts.append(_table(rows, title, "hand" if ref == "hand-tuned" else ref))
         vals = ", ".join(f"{k} {v['median']:.2f} + {v['rms']:.2f}" for k, v in fold_sum["validation"].items())
         parts += [f"Validation windows (median + RMS, m): {vals}.", ""]
+        # How far the validation block itself resolves the selection: the same paired bootstrap on the
+        # concatenated validation windows (blocks may straddle two windows).
+        rows = paired_error_table(val, "hand-tuned", block=int(boot["block"]), draws=int(boot["draws"]), seed=int(boot["seed"]))
+        fold_sum["validation_paired"] = rows
+        parts.append(_table(rows, f"Fold {fold}: validation windows ({int(val['hand-tuned'].numel())} epochs), paired against hand-tuned"))
         summary["folds"][fold] = fold_sum
     (out_dir / "evaluation.json").write_text(json.dumps(summary, indent=1, default=float))
     (out_dir / "results.md").write_text("\n".join(parts) + "\n")

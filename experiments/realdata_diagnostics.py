@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import copy
 import json
+import math
 from pathlib import Path
 
 import torch
@@ -77,6 +78,10 @@ def main() -> None:
             e = (res.mean[..., :2] - s[0].truth[..., :2]).norm(dim=-1)
             row.append(f"{k}: NLL {float(nll_per_step(res).mean()):6.2f}, {_stats(e)}")
         print(f"gate {thr:g} / {floor:g}: " + " | ".join(row))
+    print("## what the innovation NLL of the hand-tuned filter is made of (windows)")
+    meas = hand.model.measurement
+    for k, s in sets.items():
+        print(f"{k}: " + _nll_shares(hand, meas, s[0]))
     if args.pilot:
         v2 = resolve_config(_config("smartloc_v2"))
         v2, drives2 = cached_drives(json.dumps(v2, sort_keys=True))
@@ -89,6 +94,25 @@ def main() -> None:
         print("## v2 pilot (seed 0): validation score (median + RMS) per epoch")
         for r in train_jobs(jobs, workers=2):
             print(r["fold"], r["variant"], " ".join(f"{s:.1f}" for s in r["scores"]))
+
+
+def _nll_shares(filt: torch.nn.Module, meas: torch.nn.Module, s: TrajectorySet) -> str:
+    """Rejected ranges (inflated variance at the prior mean), the share of the NLL that their
+    constant ``ln(1e6) / 2`` terms make up, and the share held by the worst 10 % of epochs."""
+    with torch.no_grad():
+        res = filt(s.measurements, s.initial_mean, s.initial_cov, mask=s.mask, controls=s.controls)
+        b, t = res.prior_mean.shape[:2]
+        u = {k: v.reshape(b * t, *v.shape[2:]) for k, v in s.controls.items()}
+        r = torch.diagonal(meas.measurement_noise(res.prior_mean.reshape(b * t, -1), u), dim1=-2, dim2=-1)
+        used = s.mask.reshape(b * t, -1)
+        rejected = (r > 10.0 * u["pr_var"].to(r.dtype)) & used
+    nll = -res.log_likelihood.reshape(-1)
+    total, n_rej, n = float(nll.sum()), int(rejected.sum()), int(used.sum())
+    worst = float(nll.sort(descending=True).values[: nll.numel() // 10].sum()) / total
+    return (
+        f"{n} ranges, {n_rej / n:.1%} rejected; their ln(1e6)/2 terms {n_rej * math.log(1e6) / 2 / total:.1%} of the NLL; "
+        f"worst 10 % of epochs {worst:.1%} of the NLL"
+    )
 
 
 def _errors(filt: torch.nn.Module, s: TrajectorySet) -> torch.Tensor:

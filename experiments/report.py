@@ -273,6 +273,17 @@ def run_table(run: Run) -> str:
     return "\n".join(lines)
 
 
+def _nest_headings(text: str) -> str:
+    """One more ``#`` on every markdown heading of ``text`` (nested under the report's), leaving
+    lines inside fenced code blocks alone (a shell comment there is not a heading)."""
+    out, fenced = [], False
+    for line in text.splitlines():
+        if line.lstrip().startswith("```"):
+            fenced = not fenced
+        out.append("#" + line if line.startswith("#") and not fenced else line)
+    return "\n".join(out)
+
+
 def build_report(runs: Sequence[Run], *, sections: Sequence[Run] = ()) -> str:
     """The report: summary of every run and section, the run tables, then the sections' text."""
     out = [
@@ -298,7 +309,7 @@ def build_report(runs: Sequence[Run], *, sections: Sequence[Run] = ()) -> str:
             out += [f"Paper: {pub.title}. Published: {pub.claim}.", ""]
         out.append(run_table(run))
     for sec in sections:
-        body = re.sub(r"^(#+)", r"#\1", sec.text.strip(), flags=re.M)  # nest its headings under the report's
+        body = _nest_headings(sec.text.strip())
         origin = str(sec.source) if sec.source.name == "summary.md" else f"results/{sec.source.name}"
         out += [""] + ([] if body.startswith("## ") else [f"## {sec.name}", ""]) + [body, "", f"(from `{origin}`)"]
     return "\n".join(out) + "\n"

@@ -122,3 +122,14 @@ def test_command_line_is_a_hydra_app(tmp_path):
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "| p004_blend | 0.125 | 0.1 |" in (results / "REPORT.md").read_text()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["results", "run"]  # no outputs/ or .hydra/ left behind
+
+
+def test_comments_in_a_sections_code_blocks_stay_comments(report, tmp_path):
+    results = tmp_path / "results"
+    results.mkdir()
+    section = "# p002_pdr\n\n### family\n\n```\n# a shell comment, not a heading\npython x.py\n```\n\n"
+    section += "| filter | rmse_pos |\n|---|---|\n| hand-tuned | 2 |\n"
+    (results / "p002_pdr.md").write_text(section)
+    text = report.collect(results_dir=results, write=False)
+    assert "\n## p002_pdr\n" in text and "\n#### family\n" in text
+    assert "\n# a shell comment, not a heading\n" in text and "## a shell comment" not in text

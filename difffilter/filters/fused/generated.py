@@ -3,7 +3,8 @@
 :class:`GeneratedEngine` packs a batch into the kernel layout (batch last, padded to whole SIMD
 vectors), runs :func:`~.kernel.run_sequence` and unpacks the output groups into a
 :class:`~difffilter.filters.FilterResult`.  Programs are cached per belief layout, dtype,
-mask/control structure and :func:`~.trace.fingerprint` of the filter.
+mask/control structure and :func:`~.trace.fingerprint` of the filter, and on disk between
+processes (:mod:`.cache`).
 """
 
 from __future__ import annotations
@@ -17,8 +18,9 @@ from torch import Tensor
 from ...models.base import Controls
 from ..base import Belief, FilterResult, RecursiveFilter
 from ..update import untrusted_steps
+from .cache import load_or_trace
 from .kernel import SequenceProgram, lanes, run_sequence
-from .trace import StepLayout, fingerprint, trace_step
+from .trace import StepLayout, fingerprint
 
 __all__ = ["GeneratedEngine"]
 
@@ -56,7 +58,7 @@ class GeneratedEngine:
         prog = self._programs.get(key)
         if prog is None:
             example = {k: v[:1].detach() for k, v in belief.items()}
-            prog = SequenceProgram(trace_step(self.filter, layout, example), reuse_buffers=self.reuse_buffers)
+            prog = load_or_trace(self.filter, layout, example, reuse_buffers=self.reuse_buffers)
             self._programs[key] = prog
         return prog
 

@@ -92,18 +92,24 @@ class SequenceProgram:
         spec = traced.spec
         self.lanes = lanes(spec.dtype)
         self.group_sizes = spec.group_sizes
-        lib = compile_library(forward_source(spec), tag="forward")
-        self._forward = lib.forward
-        self._forward.argtypes = [_I64, _I64, _I64, _I64, _P, _P, _P, _P]
-        self._forward.restype = None
+        #: whether the step came from the on-disk program cache (set by :func:`~.cache.load_or_trace`)
+        self.from_cache = False
         self._backward: dict[BackwardSpec, Any] = {}  # compiled function or the Future building it
         self._lock = threading.Lock()
         self._source_lock = threading.Lock()
-        # fresh output memory costs a page fault per 4 KiB, measured at about as much as the UKF kernel
-        self._buffers = ReusableBuffers(enabled=reuse_buffers)
         ll = traced.fields.get("log_likelihood")
         #: the reverse kernel of a training step: gradient of the log-likelihood only
         self.likely_backward = BackwardSpec((ll[0],), False) if ll is not None else None  # the group holding it
+        source = forward_source(spec)
+        if traced.params and self.likely_backward is not None:
+            # parameters that train: build the usual reverse kernel meanwhile, on the other core
+            self.prefetch_backward(self.likely_backward)
+        lib = compile_library(source, tag="forward")
+        self._forward = lib.forward
+        self._forward.argtypes = [_I64, _I64, _I64, _I64, _P, _P, _P, _P]
+        self._forward.restype = None
+        # fresh output memory costs a page fault per 4 KiB, measured at about as much as the UKF kernel
+        self._buffers = ReusableBuffers(enabled=reuse_buffers)
 
     def _build_backward(self, which: BackwardSpec) -> Any:
         with self._source_lock:  # the graph grows while the reverse sweep is written

@@ -35,7 +35,7 @@ from .codegen import SequenceSpec, StepBody
 from .graph import LANE, UNIFORM, ScalarGraph, UnsupportedOp
 from .lower import lower
 
-__all__ = ["StepLayout", "TracedStep", "fingerprint", "trace_step"]
+__all__ = ["StepLayout", "TracedStep", "eager_steps", "fingerprint", "trace_step"]
 
 _TRACE_LOCK = threading.Lock()
 #: largest step (scalar operations of the forward) the generated engine compiles; the code is fully
@@ -216,6 +216,34 @@ def _step_function(
     return step
 
 
+def _examples(layout: StepLayout, belief: dict[str, Tensor], trained: list[tuple[str, Tensor]]) -> list[Tensor]:
+    """The flat inputs of one traced step: ``belief`` (batch one), a zero measurement, a full
+    mask, zero controls and the trained parameters."""
+    examples = [belief[k].detach().to(layout.dtype) if belief[k].is_floating_point() else belief[k].detach() for k in sorted(belief)]
+    examples.append(torch.zeros((1, layout.measurement_dim), dtype=layout.dtype))
+    if layout.has_mask:
+        examples.append(torch.ones((1, layout.measurement_dim), dtype=layout.dtype))
+    examples += [torch.zeros((1, *s), dtype=layout.dtype) for _, s, _ in layout.controls or ()]
+    return examples + [p.detach() for _, p in trained]
+
+
+def eager_steps(filt: RecursiveFilter, layout: StepLayout, belief: dict[str, Tensor], steps: int = 2) -> list[dict[str, Tensor]]:
+    """``filt``'s step run eagerly ``steps`` times from ``belief`` (batch one) on the inputs of
+    :func:`_examples`, with the substitutions of :func:`_traceable`: per step, every output of
+    the traced step by field name (belief entries, ``prior_mean``..., recorded values)."""
+    trained = [(n, p) for n, p in filt.named_parameters() if p.requires_grad]
+    out: list[dict[str, Tensor]] = []
+    with _TRACE_LOCK, _traceable(), torch.no_grad():
+        for _ in range(steps):
+            seen: dict[str, Any] = {}
+            values = _step_function(filt, layout, sorted(belief), trained, seen)(*_examples(layout, belief, trained))
+            names = list(seen["post"]) + list(_RESULT_KEYS) + list(seen["records"])
+            out.append(dict(zip(names, values, strict=True)))
+            belief = seen["post"]
+            layout = replace(layout, belief=tuple((k, tuple(v.shape[1:]), v.dtype) for k, v in belief.items()))
+    return out
+
+
 def _trace(
     filt: RecursiveFilter, layout: StepLayout, belief: dict[str, Tensor], trained: list[tuple[str, Tensor]]
 ) -> tuple[Any, dict[str, Any]]:
@@ -223,12 +251,7 @@ def _trace(
     keys = sorted(belief)
     seen: dict[str, Any] = {}
     step = _step_function(filt, layout, keys, trained, seen)
-    examples = [belief[k].detach().to(layout.dtype) if belief[k].is_floating_point() else belief[k].detach() for k in keys]
-    examples.append(torch.zeros((1, layout.measurement_dim), dtype=layout.dtype))
-    if layout.has_mask:
-        examples.append(torch.ones((1, layout.measurement_dim), dtype=layout.dtype))
-    examples += [torch.zeros((1, *s), dtype=layout.dtype) for _, s, _ in layout.controls or ()]
-    examples += [p.detach() for _, p in trained]
+    examples = _examples(layout, belief, trained)
     # an eager step first: fills lazily built caches (sigma-point weights) with real tensors and
     # gives the belief after a step (the example for a steady step)
     step(*examples)

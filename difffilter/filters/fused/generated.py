@@ -10,6 +10,7 @@ processes (:mod:`.cache`).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Any
 
 import torch
@@ -20,6 +21,7 @@ from ..base import Belief, FilterResult, RecursiveFilter
 from ..update import untrusted_steps
 from .cache import load_or_trace
 from .kernel import SequenceProgram, lanes, run_sequence
+from .shared import SharedGainMean, shared_covariance_run, shares_covariance
 from .trace import StepLayout, fingerprint
 
 __all__ = ["GeneratedEngine"]
@@ -46,8 +48,14 @@ def _controls_layout(
 class GeneratedEngine:
     """Runs ``filt`` through generated kernels (CPU, float32/float64)."""
 
-    def __init__(self, filt: RecursiveFilter, *, threads: int | None = None, reuse_buffers: bool = True) -> None:
+    def __init__(
+        self, filt: RecursiveFilter, *, threads: int | None = None, reuse_buffers: bool = True, shared_covariance: bool = True
+    ) -> None:
         self.filter = filt
+        self.shared_covariance = shared_covariance
+        #: how the last call ran: "per trajectory" or "shared covariance"
+        self.last_path: str | None = None
+        self._mean_engine: GeneratedEngine | None = None
         self.threads = threads
         self.reuse_buffers = reuse_buffers
         self._programs: dict[Any, SequenceProgram] = {}
@@ -63,7 +71,46 @@ class GeneratedEngine:
         return prog
 
     def __call__(self, z: Tensor, mask: Tensor | None, belief: Belief, controls: Controls) -> FilterResult:
-        """``z [B, T, m]`` (validated, masked values zeroed), ``mask [B, T, m]`` or None, a full belief."""
+        """``z [B, T, m]`` (validated, masked values zeroed), ``mask [B, T, m]`` or None, a full belief.
+
+        A Kalman filter whose covariances are the same for every trajectory runs its covariance
+        recursion once (:mod:`.shared`); ``shared_covariance=False`` turns that off."""
+        if self.shared_covariance and shares_covariance(self.filter, mask, belief, controls):
+            self.last_path = "shared covariance"
+            if self._mean_engine is None:
+                self._mean_engine = GeneratedEngine(
+                    SharedGainMean(self.filter.model), threads=self.threads, reuse_buffers=self.reuse_buffers
+                )
+            mean_engine = self._mean_engine
+            return shared_covariance_run(
+                self.filter, z, mask, belief, lambda *a: self._fields(*a)[0], lambda *a: mean_engine._fields(*a)[0]
+            )  # type: ignore[arg-type]
+        self.last_path = "per trajectory"
+        field, prog = self._fields(z, mask, belief, controls)
+        mean, cov, prior_cov, loglik = field("mean"), field("cov"), field("prior_cov"), field("log_likelihood")
+        extras = {k: field(k) for k in prog.traced.record_keys}
+        # the run-wide check of the reference loop, and the steps' own flags
+        extras["untrusted"] = untrusted_steps(mean.detach(), cov.detach(), prior_cov.detach(), loglik.detach()) | (
+            field("step_untrusted") != 0
+        )
+        return FilterResult(
+            mean=mean,
+            cov=cov,
+            prior_mean=field("prior_mean"),
+            prior_cov=prior_cov,
+            log_likelihood=loglik,
+            nis=field("nis"),
+            num_observed=field("num_observed"),
+            # copies: a view would keep the whole output buffers alive (and unusable for the next
+            # call's outputs) while a truncated-BPTT loop carries the belief into its next window
+            final_belief={k: field(k)[:, -1].clone() for k in prog.traced.belief_keys},
+            extras=extras,
+        )
+
+    def _fields(
+        self, z: Tensor, mask: Tensor | None, belief: Belief, controls: Controls
+    ) -> tuple[Callable[[str], Tensor], SequenceProgram]:
+        """Run the kernel; ``(field, program)`` where ``field(name)`` is output ``name`` ``[B, T, ...]``."""
         bsz, steps, mdim = z.shape
         dtype = z.dtype
         keys = sorted(belief)
@@ -95,22 +142,4 @@ class GeneratedEngine:
             kind = prog.traced.dtypes.get(name, dtype)
             return out if kind == dtype else out.to(kind)
 
-        extras = {k: field(k) for k in prog.traced.record_keys}
-        mean, cov, prior_cov, loglik = field("mean"), field("cov"), field("prior_cov"), field("log_likelihood")
-        # the run-wide check of the reference loop, and the steps' own flags
-        extras["untrusted"] = untrusted_steps(mean.detach(), cov.detach(), prior_cov.detach(), loglik.detach()) | (
-            field("step_untrusted") != 0
-        )
-        return FilterResult(
-            mean=mean,
-            cov=cov,
-            prior_mean=field("prior_mean"),
-            prior_cov=prior_cov,
-            log_likelihood=loglik,
-            nis=field("nis"),
-            num_observed=field("num_observed"),
-            # copies: a view would keep the whole output buffers alive (and unusable for the next
-            # call's outputs) while a truncated-BPTT loop carries the belief into its next window
-            final_belief={k: field(k)[:, -1].clone() for k in prog.traced.belief_keys},
-            extras=extras,
-        )
+        return field, prog

@@ -74,7 +74,8 @@ def shares_covariance(filt: RecursiveFilter, mask: Tensor | None, belief: Belief
 class SharedGainMean(RecursiveFilter):
     """The mean recursion of a Kalman filter whose gains are given: per-step controls ``gain``
     ``[B, T, n m]`` (``K_t``, row-major), ``chol`` ``[B, T, m m]`` (the Cholesky factor of the
-    masked ``S_t``) and ``logdet`` ``[B, T, 1]`` (its log-determinant).  Its belief's ``cov`` is a ``[B, 1, 1]`` placeholder, passed through."""
+    masked ``S_t``) and ``logdet`` ``[B, T, 1]`` (its log-determinant).  Its belief's ``cov`` is a
+    ``[B, 1, 1]`` placeholder, passed through."""
 
     def predict(self, belief: Belief, u: Controls) -> Belief:
         return {"mean": self.model.dynamics(belief["mean"], None), "cov": belief["cov"]}

@@ -21,6 +21,7 @@ filter is traced again.  ``DIFFFILTER_PROGRAM_CACHE=0`` turns the cache off.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import inspect
 import math
@@ -43,7 +44,7 @@ __all__ = ["FORMAT", "load_or_trace", "program_key", "program_path"]
 
 #: bumped whenever the stored layout changes
 FORMAT = "difffilter-program-1"
-_PACKAGE = Path(__file__).resolve().parents[2]  # .../difffilter
+_PACKAGE = str(Path(__file__).resolve().parents[2])  # .../difffilter
 _digests: dict[str, str] = {}
 _lock = threading.Lock()
 
@@ -58,8 +59,13 @@ def _file_digest(path: str) -> str:
     return d
 
 
-def _package_files() -> list[str]:
-    return sorted(str(p) for p in _PACKAGE.rglob("*.py"))
+@functools.cache
+def _package_files() -> tuple[str, ...]:
+    files = []
+    for root, dirs, names in os.walk(_PACKAGE):
+        dirs[:] = [d for d in dirs if d != "__pycache__"]
+        files += [os.path.join(root, n) for n in names if n.endswith(".py")]
+    return tuple(sorted(files))
 
 
 def _class_files(filt: nn.Module) -> list[str] | None:
@@ -90,7 +96,7 @@ def program_key(filt: RecursiveFilter, layout: StepLayout) -> str | None:
     h = hashlib.sha256()
     parts = [FORMAT, torch.__version__, sys.version, fingerprint(filt), repr(layout)]
     for path in sorted(set(_package_files()) | set(classes)):
-        rel = os.path.relpath(path, _PACKAGE) if path.startswith(str(_PACKAGE)) else path
+        rel = os.path.relpath(path, _PACKAGE) if path.startswith(_PACKAGE + os.sep) else path
         parts.append(f"{rel}:{_file_digest(path)}")
     for p in parts:
         h.update(p.encode())

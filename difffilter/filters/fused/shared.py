@@ -34,11 +34,12 @@ __all__ = ["MAX_SHARED_BATCH", "MIN_SHARED_BATCH", "SharedGainMean", "shares_cov
 #: ``fields_of(z, mask, belief, controls) -> field``: a generated-kernel run, ``field(name)`` its output ``[B, T, ...]``
 FieldsOf = Callable[[Tensor, "Tensor | None", Belief, Controls], Callable[[str], Tensor]]
 
-#: the batch sizes where the shared recursion was measured faster (CPU time of a training step of
-#: the benchmark's 4-state KF, T = 500, float64): B = 64 a tie, 256 1.4x faster, 4096 1.1x slower
-#: (the gains travel to the kernel as per-trajectory inputs; their memory traffic grows with B)
+#: the batch sizes where the shared recursion measured faster (process CPU time of a training step
+#: of the benchmark's 4-state KF, T = 500, float64, best of 20): B = 64 a tie, 256 1.4x, 512 1.65x
+#: faster; 1024 and 4096 1.1x slower (the gains reach the kernel as per-trajectory inputs, and
+#: their memory traffic, forward and reverse, grows with B)
 MIN_SHARED_BATCH = 128
-MAX_SHARED_BATCH = 1024
+MAX_SHARED_BATCH = 512
 _LOG_2PI = math.log(2.0 * math.pi)
 
 

@@ -11,9 +11,10 @@ from __future__ import annotations
 import pytest
 import torch
 
-from difffilter.filters import FusedFilter, KalmanFilter
+from difffilter.filters import UKF, FusedFilter, KalmanFilter
 from difffilter.filters.fused import shared
 from difffilter.models.base import LinearModel
+from tests.test_fused import _range_bearing_data
 
 F64 = torch.float64
 FIELDS = ("mean", "cov", "prior_mean", "prior_cov", "log_likelihood", "nis", "num_observed")
@@ -117,3 +118,23 @@ def test_only_plain_kalman_filters_on_linear_models_share() -> None:
     assert shared.shares_covariance(KalmanFilter(_model()), None, belief, None)
     assert not shared.shares_covariance(Subclass(_model()), None, belief, None)
     assert not shared.shares_covariance(KalmanFilter(_model()), None, belief, torch.zeros(z.shape[0], z.shape[1], 1))
+
+
+def test_controls_shared_by_the_batch_are_read_once_per_step() -> None:
+    """Any filter: a control expanded over the batch becomes the kernel's per-step shared input;
+    outputs and gradients (controls included) equal the reference filter's."""
+    model, z, u, m0, p0 = _range_bearing_data(batch=6, steps=10)
+    filt = UKF(model)
+    u1 = u[:1].clone().requires_grad_(True)
+    fused = FusedFilter(filt, engine="generated")
+    out = fused(z, m0, p0, controls=u1.expand(6, -1, -1))
+    (prog,) = fused.generated_engine()._programs.values()
+    assert prog.traced.layout.shared == ("",) and prog.traced.layout.step_size == 2
+    ref = filt(z, m0, p0, controls=u1.expand(6, -1, -1))
+    params = [p for p in filt.parameters() if p.requires_grad]
+    grads = torch.autograd.grad(out.log_likelihood.sum() + out.mean.sum(), [*params, u1])
+    ref_grads = torch.autograd.grad(ref.log_likelihood.sum() + ref.mean.sum(), [*params, u1])
+    for name in FIELDS:
+        torch.testing.assert_close(getattr(out, name), getattr(ref, name), rtol=1e-10, atol=1e-10)
+    for a, b in zip(grads, ref_grads, strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-10)

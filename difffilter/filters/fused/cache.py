@@ -158,12 +158,13 @@ def _agrees(prog: SequenceProgram, filt: RecursiveFilter, layout: StepLayout, be
     step = [torch.zeros(layout.measurement_dim, dtype=dtype)]
     if layout.has_mask:
         step.append(torch.ones(layout.measurement_dim, dtype=dtype))
-    step += [torch.zeros(math.prod(s), dtype=dtype) for _, s, _ in layout.controls or ()]
+    step += [torch.zeros(math.prod(s), dtype=dtype) for k, s, _ in layout.controls or () if k not in layout.shared]
     step_in = torch.cat(step).reshape(1, -1, 1).expand(2, -1, prog.lanes).contiguous()
     named = dict(filt.named_parameters())
     params = [named[name].detach().reshape(-1) for name, _ in traced.params]
     flat = torch.cat(params).to(dtype) if params else torch.zeros(1, dtype=dtype)
-    outs = prog.forward(state0.expand(-1, prog.lanes).contiguous(), step_in, flat.contiguous(), threads=1)
+    shared = torch.zeros(2, layout.shared_size, dtype=dtype) if layout.shared_size else torch.zeros(1, dtype=dtype)
+    outs = prog.forward(state0.expand(-1, prog.lanes).contiguous(), step_in, shared, flat.contiguous(), threads=1)
     tol = 1e-6 if dtype == torch.float64 else 1e-3
     for t in range(2):
         if not set(traced.fields) <= set(ref[t]):

@@ -115,12 +115,15 @@ class GeneratedEngine:
         dtype = z.dtype
         keys = sorted(belief)
         ctrl_layout, ctrl = _controls_layout(controls, dtype)
+        # a control expanded over the batch (stride 0) is read once per step, not once per trajectory
+        shared = tuple(k for (k, _, _), c in zip(ctrl_layout or (), ctrl, strict=True) if bsz > 1 and c.stride(0) == 0)
         layout = StepLayout(
             belief=tuple((k, tuple(belief[k].shape[1:]), belief[k].dtype) for k in keys),
             measurement_dim=mdim,
             has_mask=mask is not None,
             controls=ctrl_layout,
             dtype=dtype,
+            shared=shared,
         )
         prog = self.program(layout, belief)
         padded = math.ceil(bsz / lanes(dtype)) * lanes(dtype)
@@ -128,13 +131,15 @@ class GeneratedEngine:
         per_step = [z.permute(1, 2, 0)]
         if mask is not None:
             per_step.append(mask.to(dtype).permute(1, 2, 0))
-        per_step += [c.reshape(bsz, steps, -1).to(dtype).permute(1, 2, 0) for c in ctrl]
+        own = [c for (k, _, _), c in zip(ctrl_layout or (), ctrl, strict=True) if k not in shared]
+        per_step += [c.reshape(bsz, steps, -1).to(dtype).permute(1, 2, 0) for c in own]
         step_in = _pad_lanes(torch.cat(per_step, 1), padded)
+        common = [c[0].reshape(steps, -1).to(dtype) for (k, _, _), c in zip(ctrl_layout or (), ctrl, strict=True) if k in shared]
         trained = dict(self.filter.named_parameters())
         params = [trained[name].reshape(-1) for name, _ in prog.traced.params]
         flat_params = torch.cat(params) if params else z.new_zeros(1)
         threads = self.threads if self.threads is not None else torch.get_num_threads()
-        outs = run_sequence(prog, state0, step_in, flat_params, threads=threads)
+        outs = run_sequence(prog, state0, step_in, flat_params, shared=torch.cat(common, 1) if common else None, threads=threads)
 
         def field(name: str) -> Tensor:
             gi, offset, shape = prog.traced.fields[name]

@@ -29,17 +29,15 @@ from ..base import Belief, FilterResult, RecursiveFilter
 from ..kalman import KalmanFilter
 from ..update import untrusted_steps
 
-__all__ = ["MAX_SHARED_BATCH", "MIN_SHARED_BATCH", "SharedGainMean", "shares_covariance", "shared_covariance_run"]
+__all__ = ["MIN_SHARED_BATCH", "SharedGainMean", "shares_covariance", "shared_covariance_run"]
 
 #: ``fields_of(z, mask, belief, controls) -> field``: a generated-kernel run, ``field(name)`` its output ``[B, T, ...]``
 FieldsOf = Callable[[Tensor, "Tensor | None", Belief, Controls], Callable[[str], Tensor]]
 
-#: the batch sizes where the shared recursion measured faster (process CPU time of a training step
-#: of the benchmark's 4-state KF, T = 500, float64, best of 20): B = 64 a tie, 256 1.4x, 512 1.65x
-#: faster; 1024 and 4096 1.1x slower (the gains reach the kernel as per-trajectory inputs, and
-#: their memory traffic, forward and reverse, grows with B)
-MIN_SHARED_BATCH = 128
-MAX_SHARED_BATCH = 512
+#: below this batch size the per-trajectory run is as fast (process CPU time of a training step of
+#: the benchmark's 4-state KF, T = 500, float64, best of 20, shared / per trajectory: B = 16 1.7x
+#: slower, 64 1.1x, 256 2.2x, 1024 3.9x, 4096 2.2x faster)
+MIN_SHARED_BATCH = 64
 _LOG_2PI = math.log(2.0 * math.pi)
 
 
@@ -54,7 +52,7 @@ def shares_covariance(filt: RecursiveFilter, mask: Tensor | None, belief: Belief
     a plain ``KalmanFilter`` on a plain ``LinearModel`` without angular components, no
     controls, a belief of mean and covariance only whose covariance is the same for every
     trajectory (and is not a per-trajectory leaf that wants its own gradient), the same mask for
-    every trajectory, and a batch size from :data:`MIN_SHARED_BATCH` to :data:`MAX_SHARED_BATCH`."""
+    every trajectory, and a batch of at least :data:`MIN_SHARED_BATCH`."""
     model = getattr(filt, "model", None)
     if type(filt) is not KalmanFilter or type(model) is not LinearModel or controls is not None:
         return False
@@ -65,7 +63,7 @@ def shares_covariance(filt: RecursiveFilter, mask: Tensor | None, belief: Belief
     if set(belief) != {"mean", "cov"}:
         return False
     cov = belief["cov"]
-    if not MIN_SHARED_BATCH <= cov.shape[0] <= MAX_SHARED_BATCH:
+    if cov.shape[0] < MIN_SHARED_BATCH:
         return False
     if cov.requires_grad and cov.stride(0) != 0:
         return False  # its gradient is per trajectory
@@ -75,7 +73,8 @@ def shares_covariance(filt: RecursiveFilter, mask: Tensor | None, belief: Belief
 class SharedGainMean(RecursiveFilter):
     """The mean recursion of a Kalman filter whose gains are given: per-step controls ``gain``
     ``[B, T, n m]`` (``K_t``, row-major), ``chol`` ``[B, T, m m]`` (the Cholesky factor of the
-    masked ``S_t``) and ``logdet`` ``[B, T, 1]`` (its log-determinant).  Its belief's ``cov`` is a
+    masked ``S_t``) and ``logdet`` ``[B, T, 1]`` (its log-determinant), expanded over the batch
+    so that the generated kernel reads them once per step (its ``shared`` input).  Its belief's ``cov`` is a
     ``[B, 1, 1]`` placeholder, passed through."""
 
     def predict(self, belief: Belief, u: Controls) -> Belief:

@@ -54,6 +54,7 @@ class StepLayout:
     has_mask: bool
     controls: tuple[tuple[str, tuple[int, ...], torch.dtype], ...] | None  # None: no controls; key "" for a bare tensor
     dtype: torch.dtype
+    shared: tuple[str, ...] = ()  # keys of the controls that are the same for every trajectory (kernel input ``shared``)
 
     @property
     def state_size(self) -> int:
@@ -61,8 +62,12 @@ class StepLayout:
 
     @property
     def step_size(self) -> int:
-        ctrl = sum(math.prod(s) for _, s, _ in self.controls) if self.controls else 0
+        ctrl = sum(math.prod(s) for k, s, _ in self.controls if k not in self.shared) if self.controls else 0
         return self.measurement_dim * (2 if self.has_mask else 1) + ctrl
+
+    @property
+    def shared_size(self) -> int:
+        return sum(math.prod(s) for k, s, _ in self.controls if k in self.shared) if self.controls else 0
 
 
 @dataclass
@@ -315,23 +320,25 @@ def _lower_traced(
     keys = tuple(k for k, _, _ in steady[1].belief)
     names = list(keys) + list(_RESULT_KEYS) + record_keys
 
-    def lowered(gm: Any, lay: StepLayout) -> tuple[list[int], list[int], list[Any]]:
+    def lowered(gm: Any, lay: StepLayout) -> tuple[list[int], list[int], list[int], list[Any]]:
         state = [inputs("state", (1, *s), kind="b" if dt == torch.bool else "f") for _, s, dt in lay.belief]
         step_in = [inputs("step", (1, lay.measurement_dim))]
         if lay.has_mask:
             step_in.append(inputs("step", (1, lay.measurement_dim)))
-        step_in += [inputs("step", (1, *s)) for _, s, _ in lay.controls or ()]
-        return flat(state), flat(step_in), lower(gm, g, lay.dtype, state + step_in + params)
+        ctrl = [inputs("shared" if k in lay.shared else "step", (1, *s)) for k, s, _ in lay.controls or ()]
+        own = [a for (k, _, _), a in zip(lay.controls or (), ctrl, strict=True) if k not in lay.shared]
+        shared = [a for (k, _, _), a in zip(lay.controls or (), ctrl, strict=True) if k in lay.shared]
+        return flat(state), flat(step_in + own), flat(shared), lower(gm, g, lay.dtype, state + step_in + ctrl + params)
 
-    state, step_in, outs = lowered(*steady)
+    state, step_in, shared_in, outs = lowered(*steady)
     if len(g) > MAX_NODES:
         raise UnsupportedOp(f"the step is too large for the generated engine ({len(g)} scalar operations, limit {MAX_NODES})")
     groups, fields = _groups(names, outs)
     slots = [(fields[k][0], fields[k][1] + i) for k in keys for i in range(math.prod(fields[k][2]))]
-    body = StepBody(state, step_in, groups, slots)
+    body = StepBody(state, step_in, groups, slots, shared_in)
     first_body = None
     if first is not None:
-        state0, step_in0, outs0 = lowered(*first)
+        state0, step_in0, shared_in0, outs0 = lowered(*first)
         by_name = {name: [int(x) for x in np.asarray(o, dtype=object).reshape(-1)] for name, o in zip(names, outs0, strict=True)}
         groups0: list[list[int | None]] = [[None] * len(grp) for grp in groups]
         for name, (gi, off, _) in fields.items():
@@ -341,7 +348,7 @@ def _lower_traced(
                 groups0[gi][off + i] = node
         if any(n is None for grp in groups0 for n in grp):
             raise UnsupportedOp("the first step's outputs differ in layout from the later steps'")
-        first_body = StepBody(state0, step_in0, groups0, slots)  # type: ignore[arg-type]
+        first_body = StepBody(state0, step_in0, groups0, slots, shared_in0)  # type: ignore[arg-type]
     spec = SequenceSpec(g, layout.dtype, flat(params), body, first_body)
     return TracedStep(spec, layout, trained, fields, tuple(record_keys), keys, dtypes)
 

@@ -35,8 +35,8 @@ __all__ = ["MIN_SHARED_BATCH", "SharedGainMean", "shares_covariance", "shared_co
 FieldsOf = Callable[[Tensor, "Tensor | None", Belief, Controls], Callable[[str], Tensor]]
 
 #: below this batch size the per-trajectory run is as fast (process CPU time of a training step of
-#: the benchmark's 4-state KF, T = 500, float64, best of 20, shared / per trajectory: B = 16 1.7x
-#: slower, 64 1.1x, 256 2.2x, 1024 3.9x, 4096 2.2x faster)
+#: the benchmark's 4-state KF, T = 500, float64, experiments/benchmark_kf_shared.py, per trajectory
+#: / shared: B = 16 0.51, 64 1.32, 256 1.81, 1024 3.09, 4096 2.01)
 MIN_SHARED_BATCH = 64
 _LOG_2PI = math.log(2.0 * math.pi)
 

@@ -9,6 +9,8 @@ Memory layout (``Bp`` = batch padded to whole vectors; element ``k`` of trajecto
 
 * ``state0 [S, Bp]`` - the belief before the first step, flattened;
 * ``step_in [T, I, Bp]`` - per-step inputs (measurement, mask, controls);
+* ``shared [T, J]`` - per-step inputs that are the same for every trajectory (e.g. a Kalman
+  gain computed once for the batch), read once per step and broadcast;
 * ``params [P]`` - the model parameters that train (the same for every trajectory);
 * ``outs[g] [T, K_g, Bp]`` - recorded output groups (posterior, prior, log-likelihood...),
   which include the next belief so that the reverse kernel can restart every step from memory.
@@ -19,12 +21,12 @@ separate *first* step body from the initial layout to the steady one.
 The reverse kernel walks the steps backwards, recomputes each step from the stored belief and
 accumulates adjoints: ``g_outs[j]`` (gradients of the groups that have one) in, ``g_state0
 [S, Bp]``, ``g_step [T, I, Bp]`` (optional) and ``g_params [tiles, P]`` (per-tile partial
-sums) out.
+sums) out, and ``g_shared [tiles, T, J]`` (per-tile sums over the lanes) when asked.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 
@@ -45,6 +47,7 @@ class StepBody:
     step_in: list[int]
     groups: list[list[int]]
     state_slot: list[tuple[int, int]]
+    shared_in: list[int] = field(default_factory=list)
 
     def state_out(self) -> list[int]:
         return [self.groups[g][i] for g, i in self.state_slot]
@@ -84,6 +87,18 @@ def _bind_state(e: Emitter, body: StepBody, names: list[str]) -> list[str]:
     return out
 
 
+def _bind_inputs(e: Emitter, body: StepBody, t: str) -> list[str]:
+    """Load step ``t``'s per-trajectory inputs (vectors) and shared inputs (broadcast scalars)."""
+    out = []
+    for i, n in enumerate(body.step_in):
+        out.append(f"const V v{n} = vload(step_in + ({t} * {len(body.step_in)} + {i}) * Bp + b0);")
+        e.vector[n] = f"v{n}"
+    for i, n in enumerate(body.shared_in):
+        out.append(f"const V v{n} = bc(shared[{t} * {len(body.shared_in)} + {i}]);")
+        e.vector[n] = f"v{n}"
+    return out
+
+
 def _as_float(e: Emitter, n: int, pre: list[str]) -> str:
     ref = e.vector_ref(n, pre)
     return f"({ref} ? bc(T(1)) : bc(T(0)))" if e.g.kind[n] == "b" else ref
@@ -94,9 +109,7 @@ def _body_forward(e: Emitter, body: StepBody, state_in: list[str], state_out: li
     belief into ``state_out``."""
     g = e.g
     out = _bind_state(e, body, state_in)
-    for i, n in enumerate(body.step_in):
-        out.append(f"const V v{n} = vload(step_in + ({t} * {len(body.step_in)} + {i}) * Bp + b0);")
-        e.vector[n] = f"v{n}"
+    out += _bind_inputs(e, body, t)
     _, lane = split_levels(g, ancestors(g, [n for grp in body.groups for n in grp]))
     e.emit_vector(lane, out, pre)
     for gi, grp in enumerate(body.groups):
@@ -110,7 +123,7 @@ def _body_forward(e: Emitter, body: StepBody, state_in: list[str], state_out: li
 
 
 def forward_source(spec: SequenceSpec) -> str:
-    """``extern "C" void forward(tile0, tile1, T, Bp, state0, step_in, params, outs)``."""
+    """``extern "C" void forward(tile0, tile1, T, Bp, state0, step_in, shared, params, outs)``."""
     g = spec.graph
     e = Emitter(g, ctypes_of(spec.dtype)[0])
     for i, n in enumerate(spec.params):
@@ -135,7 +148,7 @@ def forward_source(spec: SequenceSpec) -> str:
     src = [
         prelude(spec.dtype),
         'extern "C" void forward(int64_t tile0, int64_t tile1, int64_t T_, int64_t Bp, const T* state0, const T* step_in, '
-        "const T* params, T* const* outs) {",
+        "const T* shared, const T* params, T* const* outs) {",
         *prologue,
         *pre,
         "for (int64_t tile = tile0; tile < tile1; ++tile) {",
@@ -153,6 +166,7 @@ class BackwardSpec:
 
     grad_groups: tuple[int, ...]  # output groups that receive a gradient, in the order of g_outs
     step_grad: bool  # whether the gradient w.r.t. every step input is wanted
+    shared_grad: bool = False  # whether the gradient w.r.t. every shared input is wanted
 
 
 @dataclass
@@ -165,6 +179,7 @@ class _Reverse:
     prev_state: list[int]
     step_adj: list[int]
     boundary: dict[int, int]
+    shared_adj: list[int]
 
 
 def _reverse(g: ScalarGraph, body: StepBody, which: BackwardSpec) -> _Reverse:
@@ -182,7 +197,8 @@ def _reverse(g: ScalarGraph, body: StepBody, which: BackwardSpec) -> _Reverse:
     zero = g.const(0.0)
     prev = [adj.get(n, zero) for n in body.state_in]
     step_adj = [adj.get(n, zero) for n in body.step_in] if which.step_grad else []
-    return _Reverse(gout, gstate, prev, step_adj, boundary)
+    shared_adj = [adj.get(n, zero) for n in body.shared_in] if which.shared_grad else []
+    return _Reverse(gout, gstate, prev, step_adj, boundary, shared_adj)
 
 
 def _body_backward(e: Emitter, body: StepBody, rev: _Reverse, acc: dict[int, str], pre: list[str], t: str, carried: list[str]) -> list[str]:
@@ -190,27 +206,27 @@ def _body_backward(e: Emitter, body: StepBody, rev: _Reverse, acc: dict[int, str
     ``carried``, leaves the adjoint of the step's input belief in ``gn*``."""
     g = e.g
     out = _bind_state(e, body, [f"s{k}" for k in range(len(body.state_in))])
-    for i, n in enumerate(body.step_in):
-        out.append(f"const V v{n} = vload(step_in + ({t} * {len(body.step_in)} + {i}) * Bp + b0);")
-        e.vector[n] = f"v{n}"
+    out += _bind_inputs(e, body, t)
     for j, nodes in enumerate(rev.gout):
         for i, n in enumerate(nodes):
             out.append(f"const V v{n} = vload(g_outs[{j}] + ({t} * {len(nodes)} + {i}) * Bp + b0);")
             e.vector[n] = f"v{n}"
     for k, n in enumerate(rev.gstate):
         e.vector[n] = carried[k]
-    targets = rev.prev_state + rev.step_adj + list(rev.boundary.values())
+    targets = rev.prev_state + rev.step_adj + rev.shared_adj + list(rev.boundary.values())
     _, lane = split_levels(g, ancestors(g, targets))
     e.emit_vector(lane, out, pre)
     out += [f"gn{k} = {e.vector_ref(n, pre)};" for k, n in enumerate(rev.prev_state)]
     out += [f"vstore(g_step + ({t} * {len(body.step_in)} + {i}) * Bp + b0, {e.vector_ref(n, pre)});" for i, n in enumerate(rev.step_adj)]
+    ns = len(body.shared_in)
+    out += [f"g_shared[(tile * T_ + {t}) * {ns} + {i}] = hsum({e.vector_ref(n, pre)});" for i, n in enumerate(rev.shared_adj)]
     out += [f"{acc[b]} += {e.vector_ref(v, pre)};" for b, v in rev.boundary.items()]
     return out
 
 
 def backward_source(spec: SequenceSpec, which: BackwardSpec) -> str:
-    """``extern "C" void backward(tile0, tile1, T, Bp, state0, step_in, params, outs, g_outs,
-    g_state0, g_step, g_params)``."""
+    """``extern "C" void backward(tile0, tile1, T, Bp, state0, step_in, shared, params, outs, g_outs,
+    g_state0, g_step, g_shared, g_params)``."""
     g = spec.graph
     steady = _reverse(g, spec.steady, which)
     first = _reverse(g, spec.first, which) if spec.first is not None else None
@@ -224,7 +240,7 @@ def backward_source(spec: SequenceSpec, which: BackwardSpec) -> str:
     for i, n in enumerate(spec.params):
         e.scalar[n] = f"params[{i}]"
     revs = [(spec.steady, steady)] + ([(spec.first, first)] if spec.first is not None and first is not None else [])
-    targets = [n for _, r in revs for n in r.prev_state + r.step_adj + list(r.boundary.values())]
+    targets = [n for _, r in revs for n in r.prev_state + r.step_adj + r.shared_adj + list(r.boundary.values())]
     uni, _ = split_levels(g, ancestors(g, targets))
     prologue: list[str] = []
     e.emit_scalar(uni, prologue)
@@ -258,7 +274,7 @@ def backward_source(spec: SequenceSpec, which: BackwardSpec) -> str:
     src = [
         prelude(spec.dtype),
         'extern "C" void backward(int64_t tile0, int64_t tile1, int64_t T_, int64_t Bp, const T* state0, const T* step_in, '
-        "const T* params, T* const* outs, T* const* g_outs, T* g_state0, T* g_step, T* g_params) {",
+        "const T* shared, const T* params, T* const* outs, T* const* g_outs, T* g_state0, T* g_step, T* g_shared, T* g_params) {",
         *prologue,
         *pre,
         "for (int64_t tile = tile0; tile < tile1; ++tile) {",

@@ -92,25 +92,32 @@ class SequenceProgram:
         spec = traced.spec
         self.lanes = lanes(spec.dtype)
         self.group_sizes = spec.group_sizes
-        lib = compile_library(forward_source(spec), tag="forward")
-        self._forward = lib.forward
-        self._forward.argtypes = [_I64, _I64, _I64, _I64, _P, _P, _P, _P]
-        self._forward.restype = None
+        #: whether the step came from the on-disk program cache (set by :func:`~.cache.load_or_trace`)
+        self.from_cache = False
         self._backward: dict[BackwardSpec, Any] = {}  # compiled function or the Future building it
         self._lock = threading.Lock()
         self._source_lock = threading.Lock()
-        # fresh output memory costs a page fault per 4 KiB, measured at about as much as the UKF kernel
-        self._buffers = ReusableBuffers(enabled=reuse_buffers)
         ll = traced.fields.get("log_likelihood")
         #: the reverse kernel of a training step: gradient of the log-likelihood only
-        self.likely_backward = BackwardSpec((ll[0],), False) if ll is not None else None  # the group holding it
+        has_shared = bool(traced.layout.shared)
+        self.likely_backward = BackwardSpec((ll[0],), False, has_shared) if ll is not None else None  # the group holding it
+        source = forward_source(spec)
+        if traced.params and self.likely_backward is not None:
+            # parameters that train: build the usual reverse kernel meanwhile, on the other core
+            self.prefetch_backward(self.likely_backward)
+        lib = compile_library(source, tag="forward")
+        self._forward = lib.forward
+        self._forward.argtypes = [_I64, _I64, _I64, _I64, _P, _P, _P, _P, _P]
+        self._forward.restype = None
+        # fresh output memory costs a page fault per 4 KiB, measured at about as much as the UKF kernel
+        self._buffers = ReusableBuffers(enabled=reuse_buffers)
 
     def _build_backward(self, which: BackwardSpec) -> Any:
         with self._source_lock:  # the graph grows while the reverse sweep is written
             source = backward_source(self.traced.spec, which)
         # -O1: the reverse kernels compile ~25 % faster than with -O2 and measured as fast
         fn = compile_library(source, tag="backward", opt="-O1").backward
-        fn.argtypes = [_I64, _I64, _I64, _I64, _P, _P, _P, _P, _P, _P, _P, _P]
+        fn.argtypes = [_I64, _I64, _I64, _I64, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P]
         fn.restype = None
         return fn
 
@@ -141,58 +148,72 @@ class SequenceProgram:
         for f in futures:
             f.result()
 
-    def forward(self, state0: Tensor, step_in: Tensor, params: Tensor, threads: int) -> list[Tensor]:
-        """Outputs ``[T, K_g, Bp]`` per group for ``state0 [S, Bp]``, ``step_in [T, I, Bp]``, ``params [P]``."""
+    def forward(self, state0: Tensor, step_in: Tensor, shared: Tensor, params: Tensor, threads: int) -> list[Tensor]:
+        """Outputs ``[T, K_g, Bp]`` per group for ``state0 [S, Bp]``, ``step_in [T, I, Bp]``,
+        ``shared [T, J]`` (inputs the same for every trajectory) and ``params [P]``."""
         steps, bp = step_in.shape[0], state0.shape[1]
         outs = self._buffers.get([(steps, k, bp) for k in self.group_sizes], state0)
         ptrs = _pointers(outs)
-        args = (steps, bp, state0.data_ptr(), step_in.data_ptr(), params.data_ptr(), ctypes.cast(ptrs, _P))
+        args = (steps, bp, state0.data_ptr(), step_in.data_ptr(), shared.data_ptr(), params.data_ptr(), ctypes.cast(ptrs, _P))
         self._split(bp // self.lanes, threads, lambda a, b: self._forward(a, b, *args))
         return outs
 
     def backward(
-        self, which: BackwardSpec, state0: Tensor, step_in: Tensor, params: Tensor, outs: list[Tensor], grads: list[Tensor], threads: int
-    ) -> tuple[Tensor, Tensor | None, Tensor]:
-        """Gradients w.r.t. ``state0``, ``step_in`` (if ``which.step_grad``) and ``params``."""
+        self,
+        which: BackwardSpec,
+        inputs: tuple[Tensor, Tensor, Tensor, Tensor],
+        outs: list[Tensor],
+        grads: list[Tensor],
+        threads: int,
+    ) -> tuple[Tensor, Tensor | None, Tensor | None, Tensor]:
+        """Gradients w.r.t. ``inputs = (state0, step_in, shared, params)``: ``step_in`` only if
+        ``which.step_grad``, ``shared`` only if ``which.shared_grad``."""
+        state0, step_in, shared, params = inputs
         fn = self.backward_kernel(which)
         steps, bp = step_in.shape[0], state0.shape[1]
         tiles = bp // self.lanes
         g_state0 = torch.empty_like(state0)
         g_step = torch.empty_like(step_in) if which.step_grad else step_in.new_empty(0)
+        g_shared = shared.new_empty((tiles, *shared.shape)) if which.shared_grad else shared.new_empty(0)
         g_params = params.new_zeros((tiles, params.numel()))
         out_ptrs, grad_ptrs = _pointers(outs), _pointers(grads)
         args = (
-            steps, bp, state0.data_ptr(), step_in.data_ptr(), params.data_ptr(), ctypes.cast(out_ptrs, _P), ctypes.cast(grad_ptrs, _P),
-            g_state0.data_ptr(), g_step.data_ptr(), g_params.data_ptr(),
+            steps, bp, state0.data_ptr(), step_in.data_ptr(), shared.data_ptr(), params.data_ptr(), ctypes.cast(out_ptrs, _P),
+            ctypes.cast(grad_ptrs, _P), g_state0.data_ptr(), g_step.data_ptr(), g_shared.data_ptr(), g_params.data_ptr(),
         )  # fmt: skip
         self._split(tiles, threads, lambda a, b: fn(a, b, *args))
-        return g_state0, (g_step if which.step_grad else None), g_params.sum(0)
+        return g_state0, (g_step if which.step_grad else None), (g_shared.sum(0) if which.shared_grad else None), g_params.sum(0)
 
 
 class _RunSequence(torch.autograd.Function):
     @staticmethod
-    def forward(ctx: Any, program: SequenceProgram, threads: int, state0: Tensor, step_in: Tensor, params: Tensor) -> tuple[Tensor, ...]:  # type: ignore[override]
+    def forward(  # type: ignore[override]
+        ctx: Any, program: SequenceProgram, threads: int, state0: Tensor, step_in: Tensor, shared: Tensor, params: Tensor
+    ) -> tuple[Tensor, ...]:
         if program.likely_backward is not None:  # compile the usual reverse kernel meanwhile
             program.prefetch_backward(program.likely_backward)
-        outs = program.forward(state0, step_in, params, threads)
+        outs = program.forward(state0, step_in, shared, params, threads)
         ctx.program, ctx.threads = program, threads
-        ctx.save_for_backward(state0, step_in, params, *outs)
+        ctx.save_for_backward(state0, step_in, shared, params, *outs)
         ctx.set_materialize_grads(False)
         return tuple(outs)
 
     @staticmethod
     @once_differentiable
     def backward(ctx: Any, *grads: Tensor | None) -> tuple[Tensor | None, ...]:  # type: ignore[override]
-        state0, step_in, params, *outs = ctx.saved_tensors
+        state0, step_in, shared, params, *outs = ctx.saved_tensors
         present = tuple(i for i, g in enumerate(grads) if g is not None)
-        which = BackwardSpec(present, bool(ctx.needs_input_grad[3]))
+        which = BackwardSpec(present, bool(ctx.needs_input_grad[3]), bool(ctx.needs_input_grad[4]))
         g = [grads[i].contiguous() for i in present]  # type: ignore[union-attr]
-        g_state0, g_step, g_params = ctx.program.backward(which, state0, step_in, params, outs, g, ctx.threads)
-        return None, None, g_state0 if ctx.needs_input_grad[2] else None, g_step, g_params if ctx.needs_input_grad[4] else None
+        g_state0, g_step, g_shared, g_params = ctx.program.backward(which, (state0, step_in, shared, params), outs, g, ctx.threads)
+        return None, None, g_state0 if ctx.needs_input_grad[2] else None, g_step, g_shared, g_params if ctx.needs_input_grad[5] else None
 
 
-def run_sequence(program: SequenceProgram, state0: Tensor, step_in: Tensor, params: Tensor, *, threads: int = 1) -> tuple[Tensor, ...]:
+def run_sequence(
+    program: SequenceProgram, state0: Tensor, step_in: Tensor, params: Tensor, *, shared: Tensor | None = None, threads: int = 1
+) -> tuple[Tensor, ...]:
     """Differentiable run of ``program``: output groups ``[T, K_g, Bp]`` (see :meth:`SequenceProgram.forward`)."""
-    if not torch.is_grad_enabled() or not (state0.requires_grad or step_in.requires_grad or params.requires_grad):
-        return tuple(program.forward(state0.contiguous(), step_in.contiguous(), params.contiguous(), threads))
-    return _RunSequence.apply(program, threads, state0.contiguous(), step_in.contiguous(), params.contiguous())
+    shared = state0.new_zeros(1) if shared is None else shared.contiguous()
+    if not torch.is_grad_enabled() or not any(x.requires_grad for x in (state0, step_in, shared, params)):
+        return tuple(program.forward(state0.contiguous(), step_in.contiguous(), shared, params.contiguous(), threads))
+    return _RunSequence.apply(program, threads, state0.contiguous(), step_in.contiguous(), shared, params.contiguous())

@@ -35,7 +35,7 @@ from .codegen import SequenceSpec, StepBody
 from .graph import LANE, UNIFORM, ScalarGraph, UnsupportedOp
 from .lower import lower
 
-__all__ = ["StepLayout", "TracedStep", "fingerprint", "trace_step"]
+__all__ = ["StepLayout", "TracedStep", "eager_steps", "fingerprint", "trace_step"]
 
 _TRACE_LOCK = threading.Lock()
 #: largest step (scalar operations of the forward) the generated engine compiles; the code is fully
@@ -54,6 +54,7 @@ class StepLayout:
     has_mask: bool
     controls: tuple[tuple[str, tuple[int, ...], torch.dtype], ...] | None  # None: no controls; key "" for a bare tensor
     dtype: torch.dtype
+    shared: tuple[str, ...] = ()  # keys of the controls that are the same for every trajectory (kernel input ``shared``)
 
     @property
     def state_size(self) -> int:
@@ -61,8 +62,12 @@ class StepLayout:
 
     @property
     def step_size(self) -> int:
-        ctrl = sum(math.prod(s) for _, s, _ in self.controls) if self.controls else 0
+        ctrl = sum(math.prod(s) for k, s, _ in self.controls if k not in self.shared) if self.controls else 0
         return self.measurement_dim * (2 if self.has_mask else 1) + ctrl
+
+    @property
+    def shared_size(self) -> int:
+        return sum(math.prod(s) for k, s, _ in self.controls if k in self.shared) if self.controls else 0
 
 
 @dataclass
@@ -216,6 +221,34 @@ def _step_function(
     return step
 
 
+def _examples(layout: StepLayout, belief: dict[str, Tensor], trained: list[tuple[str, Tensor]]) -> list[Tensor]:
+    """The flat inputs of one traced step: ``belief`` (batch one), a zero measurement, a full
+    mask, zero controls and the trained parameters."""
+    examples = [belief[k].detach().to(layout.dtype) if belief[k].is_floating_point() else belief[k].detach() for k in sorted(belief)]
+    examples.append(torch.zeros((1, layout.measurement_dim), dtype=layout.dtype))
+    if layout.has_mask:
+        examples.append(torch.ones((1, layout.measurement_dim), dtype=layout.dtype))
+    examples += [torch.zeros((1, *s), dtype=layout.dtype) for _, s, _ in layout.controls or ()]
+    return examples + [p.detach() for _, p in trained]
+
+
+def eager_steps(filt: RecursiveFilter, layout: StepLayout, belief: dict[str, Tensor], steps: int = 2) -> list[dict[str, Tensor]]:
+    """``filt``'s step run eagerly ``steps`` times from ``belief`` (batch one) on the inputs of
+    :func:`_examples`, with the substitutions of :func:`_traceable`: per step, every output of
+    the traced step by field name (belief entries, ``prior_mean``..., recorded values)."""
+    trained = [(n, p) for n, p in filt.named_parameters() if p.requires_grad]
+    out: list[dict[str, Tensor]] = []
+    with _TRACE_LOCK, _traceable(), torch.no_grad():
+        for _ in range(steps):
+            seen: dict[str, Any] = {}
+            values = _step_function(filt, layout, sorted(belief), trained, seen)(*_examples(layout, belief, trained))
+            names = list(seen["post"]) + list(_RESULT_KEYS) + list(seen["records"])
+            out.append(dict(zip(names, values, strict=True)))
+            belief = seen["post"]
+            layout = replace(layout, belief=tuple((k, tuple(v.shape[1:]), v.dtype) for k, v in belief.items()))
+    return out
+
+
 def _trace(
     filt: RecursiveFilter, layout: StepLayout, belief: dict[str, Tensor], trained: list[tuple[str, Tensor]]
 ) -> tuple[Any, dict[str, Any]]:
@@ -223,12 +256,7 @@ def _trace(
     keys = sorted(belief)
     seen: dict[str, Any] = {}
     step = _step_function(filt, layout, keys, trained, seen)
-    examples = [belief[k].detach().to(layout.dtype) if belief[k].is_floating_point() else belief[k].detach() for k in keys]
-    examples.append(torch.zeros((1, layout.measurement_dim), dtype=layout.dtype))
-    if layout.has_mask:
-        examples.append(torch.ones((1, layout.measurement_dim), dtype=layout.dtype))
-    examples += [torch.zeros((1, *s), dtype=layout.dtype) for _, s, _ in layout.controls or ()]
-    examples += [p.detach() for _, p in trained]
+    examples = _examples(layout, belief, trained)
     # an eager step first: fills lazily built caches (sigma-point weights) with real tensors and
     # gives the belief after a step (the example for a steady step)
     step(*examples)
@@ -292,23 +320,25 @@ def _lower_traced(
     keys = tuple(k for k, _, _ in steady[1].belief)
     names = list(keys) + list(_RESULT_KEYS) + record_keys
 
-    def lowered(gm: Any, lay: StepLayout) -> tuple[list[int], list[int], list[Any]]:
+    def lowered(gm: Any, lay: StepLayout) -> tuple[list[int], list[int], list[int], list[Any]]:
         state = [inputs("state", (1, *s), kind="b" if dt == torch.bool else "f") for _, s, dt in lay.belief]
         step_in = [inputs("step", (1, lay.measurement_dim))]
         if lay.has_mask:
             step_in.append(inputs("step", (1, lay.measurement_dim)))
-        step_in += [inputs("step", (1, *s)) for _, s, _ in lay.controls or ()]
-        return flat(state), flat(step_in), lower(gm, g, lay.dtype, state + step_in + params)
+        ctrl = [inputs("shared" if k in lay.shared else "step", (1, *s)) for k, s, _ in lay.controls or ()]
+        own = [a for (k, _, _), a in zip(lay.controls or (), ctrl, strict=True) if k not in lay.shared]
+        shared = [a for (k, _, _), a in zip(lay.controls or (), ctrl, strict=True) if k in lay.shared]
+        return flat(state), flat(step_in + own), flat(shared), lower(gm, g, lay.dtype, state + step_in + ctrl + params)
 
-    state, step_in, outs = lowered(*steady)
+    state, step_in, shared_in, outs = lowered(*steady)
     if len(g) > MAX_NODES:
         raise UnsupportedOp(f"the step is too large for the generated engine ({len(g)} scalar operations, limit {MAX_NODES})")
     groups, fields = _groups(names, outs)
     slots = [(fields[k][0], fields[k][1] + i) for k in keys for i in range(math.prod(fields[k][2]))]
-    body = StepBody(state, step_in, groups, slots)
+    body = StepBody(state, step_in, groups, slots, shared_in)
     first_body = None
     if first is not None:
-        state0, step_in0, outs0 = lowered(*first)
+        state0, step_in0, shared_in0, outs0 = lowered(*first)
         by_name = {name: [int(x) for x in np.asarray(o, dtype=object).reshape(-1)] for name, o in zip(names, outs0, strict=True)}
         groups0: list[list[int | None]] = [[None] * len(grp) for grp in groups]
         for name, (gi, off, _) in fields.items():
@@ -318,7 +348,7 @@ def _lower_traced(
                 groups0[gi][off + i] = node
         if any(n is None for grp in groups0 for n in grp):
             raise UnsupportedOp("the first step's outputs differ in layout from the later steps'")
-        first_body = StepBody(state0, step_in0, groups0, slots)  # type: ignore[arg-type]
+        first_body = StepBody(state0, step_in0, groups0, slots, shared_in0)  # type: ignore[arg-type]
     spec = SequenceSpec(g, layout.dtype, flat(params), body, first_body)
     return TracedStep(spec, layout, trained, fields, tuple(record_keys), keys, dtypes)
 

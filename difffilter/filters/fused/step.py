@@ -182,6 +182,12 @@ def _qr(a: Tensor, mode: str = "reduced", *, out: Any = None) -> Any:
     return torch.return_types.linalg_qr(householder_qr(a, mode))
 
 
+def _unflatten(a: Tensor, dim: int, sizes: Any) -> Tensor:
+    # Tensor.unflatten is a Python method that dynamo cannot follow into (a super() call)
+    d = dim % a.ndim
+    return a.reshape(*a.shape[:d], *sizes, *a.shape[d + 1 :])
+
+
 _REPLACED = {
     torch.linalg.cholesky_ex: _cholesky_ex,
     torch.linalg.cholesky: _cholesky,
@@ -196,7 +202,8 @@ class SmallLinalg(torch.overrides.TorchFunctionMode):
     """Inside the block, the small dense linear algebra of a filter step is element-wise:
     ``cholesky_ex``/``cholesky`` (:func:`cholesky_lower`; ``info`` = clamped pivots),
     ``solve_triangular``, ``cholesky_solve``, ``qr`` and matrix products whose contraction is at
-    most :data:`MAX_CONTRACTION` long.  Other calls (and unsupported arguments) run unchanged."""
+    most :data:`MAX_CONTRACTION` long; ``Tensor.unflatten`` becomes ``reshape`` (which dynamo
+    traces).  Other calls (and unsupported arguments) run unchanged."""
 
     def __torch_function__(self, func, types, args=(), kwargs=None):  # type: ignore[no-untyped-def]
         kwargs = kwargs or {}
@@ -204,6 +211,8 @@ class SmallLinalg(torch.overrides.TorchFunctionMode):
             a, b = args
             if isinstance(a, Tensor) and isinstance(b, Tensor) and a.ndim >= 2 and b.ndim >= 2 and a.shape[-1] <= MAX_CONTRACTION:
                 return small_matmul(a, b)
+        if func is torch.Tensor.unflatten:  # a Python function: dynamo does not look it up in a dict
+            return _unflatten(*args, **kwargs)
         replacement = _REPLACED.get(func)
         if replacement is not None:
             out = replacement(*args, **kwargs)

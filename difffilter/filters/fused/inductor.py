@@ -118,8 +118,8 @@ class InductorEngine:
                         col.append(val)
                 for col, val in zip(cols[4:], res[3:], strict=True):
                     col.append(val)
-        if bufs is not None:
-            mean, cov, prior_mean, prior_cov = bufs
+        if bufs is not None:  # views: while a result holds one, the buffer counts as referenced
+            mean, cov, prior_mean, prior_cov = (b[...] for b in bufs)
         else:
             mean, cov, prior_mean, prior_cov = (torch.stack(c, 1) for c in cols[:4])
         ll, nis, nobs, flags, clamps = (torch.stack(c, 1) for c in cols[4:9])

@@ -86,40 +86,10 @@ class TestEagerIMMOfEqualModes(_Eager):
 _NO_FALLBACK = pytest.mark.filterwarnings("error:FusedFilter")  # a compiler failure must not pass as the eager step
 
 
-@pytest.mark.slow
-@_NO_FALLBACK
-class TestInductorKalmanFilter(TestEagerKalmanFilter):
-    engine = "inductor"
-
-
-@pytest.mark.slow
-@_NO_FALLBACK
-class TestInductorEKF(TestEagerEKF):
-    engine = "inductor"
-
-
-@pytest.mark.slow
-@_NO_FALLBACK
-class TestInductorUKF(TestEagerUKF):
-    engine = "inductor"
-
-
-@pytest.mark.slow
-@_NO_FALLBACK
-class TestInductorSimplifiedUKF(TestEagerSimplifiedUKF):
-    engine = "inductor"
-
-
-@pytest.mark.slow
-@_NO_FALLBACK
-class TestInductorSquareRootUKF(TestEagerSquareRootUKF):
-    engine = "inductor"
-
-
-@pytest.mark.slow
-@_NO_FALLBACK
-class TestInductorIMMOfEqualModes(TestEagerIMMOfEqualModes):
-    engine = "inductor"
+# the same battery compiled (minutes of compilation per class): TestInductorKalmanFilter, ...
+for _eager in (TestEagerKalmanFilter, TestEagerEKF, TestEagerUKF, TestEagerSimplifiedUKF, TestEagerSquareRootUKF, TestEagerIMMOfEqualModes):
+    _name = _eager.__name__.replace("Eager", "Inductor")
+    globals()[_name] = pytest.mark.slow(_NO_FALLBACK(type(_name, (_eager,), {"engine": "inductor"})))
 
 
 # -- every filter and mixer kind against its reference ----------------------------------------

@@ -108,7 +108,9 @@ class FusedFilter(nn.Module):
         self.last_engine: str | None = None
         self._generated: GeneratedEngine | None = None
         self._generated_failed: str | None = None
-        self._inductor = InductorEngine(filt, compile=engine != "eager", compile_options=self.compile_options, reuse_buffers=self.reuse_buffers)
+        self._inductor = InductorEngine(
+            filt, compile=engine != "eager", compile_options=self.compile_options, reuse_buffers=self.reuse_buffers
+        )
 
     @property
     def model(self) -> nn.Module:
@@ -147,7 +149,8 @@ class FusedFilter(nn.Module):
 
     def _fallback(self, reason: str) -> None:
         self._generated_failed = reason
-        warnings.warn(f"FusedFilter: the generated engine cannot run {type(self.filter).__name__} ({reason}); using the inductor engine", stacklevel=3)
+        name = type(self.filter).__name__
+        warnings.warn(f"FusedFilter: the generated engine cannot run {name} ({reason}); using the inductor engine", stacklevel=3)
 
     def forward(
         self,

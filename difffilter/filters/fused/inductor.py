@@ -87,7 +87,8 @@ class InductorEngine:
         try:
             return step(*args)
         except Exception as exc:  # noqa: BLE001 - any compiler failure falls back to the eager step
-            warnings.warn(f"FusedFilter: torch.compile failed ({type(exc).__name__}: {str(exc)[:500]}); running the step eagerly", stacklevel=4)
+            reason = f"{type(exc).__name__}: {str(exc)[:500]}"
+            warnings.warn(f"FusedFilter: torch.compile failed ({reason}); running the step eagerly", stacklevel=4)
             self.compile_failed = True
             return self.step(*args)
 

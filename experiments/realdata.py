@@ -6,6 +6,7 @@ a held-out validation block from several seeds, test with paired block-bootstrap
     python experiments/realdata.py transfer_from=outputs/realdata/smartloc/<run> folder=/data/other
     python experiments/realdata.py realdata.horizons=[1,2,4]          # stability check (4x the epochs)
     python experiments/realdata.py evaluate_from=outputs/realdata/smartloc/<run>   # recompute a run's test tables (no training)
+    python experiments/realdata.py evaluate_from=<run> compare_with=<other run>     # + paired differences against the other run's rows
 
 The logic is in difffilter.papers.smartloc.protocol / .report; results.md, summary.json, the
 noise-model figures and TensorBoard events go to the Hydra run directory.
@@ -34,7 +35,7 @@ def main(cfg: DictConfig) -> None:
     out = HydraConfig.get().runtime.output_dir
     spec = resolve_config(OmegaConf.to_container(cfg.realdata, resolve=True), cfg.folder)  # type: ignore[arg-type]
     if cfg.evaluate_from:
-        run_evaluation(cfg.evaluate_from, out)
+        run_evaluation(cfg.evaluate_from, out, compare_with=cfg.get("compare_with"))
     elif cfg.transfer_from:
         run_transfer(cfg.transfer_from, spec, out)
     else:

@@ -12,9 +12,10 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
 from omegaconf import OmegaConf
 
-from difffilter.papers.smartloc import load_drive
+from difffilter.papers.smartloc import load_drive, protocol, report
 from difffilter.papers.smartloc.report import resolve_config, run_evaluation, run_protocol, run_transfer
 
 from .librsf_fixture import HAVE_DATA, write_drive
@@ -118,3 +119,89 @@ def test_the_commands_run_given_only_a_folder(tmp_path) -> None:
     done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(ROOT)}, check=False)
     assert done.returncode == 0, done.stderr[-3000:]
     assert "Transfer: filters trained in" in done.stdout and (tmp_path / "tr" / "transfer.json").exists()
+
+
+def _v2_config(folder: Path) -> dict:
+    base = OmegaConf.to_container(OmegaConf.load(ROOT / "conf" / "realdata" / "smartloc.yaml"), resolve=True)
+    v2 = OmegaConf.to_container(OmegaConf.load(ROOT / "conf" / "realdata" / "smartloc_v2.yaml"), resolve=True)
+    base.update({k: v for k, v in v2.items() if k != "defaults"}, **SMALL, bootstrap=SMALL_BOOT)
+    return resolve_config(base, str(folder))
+
+
+@pytest.mark.parametrize("candidate", [True, False])
+def test_v2_keeps_the_hard_gate_and_falls_back_to_hand_tuned_only_when_it_validates_better(tmp_path, candidate) -> None:
+    """v2's learned filters keep the hand-tuned hard gate (not learned, rejected ranges detached);
+    with the hand-tuned filter as a candidate, a learned selection is used only when its
+    validation score is strictly lower, else the "learned" row is the hand-tuned filter, and the
+    saved selection rebuilds (re-evaluation and transfer) the same filter."""
+    drives = tmp_path / "drives"
+    write_drive(drives, "Cut", start=100.0, stop=140.0)
+    cfg = _v2_config(drives)
+    cfg["selection"]["hand_tuned_candidate"] = candidate
+    cfg["epochs"] = 2
+    spec, loaded = protocol.cached_drives(json.dumps(cfg, sort_keys=True))
+    filt = protocol.build_filter(spec, loaded, "scale", torch.zeros(0), learned=True)
+    gate = filt.model.measurement.robust_gate
+    assert not gate.learnable and float(gate.threshold) == 2.5 and float(gate.floor) == 8.0
+    assert type(filt.model.measurement).__name__ == "ConstantGatePseudorange"
+    assert not any("gate" in n for n in protocol.learned_names(filt, spec["learn"]))
+    run = tmp_path / "run"
+    summary = run_protocol(cfg, run, workers=1)
+    for fs in summary["folds"].values():
+        sel = fs["selection"]["learned-elev_cn0"]
+        hand = fs["hand_val"]["median"] + fs["hand_val"]["rms"]
+        best = min(min(s) for k, s in fs["val_scores"].items() if k.startswith("elev_cn0/"))
+        rows = {r["filter"]: r for r in fs["test"]}
+        if candidate and not best < hand:
+            assert sel["seed"] == "hand-tuned" and sel["val_score"] == pytest.approx(hand)
+            assert rows["learned-elev_cn0"]["d_rms"] == 0.0 and rows["learned-elev_cn0"]["d_median"] == 0.0
+        else:
+            assert sel["seed"] != "hand-tuned" and sel["val_score"] == pytest.approx(best)
+    again = run_evaluation(run, tmp_path / "eval")
+    for fold, fs in summary["folds"].items():
+        assert again["folds"][fold]["tables"]["hand-tuned"] == fs["test"]
+    assert run_transfer(run, cfg, tmp_path / "transfer")["drives"] == ["Cut"]
+
+
+def test_the_fallback_row_is_the_hand_tuned_filter_and_rebuilds(tmp_path, monkeypatch) -> None:
+    """Forced fallback (the hand-tuned validation score made unbeatable): the learned rows are the
+    hand-tuned filter, the report says so, and re-evaluation rebuilds it from ``selected.pt``."""
+    drives = tmp_path / "drives"
+    write_drive(drives, "Cut", start=100.0, stop=140.0)
+    cfg = _v2_config(drives)
+    real = report.validation_score
+    monkeypatch.setattr(report, "validation_score", lambda f, s: (-1.0, real(f, s)[1]))
+    run = tmp_path / "run"
+    summary = run_protocol(cfg, run, workers=1)
+    for fs in summary["folds"].values():
+        assert fs["selection"]["learned-elev_cn0"]["seed"] == "hand-tuned"
+        row = next(r for r in fs["test"] if r["filter"] == "learned-elev_cn0")
+        assert row["d_median"] == 0.0 and row["d_rms"] == 0.0 and row["rms"] == fs["test"][0]["rms"]
+    assert "no learned model validates better" in (run / "results.md").read_text()
+    assert torch.load(run / "selected.pt", weights_only=False)["A/elev_cn0"] == {"hand_tuned": True}
+    again = run_evaluation(run, tmp_path / "eval")
+    for fold, fs in summary["folds"].items():
+        assert again["folds"][fold]["tables"]["hand-tuned"] == fs["test"]
+    moved = {r["filter"]: r for r in run_transfer(run, cfg, tmp_path / "transfer")["test"]}  # the transfer command rebuilds it too
+    assert moved["learned-elev_cn0 (fold A)"]["d_rms"] == 0.0 and moved["learned-elev_cn0 (fold B)"]["d_median"] == 0.0
+
+
+def test_evaluation_compares_two_runs_paired(tmp_path) -> None:
+    """``compare_with``: the other run's selected rows join and serve as references; a run compared
+    with itself differs by exactly zero; a run on other folds is refused."""
+    drives = tmp_path / "drives"
+    write_drive(drives, "Cut", start=100.0, stop=140.0)
+    cfg = _v2_config(drives)
+    run_protocol(cfg, tmp_path / "run", workers=1)
+    out = run_evaluation(tmp_path / "run", tmp_path / "eval", compare_with=tmp_path / "run")
+    for fs in out["folds"].values():
+        rows = {r["filter"]: r for r in fs["tables"]["run/learned-elev_cn0"]}
+        assert rows["learned-elev_cn0"]["d_rms"] == 0.0 and rows["learned-elev_cn0"]["d_median"] == 0.0
+        assert rows["hand-tuned"]["rms"] == fs["tables"]["hand-tuned"][0]["rms"]
+        val = {r["filter"]: r for r in fs["validation_paired"]}
+        assert val["hand-tuned"]["rms"] == pytest.approx(fs["validation"]["hand-tuned"]["rms"], rel=1e-12)
+        assert val["learned-elev_cn0"]["d_rms_lo"] <= val["learned-elev_cn0"]["d_rms"] <= val["learned-elev_cn0"]["d_rms_hi"]
+    cfg["folds"] = {"A": cfg["folds"]["A"]}
+    run_protocol(cfg, tmp_path / "one_fold", workers=1)
+    with pytest.raises(ValueError, match="compare_with"):
+        run_evaluation(tmp_path / "run", tmp_path / "eval2", compare_with=tmp_path / "one_fold")

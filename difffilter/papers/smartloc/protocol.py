@@ -67,6 +67,7 @@ __all__ = [
     "learned_filter",
     "learned_names",
     "load_drives",
+    "selected_filter",
     "start_candidate",
     "train_jobs",
     "validation_score",
@@ -159,7 +160,10 @@ def block_sets(
 def build_filter(cfg: Mapping[str, Any], drives: Sequence[Drive], variant: str, coefficients: Tensor, *, learned: bool) -> Filter:
     """The EKF on the odometry + pseudorange model: ``learned=False`` gives the hand-tuned filter
     (receiver variances, the loader's hard 2.5-sigma gate with its 8 m floor); ``learned=True`` the
-    variant's noise model and the learnable smooth gate, every positive parameter bounded."""
+    variant's noise model and the gate of ``cfg["gate"]`` (smooth and learnable, or with
+    ``softness: null, learnable: false`` the hard gate at the configured threshold and floor;
+    ``gradient: false`` detaches a rejected range's inflated variance, so rejected ranges do not
+    pull ``R`` during likelihood training), every positive parameter bounded."""
     hand = dict(cfg["hand_tuned"])
     gate = dict(cfg["gate"])
     model = make_smartloc_model(
@@ -170,6 +174,7 @@ def build_filter(cfg: Mapping[str, Any], drives: Sequence[Drive], variant: str, 
         gate_floor=float(gate["floor"]),
         gate_softness=float(gate["softness"]) if learned and gate.get("softness") else None,
         gate_learnable=bool(learned and gate.get("learnable")),
+        gate_gradient=bool(gate.get("gradient", True)) if learned else True,
         **{k: float(hand[k]) for k in DYNAMICS},
     )
     filt = EKF(model)
@@ -322,6 +327,15 @@ def learned_filter(
     filt = build_filter(cfg, drives, variant, coefficients, learned=True)
     restore_snapshot(filt, snapshot)
     return filt
+
+
+def selected_filter(cfg: Mapping[str, Any], drives: Sequence[Drive], variant: str, selection: Mapping[str, Any]) -> Filter:
+    """The filter a run selected for ``variant`` (an entry of its ``selected.pt``): the learned
+    filter with the saved snapshot, or the hand-tuned filter when the selection fell back to it
+    (``{"hand_tuned": True}``, see ``selection.hand_tuned_candidate``)."""
+    if selection.get("hand_tuned"):
+        return hand_tuned_filter(cfg, drives)
+    return learned_filter(cfg, drives, variant, selection["coefficients"], selection["snapshot"])
 
 
 def hand_tuned_filter(cfg: Mapping[str, Any], drives: Sequence[Drive]) -> Filter:

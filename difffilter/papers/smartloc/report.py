@@ -40,8 +40,10 @@ from .protocol import (
     hand_tuned_filter,
     horizontal_errors,
     learned_filter,
+    selected_filter,
     start_candidate,
     train_jobs,
+    validation_score,
 )
 
 __all__ = ["format_tables", "resolve_config", "run_evaluation", "run_protocol", "run_transfer"]
@@ -121,12 +123,24 @@ def run_protocol(cfg: Mapping[str, Any], output_dir: str | Path, *, workers: int
         sets = fold_data(cfg, drives, fold)
         filters: dict[str, Any] = {"hand-tuned": hand_tuned_filter(cfg, drives)}
         fold_sum: dict[str, Any] = {"selection": {}}
+        hand_score, hand_extra = validation_score(filters["hand-tuned"], sets["val"])
+        fold_sum["hand_val"] = dict(hand_extra)
+        # The hand-tuned filter as a candidate of its own: it keeps its place unless a learned model validates strictly better.
+        fallback = bool(dict(cfg.get("selection") or {}).get("hand_tuned_candidate", False))
         for variant in cfg["variants"]:
             mine = [r for r in runs if r["fold"] == fold and r["variant"] == variant]
             for h in horizons:
                 rep, ep = select_candidate([r["scores"] for r in mine], int(cfg["epochs"]) * h)
                 run = mine[rep]
                 name = f"learned-{variant}" + ("" if h == horizons[0] else f" ({h}x epochs)")
+                if fallback and not run["scores"][ep] < hand_score:
+                    filters[name] = filters["hand-tuned"]
+                    fold_sum["selection"][name] = {"seed": "hand-tuned", "epoch": 0, "val_score": hand_score, "values": {}}
+                    fold_sum["selection"][name] |= {f"val_{k}": v for k, v in hand_extra.items()}
+                    fold_sum["selection"][name]["best_learned"] = {"seed": run["seed"], "epoch": ep, "val_score": run["scores"][ep]}
+                    if h == horizons[0]:
+                        selected[f"{fold}/{variant}"] = {"hand_tuned": True}
+                    continue
                 filt = learned_filter(cfg, drives, variant, coefs[(fold, variant)], run["snapshots"][ep])
                 filters[name] = filt
                 fold_sum["selection"][name] = {
@@ -139,8 +153,6 @@ def run_protocol(cfg: Mapping[str, Any], output_dir: str | Path, *, workers: int
                 if h == horizons[0]:
                     selected[f"{fold}/{variant}"] = {"coefficients": coefs[(fold, variant)], "snapshot": run["snapshots"][ep]}
             fold_sum["val_scores"] = fold_sum.get("val_scores", {}) | {f"{variant}/seed{r['seed']}": r["scores"] for r in mine}
-        hand_val = horizontal_errors(filters["hand-tuned"], sets["val"])
-        fold_sum["hand_val"] = {"median": float(hand_val.median()), "rms": float(hand_val.pow(2).mean().sqrt())}
         errors = _test_errors(filters, drives, sets["test"], cfg)
         boot = dict(cfg["bootstrap"])
         fold_sum["test"] = paired_error_table(
@@ -175,7 +187,7 @@ def run_transfer(run_dir: str | Path, cfg: Mapping[str, Any], output_dir: str | 
     filters: dict[str, Any] = {"hand-tuned": hand_tuned_filter(trained, drives)}
     for key, sel in selected.items():
         fold, variant = key.split("/")
-        filters[f"learned-{variant} (fold {fold})"] = learned_filter(trained, drives, variant, sel["coefficients"], sel["snapshot"])
+        filters[f"learned-{variant} (fold {fold})"] = selected_filter(trained, drives, variant, sel)
     errors = _test_errors(filters, drives, sets, cfg)
     boot = dict(cfg["bootstrap"])
     rows = paired_error_table(errors, "hand-tuned", block=int(boot["block"]), draws=int(boot["draws"]), seed=int(boot["seed"]))
@@ -193,20 +205,41 @@ def run_transfer(run_dir: str | Path, cfg: Mapping[str, Any], output_dir: str | 
 
 
 def run_evaluation(
-    run_dir: str | Path, output_dir: str | Path, *, references: Sequence[str] = ("hand-tuned", "ekf-no-gate", "learned-scale")
+    run_dir: str | Path,
+    output_dir: str | Path,
+    *,
+    references: Sequence[str] = ("hand-tuned", "ekf-no-gate", "learned-scale"),
+    compare_with: str | Path | None = None,
 ) -> dict[str, Any]:
     """Rebuild a finished run's hand-tuned, baseline and selected learned filters (first horizon)
     from its ``summary.json`` + ``selected.pt`` and evaluate them again on every fold's test block:
     one paired table per reference row in ``references`` (those a fold lacks are skipped), and the
     validation median and RMS of every row (of the baselines only for a single drive).  Nothing is trained or
-    selected here, so the tables with reference ``hand-tuned`` must equal the run's own."""
+    selected here, so the tables with reference ``hand-tuned`` must equal the run's own.
+
+    ``compare_with``: another finished run on the same drives and folds (e.g. an earlier protocol
+    version); its selected filters join as rows ``<its folder name>/learned-<variant>`` and each is
+    also a reference, so the tables give this run's rows minus the other run's, paired.
+
+    Each fold also gets the paired intervals of every row against the hand-tuned filter on the
+    validation windows (``validation_paired``): how well the block used for selection resolves
+    the differences it chose between."""
     run_dir, out_dir = Path(run_dir), Path(output_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     cfg = json.loads((run_dir / "summary.json").read_text())["config"]
     selected = torch.load(run_dir / "selected.pt", weights_only=False)
     cfg, drives = cached_drives(json.dumps(cfg, sort_keys=True))
     boot = dict(cfg["bootstrap"])
+    other: dict[str, Any] = {}
+    if compare_with is not None:
+        other_dir = Path(compare_with)
+        other_cfg = json.loads((other_dir / "summary.json").read_text())["config"]
+        if other_cfg["folds"] != cfg["folds"] or _drive_files(other_cfg) != _drive_files(cfg):
+            raise ValueError(f"compare_with must be a run on the same drives and folds as {run_dir}, got {other_dir}")
+        other = {"tag": other_dir.name, "cfg": other_cfg, "selected": torch.load(other_dir / "selected.pt", weights_only=False)}
     summary: dict[str, Any] = {"evaluated": str(run_dir), "drives": [d.data.name for d in drives], "folds": {}}
+    if other:
+        summary["compared_with"] = str(compare_with)
     parts = [f"# Re-evaluation of {run_dir} (selections as saved, nothing trained)", ""]
     for fold in cfg["folds"]:
         sets = fold_data(cfg, drives, fold)
@@ -214,7 +247,13 @@ def run_evaluation(
         for key, sel in selected.items():
             f, variant = key.split("/")
             if f == fold:
-                filters[f"learned-{variant}"] = learned_filter(cfg, drives, variant, sel["coefficients"], sel["snapshot"])
+                filters[f"learned-{variant}"] = selected_filter(cfg, drives, variant, sel)
+        extra_refs = []
+        for key, sel in (other.get("selected") or {}).items():
+            f, variant = key.split("/")
+            if f == fold:
+                extra_refs.append(f"{other['tag']}/learned-{variant}")
+                filters[extra_refs[-1]] = selected_filter(other["cfg"], drives, variant, sel)
         errors = _test_errors(filters, drives, sets["test"], cfg)
         # Validation windows are pooled across drives; the baselines (built per drive) join when there is one drive.
         on_val = dict(filters) | (_baselines(drives[0], cfg) if len(drives) == 1 else {})
@@ -222,17 +261,26 @@ def run_evaluation(
         fold_sum: dict[str, Any] = {"test_epochs": int(errors["hand-tuned"].numel()), "tables": {}, "validation": {}}
         for name, e in val.items():
             fold_sum["validation"][name] = {"median": float(e.median()), "rms": float(e.pow(2).mean().sqrt())}
-        for ref in (r for r in references if r in errors):
+        for ref in (r for r in [*references, *extra_refs] if r in errors):
             rows = paired_error_table(errors, ref, block=int(boot["block"]), draws=int(boot["draws"]), seed=int(boot["seed"]))
             fold_sum["tables"][ref] = rows
             title = f"Fold {fold}: test blocks ({fold_sum['test_epochs']} epochs), paired against {ref}"
             parts.append(_table(rows, title, "hand" if ref == "hand-tuned" else ref))
         vals = ", ".join(f"{k} {v['median']:.2f} + {v['rms']:.2f}" for k, v in fold_sum["validation"].items())
         parts += [f"Validation windows (median + RMS, m): {vals}.", ""]
+        # How far the validation block itself resolves the selection: the same paired bootstrap on the
+        # concatenated validation windows (blocks may straddle two windows).
+        rows = paired_error_table(val, "hand-tuned", block=int(boot["block"]), draws=int(boot["draws"]), seed=int(boot["seed"]))
+        fold_sum["validation_paired"] = rows
+        parts.append(_table(rows, f"Fold {fold}: validation windows ({int(val['hand-tuned'].numel())} epochs), paired against hand-tuned"))
         summary["folds"][fold] = fold_sum
     (out_dir / "evaluation.json").write_text(json.dumps(summary, indent=1, default=float))
     (out_dir / "results.md").write_text("\n".join(parts) + "\n")
     return summary
+
+
+def _drive_files(cfg: Mapping[str, Any]) -> list[tuple[str, Any, Any]]:
+    return [(str(Path(str(d["folder"])).resolve()), d.get("input_file"), d.get("truth_file")) for d in cfg["drives"]]
 
 
 def _table(rows: Sequence[Mapping[str, Any]], title: str, ref: str = "hand") -> str:
@@ -258,6 +306,9 @@ def format_tables(summary: Mapping[str, Any]) -> str:
         parts.append(f"Validation (median + RMS, m): hand-tuned {hv['median']:.2f} + {hv['rms']:.2f}.")
         for name, sel in fs["selection"].items():
             vals = "; ".join(f"{k} {v if len(v) > 1 else v[0]}" for k, v in sel["values"].items())
+            if sel["seed"] == "hand-tuned":
+                b = sel["best_learned"]
+                vals = f"no learned model validates better (best: seed {b['seed']}, epoch {b['epoch']}, {b['val_score']:.2f})"
             parts.append(
                 f"- {name}: seed {sel['seed']}, epoch {sel['epoch']}, validation {sel['val_median']:.2f} + {sel['val_rms']:.2f}; {vals}"
             )

@@ -141,7 +141,11 @@ def test_without_state_wrapping_the_mean_leaves_the_interval():
     assert float(res.mean[0, 0, 0]) > math.pi  # correct only modulo 2 pi: the hook is what wraps it
 
 
-def test_fused_filter_refuses_angular_models():
-    with pytest.raises(TypeError, match="FusedFilter does not compute wrap-aware unscented means"):
-        FusedFilter(UKF(model()), compile=False)
-    FusedFilter(EKF(heading_model(angular_state=False)), compile=False)  # EKF: the measurement residual suffices
+def test_fused_filter_runs_angular_models_with_the_filters_own_step():
+    """FusedFilter's engines run the filter's own (wrap-aware) step: equal to the filter."""
+    for filt in (UKF(model()), EKF(heading_model(angular_state=False))):
+        m0, p0 = (M0, P0) if isinstance(filt, UKF) else (torch.tensor([3.0], dtype=F64), torch.tensor([[0.04]], dtype=F64))
+        z = Z if isinstance(filt, UKF) else torch.tensor([[[3.1], [-3.1]]], dtype=F64)
+        out, ref = FusedFilter(filt, compile=False)(z, m0, p0), filt(z, m0, p0)
+        torch.testing.assert_close(out.mean, ref.mean, rtol=1e-12, atol=1e-12)
+        torch.testing.assert_close(out.cov, ref.cov, rtol=1e-12, atol=1e-12)

@@ -79,18 +79,18 @@ def test_smoke_difffilter_and_filterpy(tmp_path: Path) -> None:
 
 def test_smoke_fused_rows_agree_with_the_reference(tmp_path: Path) -> None:
     """The difffilter-fused library (FusedFilter, here its eager engine: benchmark.fused_engine=eager
-    in the smoke config, which has no IMM) gets its own rows, fb/f ratios and an agreement entry
-    against the reference; a kind the engine refuses is skipped with a message."""
+    in the smoke config; it runs every filter's own step, IMM included) gets its own rows, fb/f
+    ratios and an agreement entry against the reference."""
     cfg = _compose("benchmark.libraries=[difffilter,difffilter-fused]", "benchmark.filters=[kf,ekf,ukf,imm]")
     run_suite(cfg, tmp_path, log=lambda s: None)
     rows = read_rows(tmp_path / "benchmark.csv")
     fused = {(r["filter"], r["mode"]) for r in rows if r["library"] == "difffilter-fused"}
-    assert fused == {(k, m) for k in ("kf", "ekf", "ukf") for m in ("forward", "train")}
+    assert fused == {(k, m) for k in ("kf", "ekf", "ukf", "imm") for m in ("forward", "train")}
     assert all(float(r["compile_s"]) > 0 for r in rows if r["library"] == "difffilter-fused")
     assert all(float(r["fb_over_f"]) > 0 for r in rows if r["library"] == "difffilter-fused" and r["mode"] == "train")
     agree = {a["filter"]: float(a["max_rel_diff"]) for a in read_rows(tmp_path / "agreement.csv") if a["peer"] == "difffilter-fused"}
-    assert set(agree) == {"kf", "ekf", "ukf"} and max(agree.values()) < 1e-12
-    assert "skipping difffilter-fused imm" in (tmp_path / "results.md").read_text()
+    assert set(agree) == {"kf", "ekf", "ukf", "imm"} and max(agree.values()) < 1e-12
+    assert "skipping difffilter-fused" not in (tmp_path / "results.md").read_text()
 
 
 def test_smoke_generated_engine_and_extra_case(tmp_path: Path) -> None:

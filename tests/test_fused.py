@@ -1,8 +1,9 @@
-"""FusedFilter (batch-last, branch-free, compilable step) against the reference filters.
+"""FusedFilter's inductor engine (the filter's own step, element-wise linear algebra) against the reference filters.
 
-Most tests run the fused step eagerly (``compile=False``): the same graph ``torch.compile``
-fuses, so equality with the reference filters checks the equations; one small model is also
-compiled (forward and backward) in the default run, the benchmark model under ``-m slow``.
+Most tests run the step eagerly (``compile=False``): the same code ``torch.compile`` fuses,
+with the same element-wise primitives, so equality with the reference filters checks what the
+compiled graph computes; one small model is also compiled (forward and backward) in the default
+run, the benchmark model under ``-m slow``.  More in ``tests/test_fused_inductor.py``.
 """
 
 from __future__ import annotations
@@ -219,26 +220,22 @@ def test_branch_free_cholesky_clamps_only_the_bad_element() -> None:
     mats = torch.einsum("ikb,jkb->ijb", a, a) + torch.eye(5, dtype=F64)[..., None]
     mats[:, :, 2] = torch.ones(5, 5, dtype=F64)  # rank one: pivots 2..5 vanish
     mats[0, 0, 3] = float("nan")
-    lf, clamps = _chol(mats)
+    lf, clamps = _chol(mats.permute(2, 0, 1))  # batch-first, the reference filters' layout
     assert clamps.tolist()[0] == 0 and clamps.tolist()[1] == 0 and clamps[2] >= 4 and clamps[3] >= 1
     for b in (0, 1):
-        torch.testing.assert_close(lf[..., b], torch.linalg.cholesky(mats[..., b]), rtol=1e-12, atol=1e-12)
-    assert bool(torch.isfinite(lf[..., 2]).all())
-    recon = lf[..., 2] @ lf[..., 2].T
+        torch.testing.assert_close(lf[b], torch.linalg.cholesky(mats[..., b]), rtol=1e-12, atol=1e-12)
+    assert bool(torch.isfinite(lf[2]).all())
+    recon = lf[2] @ lf[2].T
     assert float((recon - mats[..., 2]).abs().max()) < 1e-6
 
 
 def test_unsupported_filters_and_bad_inputs_are_rejected() -> None:
-    """The batch-last (inductor and eager) engines refuse filters whose equations they do not
-    implement; the generated engine accepts any filter (it traces the filter's own step)."""
+    """Every engine accepts any filter (each runs the filter's own step; equality with the
+    reference in tests/test_fused_inductor.py); bad filters and inputs are refused."""
     model, z, u, m0, p0 = _range_bearing_data()
-    for engine in ("inductor", "eager"):
-        with pytest.raises(TypeError, match="engine supports UKF"):
-            FusedFilter(SquareRootUKF(model), engine=engine)
-        with pytest.raises(TypeError, match="engine supports UKF"):
-            FusedFilter(RCUKF(model), engine=engine)
-        with pytest.raises(TypeError, match="engine supports UKF"):
-            FusedFilter(UKF(model, noise="augmented"), engine=engine)
+    for engine in ("inductor", "eager", "generated"):
+        for filt in (SquareRootUKF(model), RCUKF(model), UKF(model, noise="augmented")):
+            assert FusedFilter(filt, engine=engine).engine == engine
     with pytest.raises(TypeError, match="RecursiveFilter"):
         FusedFilter(torch.nn.Linear(2, 2))  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="engine must be one of"):
@@ -328,8 +325,9 @@ def test_learner_trains_through_the_fused_step() -> None:
         torch.testing.assert_close(gb, ga, rtol=1e-9, atol=1e-12)
     with pytest.raises(ValueError, match="fused must be"):
         FilterLearner(UKF(model), "nll", fused="yes")
-    with pytest.raises(TypeError, match="engine supports UKF"):
-        FilterLearner(SquareRootUKF(model), "nll", fused="eager")
+    # any filter runs fused (its own step): a square-root UKF too
+    sr = FilterLearner(SquareRootUKF(model), "nll", initial_mean=m0, initial_cov=p0, fused="eager")
+    _assert_same(sr({"measurements": z}), FilterLearner(SquareRootUKF(model), "nll", initial_mean=m0, initial_cov=p0)({"measurements": z}))
 
 
 def test_nan_under_the_mask_reaches_no_gradient() -> None:

@@ -1,8 +1,8 @@
 """FusedFilter's engines under issue 17's numerics: each engine equals the reference filter, or refuses.
 
-* angular models (circular unscented means, wrapped state addition): the generated engine
-  traces the filter's own wrap-aware step and equals it, gradients included; the batch-last
-  (inductor/eager) step has no circular means and refuses;
+* angular models (circular unscented means, wrapped state addition): the generated and the
+  inductor engine (its step run eagerly) run the filter's own wrap-aware step and equal it,
+  gradients included;
 * the Joseph-form fallback where ``P - K S K^T`` cancels (float32, a variance reduced 1000-fold):
   both engines equal the reference, and the reference without the fallback does not (the
   comparison can fail);
@@ -57,23 +57,21 @@ def _headings(batch: int = 3, steps: int = 12) -> torch.Tensor:
 
 
 @pytest.mark.parametrize("name", list(ANGULAR))
-def test_generated_engine_equals_the_wrap_aware_reference(name: str) -> None:
+@pytest.mark.parametrize("engine", ["generated", "eager"])
+def test_engines_equal_the_wrap_aware_reference(name: str, engine: str) -> None:
     filt = ANGULAR[name](heading_model(linear=name == "sukf"))
     z = _headings().requires_grad_(True)
     m0, p0 = torch.tensor([3.0], dtype=F64), torch.tensor([[0.04]], dtype=F64)
-    fused = FusedFilter(filt, engine="generated")
+    fused = FusedFilter(filt, engine=engine)
     out, ref = fused(z, m0, p0), filt(z, m0, p0)
-    assert fused.last_engine == "generated"
+    assert fused.last_engine == engine
     assert float(out.mean.detach().abs().max()) <= math.pi and float(ref.mean.detach().abs().max()) > 2.8  # the cut is crossed
     _assert_same(out, ref, rtol=1e-10, atol=1e-12)
     for a, b in zip(_grads(filt, out, [z]), _grads(filt, ref, [z]), strict=True):
         torch.testing.assert_close(a, b, rtol=1e-8, atol=1e-10)
 
 
-def test_the_batch_last_step_refuses_angular_models_and_auto_uses_the_generated_engine() -> None:
-    for engine in ("inductor", "eager"):
-        with pytest.raises(TypeError, match="FusedFilter does not compute wrap-aware unscented means"):
-            FusedFilter(UKF(heading_model()), engine=engine)
+def test_auto_uses_the_generated_engine_for_angular_models() -> None:
     fused = FusedFilter(UKF(heading_model()))
     fused(_headings(), torch.tensor([3.0], dtype=F64), torch.tensor([[0.04]], dtype=F64))
     assert fused.last_engine == "generated"

@@ -5,7 +5,9 @@
   :mod:`.adjoint` (scalar graph, lowering of ATen operations, reverse mode), :mod:`.codegen`
   (C++ source), :mod:`.build` (compiler and on-disk cache), :mod:`.kernel` (autograd),
   :mod:`.generated` (batch packing);
-* inductor engine: :mod:`.step` (batch-last, branch-free step), :mod:`.inductor`.
+* inductor engine: :mod:`.inductor` (the filter's own step under ``torch.compile``), :mod:`.step`
+  (element-wise small linear algebra);
+* both: :mod:`.branchfree` (branch-free stand-ins for the helpers that decide on data).
 """
 
 from .build import cache_dir

@@ -15,7 +15,6 @@ from .build import CompileError
 from .generated import GeneratedEngine
 from .graph import UnsupportedOp
 from .inductor import InductorEngine
-from .step import filter_kind
 
 __all__ = ["ENGINES", "FusedFilter", "fuse"]
 
@@ -46,23 +45,23 @@ class FusedFilter(nn.Module):
       the step in ``extras["untrusted"]``).  Kernels are cached on disk
       (:func:`~difffilter.filters.fused.build.cache_dir`); the first build of a kernel takes
       seconds to a minute, later processes load it.
-    * ``"inductor"``: a batch-last, branch-free twin of the UKF/SimplifiedUKF/EKF/KalmanFilter
-      step (Joseph-form fallback included), compiled by ``torch.compile`` per step (any device
-      inductor supports); per-step clamped pivots in ``extras["cholesky_clamps"]``.  Refuses
-      models with angular components (no circular means) or non-additive noise.
-    * ``"eager"``: the same batch-last step uncompiled (for debugging and tests).
+    * ``"inductor"``: the filter's own step (the same ``predict``/``update`` as ``"generated"``
+      and the filter itself), batch-first, with its small linear algebra (Cholesky, triangular
+      solves, QR, small products) done element-wise and the same branch-free helpers
+      (:mod:`.step`, :mod:`.branchfree`), compiled by ``torch.compile`` per step (any device
+      inductor supports, CUDA included); if compilation fails, a warning and the eager step.
+      Clamped pivots of the innovation covariance per step in ``extras["cholesky_clamps"]``.
+    * ``"eager"``: the inductor engine's step uncompiled (for debugging and tests).
     * ``"auto"`` (default): ``"generated"`` on CPU, else ``"inductor"``; if the generated engine
-      cannot run the filter (a warning says why), ``"inductor"`` when it supports the filter,
-      else the filter itself.  ``compile=False`` selects ``"eager"``.
+      cannot run the filter (a warning says why), ``"inductor"``.  ``compile=False`` selects
+      ``"eager"``.
 
     Every engine starts from the filter's own :meth:`~RecursiveFilter.start_belief`: a diffuse
     prior's first steps run in the filter's exact two-part form, the remaining steps on the
     engine; ``extras["untrusted"]`` is computed as the reference loop computes it.
 
     Args:
-        filt: the filter (any :class:`RecursiveFilter`; the inductor and eager engines need a
-            ``UKF`` with ``noise="additive"``, a ``SimplifiedUKF``, an ``EKF`` or a
-            ``KalmanFilter``, not a subclass with its own equations).
+        filt: the filter or mixer (any :class:`RecursiveFilter`).
         engine: one of :data:`ENGINES`.
         compile: False selects the eager engine (when ``engine="auto"``).
         compile_options: extra keyword arguments for ``torch.compile`` (inductor engine).
@@ -94,16 +93,6 @@ class FusedFilter(nn.Module):
             raise ValueError(f"threads must be a positive int or None, got {threads!r}")
         if engine == "auto" and not compile:
             engine = "eager"
-        self.kind = filter_kind(filt)
-        if engine in ("inductor", "eager") and _angular(filt, self.kind):
-            raise TypeError(_ANGULAR_REFUSAL.format(*_angular(filt, self.kind)))
-        if _angular(filt, self.kind):
-            self.kind = None  # the batch-last step has no circular means or wrapped state addition
-        if engine in ("inductor", "eager") and self.kind is None:
-            raise TypeError(
-                f"FusedFilter's {engine} engine supports UKF (noise='additive'), SimplifiedUKF, EKF and KalmanFilter "
-                f"(not subclasses with their own predict/update), got {type(filt).__name__}; use engine='generated'"
-            )
         self.engine = engine
         self.filter = filt
         self.threads = threads
@@ -119,11 +108,9 @@ class FusedFilter(nn.Module):
         self.last_engine: str | None = None
         self._generated: GeneratedEngine | None = None
         self._generated_failed: str | None = None
-        self._inductor: InductorEngine | None = None
-        if self.kind is not None:
-            self._inductor = InductorEngine(
-                filt, self.kind, compile=engine != "eager", compile_options=self.compile_options, reuse_buffers=self.reuse_buffers
-            )
+        self._inductor = InductorEngine(
+            filt, compile=engine != "eager", compile_options=self.compile_options, reuse_buffers=self.reuse_buffers
+        )
 
     @property
     def model(self) -> nn.Module:
@@ -131,7 +118,7 @@ class FusedFilter(nn.Module):
 
     @property
     def _compile_failed(self) -> bool:
-        return self._inductor is not None and self._inductor.compile_failed
+        return self._inductor.compile_failed
 
     @property
     def state_dim(self) -> int:
@@ -162,8 +149,8 @@ class FusedFilter(nn.Module):
 
     def _fallback(self, reason: str) -> None:
         self._generated_failed = reason
-        nxt = "the inductor engine" if self._inductor is not None else "the filter itself"
-        warnings.warn(f"FusedFilter: the generated engine cannot run {type(self.filter).__name__} ({reason}); using {nxt}", stacklevel=3)
+        name = type(self.filter).__name__
+        warnings.warn(f"FusedFilter: the generated engine cannot run {name} ({reason}); using the inductor engine", stacklevel=3)
 
     def forward(
         self,
@@ -204,28 +191,9 @@ class FusedFilter(nn.Module):
                 if engine == "generated":
                     raise
                 self._fallback(str(exc))
-        if self._inductor is not None:
-            self.last_engine = "inductor" if self._inductor.use_compile and not self._inductor.compile_failed else "eager"
-            return self._inductor(z, mask3, {"mean": belief["mean"], "cov": belief["cov"]}, controls)
-        self.last_engine = "reference"
-        return filt(z, mask=mask3, controls=controls, belief=belief)
-
-
-_ANGULAR_REFUSAL = (
-    "FusedFilter does not compute wrap-aware unscented means in its inductor/eager engines: the model declares angular "
-    "components (states {}, measurements {}); use engine='generated' (CPU) or run the filter directly"
-)
-
-
-def _angular(filt: RecursiveFilter, kind: str | None) -> tuple[list[int], list[int]] | None:
-    """The angular state and measurement components that the batch-last step would mishandle
-    (an EKF's measurement residual already wraps), or None."""
-    model = getattr(filt, "model", None)
-    if model is None:
-        return None
-    states = list(getattr(model.dynamics, "angular", ()))
-    meas = list(getattr(model.measurement, "angular", ())) if kind != "ekf" else []
-    return (states, meas) if states or meas else None
+        out = self._inductor(z, mask3, belief, controls)
+        self.last_engine = "inductor" if self._inductor.use_compile and not self._inductor.compile_failed else "eager"
+        return out
 
 
 def fuse(

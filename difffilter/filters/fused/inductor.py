@@ -1,9 +1,17 @@
-"""The ``torch.compile`` engine: the batch-last step of :mod:`.step`, compiled once per shape and
-called from a Python time loop (any device inductor supports, CUDA included), or run eagerly.
+"""The ``torch.compile`` engine: the filter's own step, with element-wise small linear algebra.
 
-Compilation is specialised on batch size, dtype, grad mode and the presence of masks and
-controls.  Without autograd the per-step outputs go straight into preallocated batch-last
-buffers, optionally reused across calls.
+Each step runs exactly the body of :meth:`RecursiveFilter.forward`'s loop (``predict``,
+``update``, ``finalize_belief``, ``record``) of the wrapped filter or mixer, batch-first, inside
+:class:`~.step.SmallLinalg` (element-wise Cholesky, triangular solves, QR and small products)
+and :func:`~.branchfree.branch_free` (no Python decision on data values).  The step is compiled
+by ``torch.compile`` (inductor: any device it supports, CUDA included) once per shape and called
+from a Python time loop; ``compile=False`` runs the same step eagerly.
+
+The first step of every call runs uncompiled: it fills lazily built caches (sigma-point
+weights) and gives the belief layout of the steady steps (a filter may add entries after its
+first step), so the compiled step is specialised once, on batch size, dtype, grad mode, belief
+layout and the presence of masks and controls.  Without autograd the per-step means and
+covariances go straight into preallocated buffers, optionally reused across calls.
 """
 
 from __future__ import annotations
@@ -13,42 +21,50 @@ from collections.abc import Callable
 from typing import Any
 
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 from torch.nn.utils import parametrize
 
-from ...models.base import Controls, DynamicsModel, MeasurementModel
+from ...models.base import Controls
 from ..base import Belief, FilterResult, RecursiveFilter, slice_controls
 from ..update import untrusted_steps
+from .branchfree import branch_free, step_flag
 from .kernel import ReusableBuffers
-from .step import SmallMatmulAsSum, batch_last_step, to_batch_last, transpose01
+from .step import SmallLinalg
 
 __all__ = ["InductorEngine"]
 
 _MIN_RECOMPILE_LIMIT = 64
+_FIELDS = ("mean", "cov", "prior_mean", "prior_cov")
 
 
-def _overridden(obj: nn.Module, base: type, name: str) -> bool:
-    return getattr(type(obj), name) is not getattr(base, name)
+def _contiguous(belief: Belief) -> Belief:
+    # compiled outputs may come back in another memory layout: fixed strides keep the compiled
+    # step from being specialised again
+    return {k: v.contiguous() for k, v in belief.items()}
 
 
 class InductorEngine:
-    """Runs ``filt`` (of step kind ``kind``) with the batch-last step, compiled or eager."""
+    """Runs ``filt``'s own step with element-wise linear algebra, compiled or eager."""
 
-    def __init__(self, filt: RecursiveFilter, kind: str, *, compile: bool, compile_options: dict[str, Any], reuse_buffers: bool) -> None:  # noqa: A002
+    def __init__(self, filt: RecursiveFilter, *, compile: bool, compile_options: dict[str, Any], reuse_buffers: bool) -> None:  # noqa: A002
         self.filter = filt
-        self.kind = kind
         self.use_compile = compile
         self.compile_options = compile_options
         self.buffers = ReusableBuffers(enabled=reuse_buffers)  # reused across no-grad calls
-        dyn, meas = filt.model.dynamics, filt.model.measurement
-        self._static_q = not _overridden(dyn, DynamicsModel, "process_noise")
-        self._static_r = not _overridden(meas, MeasurementModel, "measurement_noise")
         self._compiled: Callable[..., Any] | None = None
         self.compile_failed = False
 
-    def step(self, *args: Any) -> tuple[Tensor, ...]:
-        with SmallMatmulAsSum():
-            return batch_last_step(self.filter, self.kind, *args)
+    def step(self, belief: Belief, z: Tensor, mask: Tensor | None, u: Controls) -> tuple[Any, ...]:
+        """One step of the reference loop: ``(posterior belief, prior mean, prior cov,
+        log-likelihood, NIS, observed count, step flag, clamped pivots of S, records)``."""
+        filt = self.filter
+        with SmallLinalg():
+            prior = filt.predict(belief, u)
+            post, info = filt.update(prior, z, mask, u)
+            post = filt.finalize_belief(post)
+            rec = filt.record(post)
+            clamps = torch.zeros_like(info.log_likelihood) if info.jitter is None else info.jitter.to(info.log_likelihood.dtype)
+            return post, prior["mean"], prior["cov"], info.log_likelihood, info.nis, info.num_observed, step_flag(info), clamps, rec
 
     def _step_fn(self) -> Callable[..., Any]:
         if not self.use_compile or self.compile_failed:
@@ -64,73 +80,62 @@ class InductorEngine:
             self._compiled = torch.compile(self.step, dynamic=False, **self.compile_options)
         return self._compiled
 
+    def _run(self, step: Callable[..., Any], args: tuple[Any, ...]) -> tuple[Any, ...]:
+        """``step(*args)``; a compiler failure switches this engine to the eager step (with a warning)."""
+        if step is self.step:
+            return step(*args)
+        try:
+            return step(*args)
+        except Exception as exc:  # noqa: BLE001 - any compiler failure falls back to the eager step
+            reason = f"{type(exc).__name__}: {str(exc)[:500]}"
+            warnings.warn(f"FusedFilter: torch.compile failed ({reason}); running the step eagerly", stacklevel=4)
+            self.compile_failed = True
+            return self.step(*args)
+
     def __call__(self, z: Tensor, mask: Tensor | None, belief: Belief, controls: Controls) -> FilterResult:
-        """``z [B, T, m]`` (validated), ``mask [B, T, m]`` or None, a ``{"mean", "cov"}`` belief."""
-        filt = self.filter
+        """``z [B, T, m]`` (validated, masked values zeroed), ``mask [B, T, m]`` or None, a full belief
+        without a diffuse part."""
         bsz, steps, _ = z.shape
-        n = filt.state_dim
-        mean = transpose01(belief["mean"]).contiguous()
-        cov = belief["cov"].permute(1, 2, 0).contiguous()
-        observed_all = None if mask is None else mask.to(z.dtype).permute(1, 2, 0)  # [T, m, B]
-        outs: list[tuple[Tensor, ...]] = []
+        n = self.filter.state_dim
         # Without autograd, the per-step means and covariances go straight into preallocated
-        # batch-last buffers and each step's memory is reused by the next one.  With autograd,
-        # in-place writes into one buffer would chain T copy nodes, so the list is kept.
+        # buffers.  With autograd, in-place writes into one buffer would chain T copy nodes, so
+        # the lists are kept and stacked.
         direct = not torch.is_grad_enabled()
-        if direct:
-            bufs = self.buffers.get([(steps, *shape) for shape in ((n, bsz), (n, n, bsz), (n, bsz), (n, n, bsz))], z)
-        with parametrize.cached():
-            dyn, meas = filt.model.dynamics, filt.model.measurement
-            q_static = to_batch_last(dyn.Q, 2) if self._static_q else None
-            r_static = to_batch_last(meas.R, 2) if self._static_r else None
-            if self.kind in ("ukf", "sukf"):  # fill the weight cache now: a first fill inside the graph forces a recompile
-                filt.sigma_points.weights(n, z.dtype, z.device)
-            step = self._step_fn()
-            compiled = self.use_compile and not self.compile_failed
+        bufs = self.buffers.get([(bsz, steps, *s) for s in ((n,), (n, n), (n,), (n, n))], z) if direct else None
+        cols: list[list[Any]] = [[] for _ in range(10)]  # 4 belief fields, 5 statistics, records
+        belief = _contiguous(belief)
+        with parametrize.cached(), branch_free():
             for t in range(steps):
-                observed = None if observed_all is None else observed_all[t]
-                args = (mean, cov, z[:, t], observed, slice_controls(controls, t), q_static, r_static)
-                if compiled and t == 0:
-                    try:
-                        res = step(*args)
-                    except Exception as exc:  # noqa: BLE001 - any compiler failure falls back to the eager step
-                        warnings.warn(
-                            f"FusedFilter: torch.compile failed ({type(exc).__name__}: {exc}); running the step eagerly", stacklevel=3
-                        )
-                        self.compile_failed = True
-                        step = self.step
-                        res = step(*args)
+                step = self.step if t == 0 else self._step_fn()
+                args = (belief, z[:, t], None if mask is None else mask[:, t], slice_controls(controls, t))
+                res = self._run(step, args)
+                belief = _contiguous(res[0])
+                vals = (belief["mean"], belief["cov"], res[1], res[2])
+                if bufs is not None:
+                    for buf, val in zip(bufs, vals, strict=True):
+                        buf[:, t] = val
                 else:
-                    res = step(*args)
-                # compiled outputs may come back in another memory layout: keep the inputs'
-                # strides fixed so that the compiled step is not specialised again
-                mean, cov = res[0].contiguous(), res[1].contiguous()
-                if direct:
-                    for buf, val in zip(bufs, res[:4], strict=True):
-                        buf[t] = val
-                    outs.append(res[4:])
-                else:
-                    outs.append(res)
-        if direct:
-            cols = [()] * 4 + list(zip(*outs, strict=False))
-            post_mean, post_cov, prior_mean, prior_cov = (b.movedim(-1, 0) for b in bufs)
+                    for col, val in zip(cols[:4], vals, strict=True):
+                        col.append(val)
+                for col, val in zip(cols[4:], res[3:], strict=True):
+                    col.append(val)
+        if bufs is not None:  # views: while a result holds one, the buffer counts as referenced
+            mean, cov, prior_mean, prior_cov = (b[...] for b in bufs)
         else:
-            cols = list(zip(*outs, strict=False))
-            post_mean = torch.stack(cols[0]).permute(2, 0, 1)
-            post_cov = torch.stack(cols[1]).permute(3, 0, 1, 2)
-            prior_mean = torch.stack(cols[2]).permute(2, 0, 1)
-            prior_cov = torch.stack(cols[3]).permute(3, 0, 1, 2)
-        ll, nis, nobs, clamps, s_clamps = (torch.stack(c, 1) for c in cols[4:])
-        # the reference loop's flags: the run-wide check and an innovation covariance that needed repair
-        untrusted = untrusted_steps(post_mean.detach(), post_cov.detach(), prior_cov.detach(), ll.detach()) | (s_clamps != 0)
+            mean, cov, prior_mean, prior_cov = (torch.stack(c, 1) for c in cols[:4])
+        ll, nis, nobs, flags, clamps = (torch.stack(c, 1) for c in cols[4:9])
+        extras = {k: torch.stack([r[k] for r in cols[9]], 1) for k in cols[9][0]}
+        # the reference loop's flags: the run-wide check and the steps' own flags
+        extras["untrusted"] = untrusted_steps(mean.detach(), cov.detach(), prior_cov.detach(), ll.detach()) | (flags != 0)
+        extras["cholesky_clamps"] = clamps
         return FilterResult(
-            mean=post_mean,
-            cov=post_cov,
+            mean=mean,
+            cov=cov,
             prior_mean=prior_mean,
             prior_cov=prior_cov,
             log_likelihood=ll,
             nis=nis,
             num_observed=nobs,
-            final_belief={"mean": post_mean[:, -1], "cov": post_cov[:, -1]},
-            extras={"cholesky_clamps": clamps, "untrusted": untrusted},
+            final_belief=belief,
+            extras=extras,
         )

@@ -1,337 +1,221 @@
-"""The batch-last, branch-free filter step that ``torch.compile`` fuses (the inductor engine).
+"""Element-wise small linear algebra for the inductor engine, and the mode that swaps it in.
 
-Tensors are laid out batch-last (``mean [n, B]``, ``cov [n, n, B]``) and every small matrix
-operation (Cholesky factor, triangular solves, products) is element-wise arithmetic over the
-batch with no data-dependent branch, so one step is one straight-line graph.  Supported:
-``UKF`` (additive noise, redrawn or reused points), ``SimplifiedUKF``, ``EKF`` and
-``KalmanFilter`` (Joseph form or not), with masks, controls, angle residuals and
-state-dependent noise.
+The inductor engine runs a filter's own ``predict``/``update`` (the code the eager filters run).
+What it changes is the primitives underneath: inside :class:`SmallLinalg`, the LAPACK/BLAS calls
+of the step (``cholesky_ex``, triangular solves, ``cholesky_solve``, Householder ``qr`` and
+products of small matrices) become straight-line element-wise arithmetic over the batch, with
+no data-dependent branch.  ``torch.compile`` then fuses a whole step into a few loops over the
+batch (on any device inductor supports) instead of calling batched LAPACK kernels on ``n x n``
+matrices; the same code runs uncompiled for debugging (the ``"eager"`` engine).  Combined with
+:func:`~.branchfree.branch_free` (the helpers that branch on data), a step is one graph.
 
-The reference Cholesky retries a failing factor with bounded jitter; :func:`cholesky_lower`
-clamps a non-positive pivot to ``n * eps * max(diag)`` instead and counts the clamps.
+Layout is batch-first, the reference filters' own: every ``[..., n, n]`` operand is read
+element by element (``unbind``), so each primitive is ``O(n^3)`` tensor operations of shape
+``[...]``.  The Cholesky factor clamps a pivot that is not above ``n * eps * max|diag| + tiny``
+to that floor (the reference retries with jitter) and reports the number of clamps in ``info``
+(read by ``safe_cholesky``'s branch-free stand-in as its ``jitter``, so the step flags itself).
 """
 
 from __future__ import annotations
 
-import math
-from collections.abc import Callable
+from typing import Any
 
 import torch
 from torch import Tensor
 
-from ...models.base import Controls
-from ..base import RecursiveFilter
-from ..ekf import EKF
-from ..ukf import UKF, SimplifiedUKF
+__all__ = ["MAX_CONTRACTION", "SmallLinalg", "cholesky_lower", "householder_qr", "small_matmul", "solve_triangular"]
 
-__all__ = ["batch_last_step", "cholesky_lower", "filter_kind", "to_batch_last", "SmallMatmulAsSum"]
-
-_LOG_2PI = math.log(2.0 * math.pi)
-_MAX_CONTRACTION = 32
+#: products whose contraction is at most this long become multiply-and-sum
+MAX_CONTRACTION = 64
 
 
-def filter_kind(filt: RecursiveFilter) -> str | None:
-    """``"sukf"``, ``"ukf"`` or ``"ekf"`` (EKF and KalmanFilter) if this step implements ``filt``'s
-    equations (not a subclass with its own ``predict``/``update``, additive noise), else None."""
-    model = getattr(filt, "model", None)
-    if model is None or not all(getattr(part, "additive_noise", True) for part in (model.dynamics, model.measurement)):
-        return None  # this step adds Q and R; a model with non-additive noise needs the filter's own equations
-    kinds = ((SimplifiedUKF, "sukf"), (UKF, "ukf"), (EKF, "ekf"))
-    for cls, kind in kinds:
-        if isinstance(filt, cls):
-            same = all(getattr(type(filt), name) is getattr(cls, name) for name in ("predict", "update", "init_belief", "finalize_belief"))
-            if not same or (kind == "ukf" and filt.noise != "additive"):
-                return None
-            if kind == "sukf" and callable(getattr(filt.model.dynamics, "linear_prediction", None)):
-                return None  # its prediction takes (f, F, Q) from one call: only the generated engine runs it
-            return kind
-    return None
+def _elements(a: Tensor) -> list[list[Tensor]]:
+    """``a [..., p, q]`` as ``p x q`` tensors ``[...]`` (two ``unbind``: one backward node each)."""
+    return [list(row.unbind(-1)) for row in a.unbind(-2)]
 
 
-def transpose01(a: Tensor) -> Tensor:
-    return a.transpose(0, 1)
-
-
-def sum_terms(terms: list[Tensor]) -> Tensor:
-    """Sum of same-shaped tensors as a chain of element-wise additions (stays in the fused loop)."""
-    acc = terms[0]
-    for t in terms[1:]:
-        acc = acc + t
-    return acc
-
-
-def matmul_batch_last(a: Tensor, b: Tensor) -> Tensor:
-    """``[i, k, B] @ [k, j, B] -> [i, j, B]`` (either factor may have batch size 1)."""
-    return (a[:, :, None] * b[None]).sum(1)
-
-
-def symmetrize(a: Tensor) -> Tensor:
-    return 0.5 * (a + transpose01(a))
+def _stack(rows: list[list[Tensor]]) -> Tensor:
+    return torch.stack([torch.stack(r, -1) for r in rows], -2)
 
 
 def cholesky_lower(a: Tensor) -> tuple[Tensor, Tensor]:
-    """Lower Cholesky factor of ``a [n, n, B]`` and the number of clamped pivots ``[B]``.
+    """Lower Cholesky factor of the symmetric part of ``a [..., n, n]`` and the number of
+    clamped pivots ``[...]`` (``int32``).
 
-    Branch-free: a pivot that is not above ``n * eps * max_j a_jj`` (rounding, a semi-definite
-    or a non-finite matrix) is replaced by that floor, so one bad batch element never changes
-    the others.  Elements are read with ``unbind`` (one backward node) rather than indexing.
+    Branch-free: a pivot that is not above ``n * eps * max_j |a_jj| + tiny`` (rounding, a
+    semi-definite, indefinite or non-finite matrix) is replaced by that floor, so one bad batch
+    element never changes the others.  Off-diagonal entries are read as ``(a_ij + a_ji) / 2``, so
+    the gradient is symmetric, as torch's.
     """
-    n = a.shape[0]
-    eps = torch.finfo(a.dtype).eps
-    tiny = torch.finfo(a.dtype).tiny
-    el = [list(r.unbind(0)) for r in a.unbind(0)]
-    diag = torch.stack([el[j][j] for j in range(n)])
-    floor = (n * eps) * diag.abs().amax(0) + tiny
-    rows: list[list[Tensor]] = [[] for _ in range(n)]  # rows[i][j] = L_ij for j <= i
-    clamps = torch.zeros_like(floor)
+    n = a.shape[-1]
+    eps, tiny = torch.finfo(a.dtype).eps, torch.finfo(a.dtype).tiny
+    el = _elements(a)
+    sym = [[el[i][j] if i == j else 0.5 * (el[i][j] + el[j][i]) for j in range(n)] for i in range(n)]
+    big = torch.stack([sym[j][j] for j in range(n)], -1).abs().amax(-1)
+    floor = (n * eps) * big + tiny
+    zero = torch.zeros_like(floor)
+    low: list[list[Tensor]] = [[zero] * n for _ in range(n)]
+    clamps = torch.zeros_like(floor, dtype=torch.int32)
     for j in range(n):
-        s = el[j][j]
+        s = sym[j][j]
         for k in range(j):
-            s = s - rows[j][k] * rows[j][k]
+            s = s - low[j][k] * low[j][k]
         ok = s > floor
-        clamps = clamps + (~ok).to(a.dtype)
+        clamps = clamps + (~ok).to(torch.int32)
         d = torch.sqrt(torch.where(ok, s, floor))
-        rows[j].append(d)
+        low[j][j] = d
         inv = 1.0 / d
         for i in range(j + 1, n):
-            s = el[i][j]
+            s = sym[i][j]
             for k in range(j):
-                s = s - rows[i][k] * rows[j][k]
-            rows[i].append(s * inv)
-    zero = torch.zeros_like(floor)
-    return torch.stack([torch.stack(r + [zero] * (n - len(r))) for r in rows]), clamps
+                s = s - low[i][k] * low[j][k]
+            low[i][j] = s * inv
+    return _stack(low), clamps
 
 
-def sigma_offsets(cov: Tensor, gamma: float, has_center: bool) -> tuple[Tensor, Tensor]:
-    """Sigma-point offsets ``[S, n, B]`` from the mean (``0`` if centred, ``+-gamma L[:, i]``, the
-    order of :class:`~difffilter.filters.SigmaPoints`) of ``cov [n, n, B]``, and clamped pivots."""
-    factor, clamps = cholesky_lower(cov)
-    cols = transpose01(factor) * gamma  # row i = column i of L
-    centre = [torch.zeros_like(cols[:1])] if has_center else []
-    return torch.cat(centre + [cols, -cols], 0), clamps
-
-
-def solve_lower(factor: Tensor, b: Tensor) -> Tensor:
-    """``L^{-1} b`` for lower-triangular ``L [m, m, B]`` and ``b [m, k, B]`` (forward substitution)."""
-    m = factor.shape[0]
-    el = [list(r.unbind(0)) for r in factor.unbind(0)]
-    rhs = b.unbind(0)
-    xs: list[Tensor] = []
-    for i in range(m):
+def solve_triangular(a: Tensor, b: Tensor, *, upper: bool, left: bool = True, unitriangular: bool = False) -> Tensor:
+    """``X`` with ``A X = B`` (``left``) or ``X A = B`` for triangular ``A [..., n, n]`` (only its
+    ``upper``/lower triangle read), by substitution; leading dims broadcast."""
+    if not left:  # X A = B  <=>  A^T X^T = B^T
+        return solve_triangular(a.mT, b.mT, upper=not upper, unitriangular=unitriangular).mT
+    n = a.shape[-1]
+    el = _elements(a)
+    rhs = b.unbind(-2)  # rows [..., k]
+    xs: list[Tensor | None] = [None] * n
+    for i in range(n - 1, -1, -1) if upper else range(n):
         s = rhs[i]
-        for k in range(i):
-            s = s - el[i][k][None] * xs[k]
-        xs.append(s / el[i][i][None])
-    return torch.stack(xs)
+        for j in range(i + 1, n) if upper else range(i):
+            s = s - el[i][j][..., None] * xs[j]  # type: ignore[operator]
+        xs[i] = s if unitriangular else s / el[i][i][..., None]
+    shape = torch.broadcast_shapes(a.shape[:-2], b.shape[:-2])
+    return torch.stack([x.expand(*shape, b.shape[-1]) for x in xs], -2)  # type: ignore[union-attr]
 
 
-def solve_lower_transposed(factor: Tensor, b: Tensor) -> Tensor:
-    """``L^{-T} b`` for lower-triangular ``L [m, m, B]`` and ``b [m, k, B]`` (back substitution)."""
-    m = factor.shape[0]
-    el = [list(r.unbind(0)) for r in factor.unbind(0)]
-    rhs = b.unbind(0)
-    xs: list[Tensor | None] = [None] * m
-    for i in range(m - 1, -1, -1):
-        s = rhs[i]
-        for k in range(i + 1, m):
-            s = s - el[k][i][None] * xs[k]  # type: ignore[operator]
-        xs[i] = s / el[i][i][None]
-    return torch.stack(xs)  # type: ignore[arg-type]
+def householder_qr(a: Tensor, mode: str = "reduced") -> tuple[Tensor, Tensor]:
+    """QR of ``a [..., m, k]`` by Householder reflections with LAPACK's sign convention
+    (``R_jj = -sign(a_jj) ||a_j:||``); ``mode`` ``"reduced"`` or ``"r"`` (empty ``Q``).
+
+    A column with nothing below its diagonal is left as it is (no reflection), selected with
+    ``where``, so no batch element divides by zero.
+    """
+    if mode not in ("reduced", "r"):
+        raise ValueError(f"householder_qr: mode must be 'reduced' or 'r', got {mode!r}")
+    m, k = a.shape[-2:]
+    p = min(m, k)
+    w = _elements(a)
+    zero, one = torch.zeros_like(w[0][0]), torch.ones_like(w[0][0])
+    reflectors = []
+    for j in range(p):
+        alpha = w[j][j]
+        xnorm2 = zero
+        for i in range(j + 1, m):
+            xnorm2 = xnorm2 + w[i][j] * w[i][j]
+        trivial = xnorm2 == 0
+        norm = torch.sqrt(alpha * alpha + torch.where(trivial, one, xnorm2))  # safe operand: not selected when trivial
+        beta = torch.where(alpha < 0, norm, -norm)
+        safe = torch.where(trivial, one, alpha - beta)
+        tau = torch.where(trivial, zero, (beta - alpha) / torch.where(trivial, one, beta))
+        v = [one] + [w[i][j] / safe for i in range(j + 1, m)]
+        w[j][j] = torch.where(trivial, alpha, beta)
+        for i in range(j + 1, m):
+            w[i][j] = zero
+        for c in range(j + 1, k):  # w[j:, c] -= tau v (v^T w[j:, c])
+            dot = w[j][c]
+            for i in range(j + 1, m):
+                dot = dot + v[i - j] * w[i][c]
+            s = tau * dot
+            for i in range(j, m):
+                w[i][c] = w[i][c] - s * v[i - j]
+        reflectors.append((j, v, tau))
+    r = _stack([[w[i][j] if j >= i else zero for j in range(k)] for i in range(p)])
+    if mode == "r":
+        return a.new_zeros(0), r
+    qm = [[one if i == c else zero for c in range(p)] for i in range(m)]
+    for j, v, tau in reversed(reflectors):
+        for c in range(p):
+            dot = zero
+            for i in range(j, m):
+                dot = dot + v[i - j] * qm[i][c]
+            s = tau * dot
+            for i in range(j, m):
+                qm[i][c] = qm[i][c] - s * v[i - j]
+    return _stack(qm), r
 
 
-def to_batch_last(mat: Tensor, rank: int) -> Tensor:
-    """Batch-first ``[B?, ...]`` model output of ``rank`` trailing dims -> batch-last (size-1 batch if none)."""
-    if mat.ndim == rank:
-        return mat[..., None]
-    if mat.ndim != rank + 1:
-        raise ValueError(f"expected a [{', '.join('d' * rank)}] or [B, ...] tensor from the model, got shape {tuple(mat.shape)}")
-    return mat.permute(*range(1, rank + 1), 0)
-
-
-def _call_points(fn: Callable[..., Tensor], pts: Tensor, u: Controls) -> Tensor:
-    """Apply a batch-first model function to points ``[S, d, B]`` (as the view ``[S, B, d]``)."""
-    return fn(pts.transpose(1, 2), u).transpose(1, 2)
-
-
-def _weighted_mean(pts: Tensor, wm: Tensor) -> Tensor:
-    """Weighted mean of points ``[S, d, B]`` relative to the first point (see ``ukf.weighted_mean``)."""
-    ref = pts[0]
-    return ref + ((pts - ref[None]) * wm[:, None, None]).sum(0)
-
-
-def _weighted_cov(a: Tensor, b: Tensor, wc: Tensor) -> Tensor:
-    """``sum_s wc_s a_s b_s^T`` for ``a [S, p, B]``, ``b [S, q, B]`` -> ``[p, q, B]``."""
-    return ((wc[:, None, None] * a)[:, :, None] * b[:, None]).sum(0)
+def small_matmul(a: Tensor, b: Tensor) -> Tensor:
+    """``a [..., i, k] @ b [..., k, j]`` as broadcast multiply-and-sum (fuses with its neighbours)."""
+    return (a.unsqueeze(-1) * b.unsqueeze(-3)).sum(-2)
 
 
 _MATMULS = (torch.matmul, torch.Tensor.matmul, torch.Tensor.__matmul__, torch.bmm, torch.mm)
 
 
-class SmallMatmulAsSum(torch.overrides.TorchFunctionMode):
-    """Inside the step, matrix products with a short contraction (a model's ``x @ F.mT``,
-    ``H @ x``...) become broadcast multiply-and-sum: the compiler then fuses them with the
-    rest of the step instead of calling an external GEMM on tiny matrices, which splits the
-    step's kernel in two."""
+def _cholesky_ex(a: Tensor, *, upper: bool = False, check_errors: bool = False, out: Any = None) -> Any:
+    if upper or check_errors or out is not None:
+        return NotImplemented
+    return torch.return_types.linalg_cholesky_ex(cholesky_lower(a))
+
+
+def _cholesky(a: Tensor, *, upper: bool = False, out: Any = None) -> Any:
+    if upper or out is not None:
+        return NotImplemented
+    return cholesky_lower(a)[0]
+
+
+def _solve_triangular(a: Tensor, b: Tensor, *, upper: bool, left: bool = True, unitriangular: bool = False, out: Any = None) -> Any:
+    if out is not None:
+        return NotImplemented
+    return solve_triangular(a, b, upper=upper, left=left, unitriangular=unitriangular)
+
+
+def _cholesky_solve(b: Tensor, low: Tensor, upper: bool = False, *, out: Any = None) -> Any:
+    if out is not None:
+        return NotImplemented
+    if upper:
+        low = low.mT
+    return solve_triangular(low.mT, solve_triangular(low, b, upper=False), upper=True)
+
+
+def _qr(a: Tensor, mode: str = "reduced", *, out: Any = None) -> Any:
+    if out is not None or mode not in ("reduced", "r"):
+        return NotImplemented
+    return torch.return_types.linalg_qr(householder_qr(a, mode))
+
+
+def _unflatten(a: Tensor, dim: int, sizes: Any) -> Tensor:
+    # Tensor.unflatten is a Python method that dynamo cannot follow into (a super() call)
+    d = dim % a.ndim
+    return a.reshape(*a.shape[:d], *sizes, *a.shape[d + 1 :])
+
+
+_REPLACED = {
+    torch.linalg.cholesky_ex: _cholesky_ex,
+    torch.linalg.cholesky: _cholesky,
+    torch.linalg.solve_triangular: _solve_triangular,
+    torch.cholesky_solve: _cholesky_solve,
+    torch.Tensor.cholesky_solve: _cholesky_solve,
+    torch.linalg.qr: _qr,
+}
+
+
+class SmallLinalg(torch.overrides.TorchFunctionMode):
+    """Inside the block, the small dense linear algebra of a filter step is element-wise:
+    ``cholesky_ex``/``cholesky`` (:func:`cholesky_lower`; ``info`` = clamped pivots),
+    ``solve_triangular``, ``cholesky_solve``, ``qr`` and matrix products whose contraction is at
+    most :data:`MAX_CONTRACTION` long; ``Tensor.unflatten`` becomes ``reshape`` (which dynamo
+    traces).  Other calls (and unsupported arguments) run unchanged."""
 
     def __torch_function__(self, func, types, args=(), kwargs=None):  # type: ignore[no-untyped-def]
+        kwargs = kwargs or {}
         if func in _MATMULS and not kwargs and len(args) == 2:
             a, b = args
-            if isinstance(a, Tensor) and isinstance(b, Tensor) and a.ndim >= 2 and b.ndim >= 2 and a.shape[-1] <= _MAX_CONTRACTION:
-                return (a.unsqueeze(-1) * b.unsqueeze(-3)).sum(-2)
-        return func(*args, **(kwargs or {}))
-
-
-def _noise(static: Tensor | None, fn: Callable[[Tensor, Controls], Tensor], mean: Tensor, u: Controls) -> Tensor:
-    return static if static is not None else to_batch_last(fn(transpose01(mean), u), 2)
-
-
-def _joseph_where_lossy(
-    new_cov: Tensor,
-    prior_cov: Tensor,
-    factor: Tensor,
-    w: Tensor,
-    observed: Tensor | None,
-    jac: Tensor | None,
-    r: Tensor,
-    dx: Tensor | None,
-    dz: Tensor | None,
-    wc: Tensor | None,
-) -> Tensor:
-    """``new_cov [n, n, B]`` where ``P - K S K^T`` keeps its digits, else the Joseph form: of the
-    linearised system (``jac`` given) or of the sigma-point deviations ``dx [S, n, B]``,
-    ``dz [S, m, B]`` with weights ``wc`` (the reference's ``gaussian_update`` fallbacks)."""
-    n = new_cov.shape[0]
-    switch = 64.0 * torch.finfo(new_cov.dtype).eps ** 0.5
-    lossy = torch.zeros_like(new_cov[0, 0], dtype=torch.bool)
-    for i in range(n):
-        lossy = lossy | (new_cov[i, i] < switch * prior_cov[i, i])
-    gain = transpose01(solve_lower_transposed(factor, w))  # K = W^T L^{-1}: [n, m, B]
-    rm = r if observed is None else r * (observed[:, None] * observed[None])
-    gr = matmul_batch_last(matmul_batch_last(gain, rm), transpose01(gain))
-    if jac is not None:
-        h = jac if observed is None else jac * observed[:, None]
-        a = torch.eye(n, dtype=new_cov.dtype, device=new_cov.device)[..., None] - matmul_batch_last(gain, h)
-        stable = matmul_batch_last(matmul_batch_last(a, prior_cov), transpose01(a)) + gr
-    else:
-        dzm = dz if observed is None else dz * observed[None]  # type: ignore[index]
-        dev = dx - (gain[None] * dzm[:, None]).sum(2)  # type: ignore[operator] # dx_s - K dz_s: [S, n, B]
-        stable = _weighted_cov(dev, dev, wc) + gr  # type: ignore[arg-type]
-    return torch.where(lossy, symmetrize(stable), new_cov)
-
-
-def batch_last_step(
-    filt: RecursiveFilter,
-    kind: str,
-    mean: Tensor,
-    cov: Tensor,
-    z: Tensor,
-    observed: Tensor | None,
-    u: Controls,
-    q_static: Tensor | None,
-    r_static: Tensor | None,
-) -> tuple[Tensor, ...]:
-    """One predict/update of ``filt`` (of :func:`filter_kind` ``kind``) on ``mean [n, B]``,
-    ``cov [n, n, B]`` and ``z [B, m]``; ``observed [m, B]`` (1.0 observed, 0.0 missing) or
-    None; ``q_static``/``r_static`` batch-last noise matrices or None (state dependent).
-    Returns the posterior, the prior, log-likelihood, NIS, observed count, clamped pivots and
-    clamped pivots of the innovation covariance, batch-last.
-
-    As in :func:`~difffilter.filters.update.gaussian_update`, a posterior covariance whose
-    variance ``P - K S K^T`` falls below ``64 sqrt(eps)`` times its prior is taken from the
-    Joseph form instead (branch-free: computed every step, selected per trajectory)."""
-    dyn, meas = filt.model.dynamics, filt.model.measurement
-    n = mean.shape[0]
-    clamps = torch.zeros_like(mean[0])
-    q = _noise(q_static, dyn.process_noise, mean, u)
-
-    # ---- predict
-    update_offsets = None  # offsets of the update's points from the prior mean (reused points)
-    if kind == "ukf":
-        sp = filt.sigma_points
-        wm, wc = sp.weights(n, mean.dtype, mean.device)
-        gamma = sp.gamma(n)
-        offsets, c = sigma_offsets(cov, gamma, sp.has_center)
-        clamps = clamps + c
-        propagated = _call_points(dyn, mean[None] + offsets, u)
-        prior_mean = _weighted_mean(propagated, wm)
-        dev = propagated - prior_mean[None]
-        prior_cov = symmetrize(_weighted_cov(dev, dev, wc) + q)
-        if not filt.redraw_after_predict:
-            q_factor, c = cholesky_lower(q)
-            clamps = clamps + c
-            qcols = (transpose01(q_factor) * gamma).expand(-1, -1, dev.shape[-1])
-            update_offsets = torch.cat([dev, qcols, -qcols], 0)
-            wq = torch.full((2 * n,), 0.5 / gamma**2, dtype=mean.dtype, device=mean.device)
-            update_wm = torch.cat([wm, torch.zeros_like(wq)])
-            update_wc = torch.cat([wc, wq])
-    else:
-        if kind == "sukf":
-            f = to_batch_last(dyn.matrix(u), 2)
-        else:
-            f = to_batch_last(filt.transition_jacobian(transpose01(mean), u), 2)
-        prior_mean = _call_points(dyn, mean[None], u)[0]
-        prior_cov = symmetrize(matmul_batch_last(matmul_batch_last(f, cov), transpose01(f)) + q)
-
-    # ---- update
-    r = _noise(r_static, meas.measurement_noise, prior_mean, u)
-    jac = None
-    if kind in ("ukf", "sukf"):
-        if update_offsets is None:
-            sp = filt.sigma_points
-            update_wm, update_wc = sp.weights(n, mean.dtype, mean.device)
-            update_offsets, c = sigma_offsets(prior_cov, sp.gamma(n), sp.has_center)
-            clamps = clamps + c
-        zs = _call_points(meas, prior_mean[None] + update_offsets, u)
-        zhat = _weighted_mean(zs, update_wm)
-        dz = meas.residual(zs.transpose(1, 2), transpose01(zhat)[None]).transpose(1, 2)
-        pzz = _weighted_cov(dz, dz, update_wc) + r  # only its lower triangle is read
-        pxz = _weighted_cov(update_offsets, dz, update_wc)
-    else:
-        jac = to_batch_last(filt.measurement_jacobian(transpose01(prior_mean), u), 2)  # [m, n, B] or [m, n, 1]
-        zhat = _call_points(meas, prior_mean[None], u)[0]
-        pxz = matmul_batch_last(prior_cov, transpose01(jac))
-        pzz = matmul_batch_last(jac, pxz) + r
-    e = transpose01(meas.residual(z, transpose01(zhat)))  # [m, B]
-    mdim = e.shape[0]
-    if observed is not None:
-        e = e * observed
-        pxz = pxz * observed[None]
-        pzz = pzz * (observed[:, None] * observed[None]) + torch.diag_embed(transpose01(1.0 - observed)).permute(1, 2, 0)
-        num_obs = observed.sum(0)
-    else:
-        num_obs = torch.full_like(mean[0], float(mdim))
-    factor, s_clamps = cholesky_lower(pzz)
-    clamps = clamps + s_clamps
-    sol = solve_lower(factor, torch.cat([transpose01(pxz), e[:, None]], 1))  # [m, n + 1, B]
-    w, v = sol[:, :-1], sol[:, -1]
-    new_mean = prior_mean + sum_terms([w[i] * v[i] for i in range(mdim)])
-    if kind == "ekf" and filt.joseph:
-        gain = transpose01(solve_lower_transposed(factor, w))  # K = W^T L^{-1}: [n, m, B]
-        h, rm = jac, r
-        if observed is not None:
-            h = jac * observed[:, None]
-            rm = r * (observed[:, None] * observed[None])
-        eye = torch.eye(n, dtype=mean.dtype, device=mean.device)[..., None]
-        a = eye - matmul_batch_last(gain, h)
-        new_cov = symmetrize(
-            matmul_batch_last(matmul_batch_last(a, prior_cov), transpose01(a))
-            + matmul_batch_last(matmul_batch_last(gain, rm), transpose01(gain))
-        )
-    else:
-        new_cov = prior_cov - sum_terms([w[i][:, None] * w[i][None] for i in range(mdim)])  # P- - W^T W
-        new_cov = _joseph_where_lossy(
-            new_cov,
-            prior_cov,
-            factor,
-            w,
-            observed,
-            jac,
-            r,
-            update_offsets if jac is None else None,
-            dz if jac is None else None,
-            update_wc if jac is None else None,
-        )
-    maha = sum_terms([v[i] * v[i] for i in range(mdim)])
-    logdet = 2.0 * sum_terms([torch.log(factor[i, i]) for i in range(mdim)])
-    ll = -0.5 * (maha + logdet + num_obs * _LOG_2PI)
-    return new_mean, new_cov, prior_mean, prior_cov, ll, maha, num_obs, clamps, s_clamps
+            if isinstance(a, Tensor) and isinstance(b, Tensor) and a.ndim >= 2 and b.ndim >= 2 and a.shape[-1] <= MAX_CONTRACTION:
+                return small_matmul(a, b)
+        if func is torch.Tensor.unflatten:  # a Python function: dynamo does not look it up in a dict
+            return _unflatten(*args, **kwargs)
+        replacement = _REPLACED.get(func)
+        if replacement is not None:
+            out = replacement(*args, **kwargs)
+            if out is not NotImplemented:
+                return out
+        return func(*args, **kwargs)

@@ -16,10 +16,7 @@ from __future__ import annotations
 
 import hashlib
 import math
-import sys
 import threading
-from collections.abc import Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -29,8 +26,9 @@ from torch import Tensor, nn
 from torch.fx.experimental.proxy_tensor import make_fx
 from torch.nn.utils.stateless import _reparametrize_module
 
-from ... import linalg
 from ..base import RecursiveFilter
+from .branchfree import branch_free as _traceable
+from .branchfree import step_flag as _step_flag
 from .codegen import SequenceSpec, StepBody
 from .graph import LANE, UNIFORM, ScalarGraph, UnsupportedOp
 from .lower import lower
@@ -120,55 +118,6 @@ def fingerprint(filt: nn.Module) -> str:
     return h.hexdigest()
 
 
-def _bare_cholesky(a: Tensor, *, max_jitter: float | None = None) -> linalg.CholeskyResult:
-    """``safe_cholesky`` without its retry: the lowering clamps non-positive pivots instead."""
-    chol, info = torch.linalg.cholesky_ex(a)
-    return linalg.CholeskyResult(chol, info.to(a.dtype))
-
-
-def _semidefinite_sqrt(a: Tensor) -> linalg.CholeskyResult:
-    """``psd_sqrt`` without its branches: the exact semi-definite factor (zero columns for zero
-    pivots), which is also the Cholesky factor of a positive-definite matrix."""
-    factor, _ = linalg._semidefinite_factor(linalg.symmetrize(a))
-    return linalg.CholeskyResult(factor, torch.zeros_like(a[..., 0, 0]))
-
-
-def _always(flags: Tensor) -> bool:
-    return True
-
-
-#: What tracing replaces, in every difffilter module that imported it: functions with a Python
-#: branch on data values, by branch-free ones with the same values (see :func:`_traceable`).
-_TRACEABLE = {"safe_cholesky": _bare_cholesky, "psd_sqrt": _semidefinite_sqrt, "any_set": _always}
-
-
-@contextmanager
-def _traceable() -> Iterator[None]:
-    """While tracing, replace the linear-algebra helpers that branch on data values.
-
-    ``safe_cholesky`` retries a failed factorisation with jitter: the bare factorisation is
-    traced, and the lowering clamps non-positive pivots (equal on positive-definite inputs).
-    ``psd_sqrt`` tries a Cholesky factor and falls back to the semi-definite factor: the
-    semi-definite factor is traced (equal on positive semi-definite inputs).  ``any_set``
-    guards work selected per element with ``torch.where``: it is taken, which gives the
-    reference values.
-    """
-    originals = {name: getattr(linalg, name) for name in _TRACEABLE}
-    patched = []
-    for mod_name, mod in list(sys.modules.items()):
-        if not mod_name.startswith("difffilter"):
-            continue
-        for name, original in originals.items():
-            if getattr(mod, name, None) is original:
-                setattr(mod, name, _TRACEABLE[name])
-                patched.append((mod, name, original))
-    try:
-        yield
-    finally:
-        for mod, name, original in patched:
-            setattr(mod, name, original)
-
-
 def _unflatten_controls(layout: StepLayout, flat: list[Tensor]) -> Any:
     if layout.controls is None:
         return None
@@ -176,17 +125,6 @@ def _unflatten_controls(layout: StepLayout, flat: list[Tensor]) -> Any:
     if len(layout.controls) == 1 and layout.controls[0][0] == "":
         return vals[0]
     return {k: v for (k, _, _), v in zip(layout.controls, vals, strict=True)}
-
-
-def _step_flag(info: Any) -> Tensor:
-    """``[1]`` 1.0 where the step flags itself untrusted (``StepInfo.untrusted``, or an
-    innovation covariance that needed repair, ``StepInfo.jitter``), else 0.0."""
-    flag = torch.zeros_like(info.log_likelihood)
-    if getattr(info, "untrusted", None) is not None:
-        flag = flag + info.untrusted.to(flag.dtype)
-    if getattr(info, "jitter", None) is not None:
-        flag = flag + (info.jitter != 0).to(flag.dtype)
-    return flag
 
 
 def _step_function(

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import copy
 import warnings
+from concurrent.futures import Future
 
 import numpy as np
 import pytest
@@ -175,9 +176,18 @@ def test_frozen_values_are_not_stale() -> None:
     assert not torch.allclose(first.log_likelihood, second.log_likelihood)
 
 
-def test_compiled_kernels_are_found_in_the_cache(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_compiled_kernels_are_found_in_the_cache(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:  # type: ignore[no-untyped-def]
+    # a cache directory of its own, and no library loaded earlier in this process (another test may have
+    # loaded the same kernel from a directory that is gone): the first call must build into tmp_path
+    monkeypatch.setenv("DIFFFILTER_CACHE_DIR", str(tmp_path))
+    build._loaded.clear()
     model, z, u, m0, p0 = _range_bearing_data()
-    generated(UKF(model))(z, m0, p0, controls=u)
+    first = generated(UKF(model))
+    first(z, m0, p0, controls=u)
+    for program in first.generated_engine()._programs.values():  # the reverse kernel built in the background
+        for built in program._backward.values():
+            if isinstance(built, Future):
+                built.result()
     build._loaded.clear()
 
     def no_compiler(*args, **kwargs):  # type: ignore[no-untyped-def]

@@ -5,6 +5,7 @@ closed against Monte Carlo, the seeded initial perturbation, and the replicate s
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -252,3 +253,17 @@ def test_seed_drives_train_and_val_data_but_not_the_test_set(tmp_path):
                 # p002's overlay perturbs the learned start (0.1 log-scale: seeds vary data and start); others do not
                 expected_perturbation = 0.1 if experiment == "p002_pdr" else 0.0
                 assert cfg.learner.init_seed == seed and cfg.learner.init_perturbation == expected_perturbation
+
+
+def test_a_perturbed_start_clamped_at_its_bound_is_reported_with_its_name():
+    """A start pushed past its bound is clamped (values unchanged) and a RuntimeWarning names the parameter."""
+    toy = _Toy()  # tau = [10, 100] in Interval(1, 1e3)
+    names = select_parameters(toy, ["tau"])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a start well inside the bounds: no warning
+        perturb_initial_values(toy, names, 0.01, seed=0)
+    far = _Toy()
+    with pytest.warns(RuntimeWarning, match=r"'tau' past its bound \[1.0, 1000.0\]"):
+        perturb_initial_values(far, names, 50.0, seed=0)  # exp(50 z) leaves [1, 1e3] for any |z| > 0.14
+    assert bool((far.tau > 1.0).all() and (far.tau < 1e3).all())
+    assert bool(((far.tau - 1.0).abs() < 1e-2).any() or ((far.tau - 1e3).abs() < 1e-2).any())  # at a bound

@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 from .graph import CMP_OPS, UNARY, ScalarGraph, UnsupportedOp
+from .householder import Arithmetic, householder
 
 __all__ = ["Arr", "Lowering", "dim_index", "filled"]
 
@@ -195,44 +196,23 @@ def _householder_qr(L: Lowering, a: Arr, want_q: bool) -> tuple[Arr, Arr]:
     lead = a.shape[:-2]
     q_out = np.empty(lead + (m, p), dtype=object)
     r_out = np.empty(lead + (p, k), dtype=object)
-    zero, one = g.const(0.0), g.const(1.0)
+    ar = Arithmetic(
+        add=lambda x, y: g.binary("add", x, y),
+        sub=lambda x, y: g.binary("sub", x, y),
+        mul=lambda x, y: g.binary("mul", x, y),
+        div=lambda x, y: g.binary("div", x, y),
+        neg=lambda x: g.unary("neg", x),
+        sqrt=lambda x: g.unary("sqrt", x),
+        lt=lambda x, y: g.compare("lt", x, y),
+        eq=lambda x, y: g.compare("eq", x, y),
+        where=g.where,
+        zero=g.const(0.0),
+        one=g.const(1.0),
+    )
     for idx in np.ndindex(*lead):
-        w = [[a[idx][i, j] for j in range(k)] for i in range(m)]
-        reflectors = []
-        for j in range(p):
-            alpha = w[j][j]
-            xnorm2 = zero
-            for i in range(j + 1, m):
-                xnorm2 = g.binary("add", xnorm2, g.binary("mul", w[i][j], w[i][j]))
-            norm = g.unary("sqrt", g.binary("add", g.binary("mul", alpha, alpha), xnorm2))
-            neg = g.compare("lt", alpha, zero)
-            beta = g.where(neg, norm, g.unary("neg", norm))
-            trivial = g.compare("eq", xnorm2, zero)  # nothing below the diagonal: H = I
-            safe = g.where(trivial, one, g.binary("sub", alpha, beta))
-            tau = g.where(trivial, zero, g.binary("div", g.binary("sub", beta, alpha), g.where(trivial, one, beta)))
-            v = [one] + [g.binary("div", w[i][j], safe) for i in range(j + 1, m)]
-            w[j][j] = g.where(trivial, alpha, beta)
-            for i in range(j + 1, m):
-                w[i][j] = zero
-            for c in range(j + 1, k):  # w[j:, c] -= tau v (v^T w[j:, c])
-                dot = w[j][c]
-                for i in range(j + 1, m):
-                    dot = g.binary("add", dot, g.binary("mul", v[i - j], w[i][c]))
-                s = g.binary("mul", tau, dot)
-                for i in range(j, m):
-                    w[i][c] = g.binary("sub", w[i][c], g.binary("mul", s, v[i - j]))
-            reflectors.append((j, v, tau))
-        r_out[idx] = np.array([[w[i][j] if j >= i else zero for j in range(k)] for i in range(p)], dtype=object)
-        if want_q:
-            qm = [[one if i == c else zero for c in range(p)] for i in range(m)]
-            for j, v, tau in reversed(reflectors):
-                for c in range(p):
-                    dot = zero
-                    for i in range(j, m):
-                        dot = g.binary("add", dot, g.binary("mul", v[i - j], qm[i][c]))
-                    s = g.binary("mul", tau, dot)
-                    for i in range(j, m):
-                        qm[i][c] = g.binary("sub", qm[i][c], g.binary("mul", s, v[i - j]))
+        qm, r = householder([[a[idx][i, j] for j in range(k)] for i in range(m)], ar, want_q=want_q, guard_sqrt=False)
+        r_out[idx] = np.array(r, dtype=object)
+        if qm is not None:
             q_out[idx] = np.array(qm, dtype=object)
     return q_out, r_out
 

@@ -18,10 +18,13 @@ to that floor (the reference retries with jitter) and reports the number of clam
 
 from __future__ import annotations
 
+import operator
 from typing import Any
 
 import torch
 from torch import Tensor
+
+from .householder import Arithmetic, householder
 
 __all__ = ["MAX_CONTRACTION", "SmallLinalg", "cholesky_lower", "householder_qr", "small_matmul", "solve_triangular"]
 
@@ -100,46 +103,26 @@ def householder_qr(a: Tensor, mode: str = "reduced") -> tuple[Tensor, Tensor]:
     """
     if mode not in ("reduced", "r"):
         raise ValueError(f"householder_qr: mode must be 'reduced' or 'r', got {mode!r}")
-    m, k = a.shape[-2:]
-    p = min(m, k)
     w = _elements(a)
     zero, one = torch.zeros_like(w[0][0]), torch.ones_like(w[0][0])
-    reflectors = []
-    for j in range(p):
-        alpha = w[j][j]
-        xnorm2 = zero
-        for i in range(j + 1, m):
-            xnorm2 = xnorm2 + w[i][j] * w[i][j]
-        trivial = xnorm2 == 0
-        norm = torch.sqrt(alpha * alpha + torch.where(trivial, one, xnorm2))  # safe operand: not selected when trivial
-        beta = torch.where(alpha < 0, norm, -norm)
-        safe = torch.where(trivial, one, alpha - beta)
-        tau = torch.where(trivial, zero, (beta - alpha) / torch.where(trivial, one, beta))
-        v = [one] + [w[i][j] / safe for i in range(j + 1, m)]
-        w[j][j] = torch.where(trivial, alpha, beta)
-        for i in range(j + 1, m):
-            w[i][j] = zero
-        for c in range(j + 1, k):  # w[j:, c] -= tau v (v^T w[j:, c])
-            dot = w[j][c]
-            for i in range(j + 1, m):
-                dot = dot + v[i - j] * w[i][c]
-            s = tau * dot
-            for i in range(j, m):
-                w[i][c] = w[i][c] - s * v[i - j]
-        reflectors.append((j, v, tau))
-    r = _stack([[w[i][j] if j >= i else zero for j in range(k)] for i in range(p)])
-    if mode == "r":
-        return a.new_zeros(0), r
-    qm = [[one if i == c else zero for c in range(p)] for i in range(m)]
-    for j, v, tau in reversed(reflectors):
-        for c in range(p):
-            dot = zero
-            for i in range(j, m):
-                dot = dot + v[i - j] * qm[i][c]
-            s = tau * dot
-            for i in range(j, m):
-                qm[i][c] = qm[i][c] - s * v[i - j]
-    return _stack(qm), r
+    q, r = householder(w, _tensor_arithmetic(zero, one), want_q=mode == "reduced", guard_sqrt=True)
+    return (a.new_zeros(0) if q is None else _stack(q)), _stack(r)
+
+
+def _tensor_arithmetic(zero: Tensor, one: Tensor) -> Arithmetic:
+    return Arithmetic(
+        add=operator.add,
+        sub=operator.sub,
+        mul=operator.mul,
+        div=operator.truediv,
+        neg=operator.neg,
+        sqrt=torch.sqrt,
+        lt=operator.lt,
+        eq=operator.eq,
+        where=torch.where,
+        zero=zero,
+        one=one,
+    )
 
 
 def small_matmul(a: Tensor, b: Tensor) -> Tensor:

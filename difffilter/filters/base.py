@@ -180,6 +180,7 @@ class RecursiveFilter(Filter):
         z, mask3, mean0, cov0 = self.check_inputs(measurements, initial_mean, initial_cov, mask, controls)
         if belief is None and (mean0 is None or cov0 is None):
             raise ValueError("initial_mean and initial_cov are required unless belief= is given")
+        controls = self.precompute_controls(controls)
         steps = z.shape[1]
         means, covs, pmeans, pcovs, lls, nis, nobs = [], [], [], [], [], [], []
         extras: dict[str, list[Tensor]] = {}

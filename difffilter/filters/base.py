@@ -139,6 +139,9 @@ class RecursiveFilter(Filter):
             else (controls[:, None] if isinstance(controls, Tensor) else {k: v[:, None] for k, v in controls.items()})
         )
         z, mk, _, _ = self.check_inputs(z, None, None, mk, u)
+        if u is not None:
+            # the models' derived inputs, once for every mode of a mixer (precompute_controls)
+            controls = slice_controls(self.precompute_controls(u), 0)
         with parametrize.cached():
             prior = self.predict(belief, controls)
             post, info = self.update(prior, z[:, 0], None if mk is None else mk[:, 0], controls)

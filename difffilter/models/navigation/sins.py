@@ -28,6 +28,7 @@ integration); the error then restarts from ``x - feedback``, i.e. ``x_k = Phi_k 
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 
 import torch
 from torch import Tensor
@@ -282,7 +283,7 @@ class SinsErrorDynamics(DynamicsModel):
         ``Q``, so the per-step matrix exponentials of a run (and of every IMM mode of this
         configuration) become one.  Inputs without the SINS entries (or not a dict) are returned
         unchanged (the per-step path then reports what is missing)."""
-        if not isinstance(controls, dict) or not all(k in controls for k in ("llh", "vel", "f_n", "C_bn")):
+        if not isinstance(controls, Mapping) or not all(k in controls for k in ("llh", "vel", "f_n", "C_bn")):
             return controls
         key = self.transition_key
         if key in controls:
@@ -297,7 +298,7 @@ class SinsErrorDynamics(DynamicsModel):
         return {**controls, key: self._transition(controls)}
 
     def matrix(self, u: Controls = None) -> Tensor:
-        if isinstance(u, dict):
+        if isinstance(u, Mapping):
             phi = u.get(self.transition_key)
             if phi is not None:
                 return phi

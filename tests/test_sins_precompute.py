@@ -188,5 +188,23 @@ def test_online_step_builds_one_transition_per_step_for_all_modes(flights, monke
     belief = imm.initial_belief(flights.initial_mean, flights.initial_cov, 3, controls=slice_controls(u, 0))
     calls.clear()
     for t in range(4):
-        belief, _, _ = imm.step(belief, flights.measurements[:, t], None if flights.mask is None else flights.mask[:, t], slice_controls(u, t))
+        belief, _, _ = imm.step(
+            belief, flights.measurements[:, t], None if flights.mask is None else flights.mask[:, t], slice_controls(u, t)
+        )
     assert len(calls) == 4
+
+
+def test_forward_builds_derived_inputs_in_bounded_blocks(flights, monkeypatch: pytest.MonkeyPatch) -> None:
+    import difffilter.filters.base as base
+
+    imm = p003_imm(model=_opts(), transition=((0.95, 0.05), (0.1, 0.9)))
+    args = (flights.measurements, flights.initial_mean, flights.initial_cov)
+    whole = imm(*args, mask=flights.mask, controls=dict(flights.controls))
+    calls = []
+    original = SinsErrorDynamics._transition
+    monkeypatch.setattr(SinsErrorDynamics, "_transition", lambda self, u: calls.append(u["llh"].shape[1]) or original(self, u))
+    monkeypatch.setattr(base, "PRECOMPUTE_BLOCK", 15)  # B = 3: blocks of 5 steps
+    blocks = imm(*args, mask=flights.mask, controls=dict(flights.controls))
+    assert calls == [5, 5, 2]  # T = 12
+    assert torch.allclose(blocks.mean, whole.mean, rtol=1e-12, atol=1e-12)
+    assert torch.allclose(blocks.log_likelihood, whole.log_likelihood, rtol=1e-12, atol=1e-10)

@@ -201,7 +201,10 @@ class SinsErrorDynamics(DynamicsModel):
     evaluated at the INS-indicated navigation solution in ``u``.  Process noise by the trapezoidal
     rule ``Q_d = (Phi Q Phi^T + Q) dt / 2``.  :meth:`discrete_system` returns ``(Phi, Q_d)`` and
     :meth:`linear_prediction` ``(Phi x, Phi, Q_d)`` from one construction of ``F`` (what
-    :class:`~difffilter.filters.SimplifiedUKF` uses: ``F`` and ``expm`` dominate the step cost).
+    :class:`~difffilter.filters.SimplifiedUKF` uses).  ``Phi`` depends on the inputs only, so
+    :meth:`precompute_controls` (called by every filter's ``forward``) builds it for the whole
+    ``[B, T]`` run in one batched call, shared by the IMM modes of one configuration; the steps
+    read it from ``u`` (a step without it builds its own).
 
     Learnable: ``Q``, the **continuous-time** PSD matrix ``[20, 20]`` (default structure
     ``"scalar"``: one positive scale on :func:`sins_noise_psd`, the per-mode scale of p003's IMM).

@@ -1,0 +1,232 @@
+"""Re-run every computation behind the papers' results (``results/p00*.md``) with one command.
+
+    python experiments/reproduce.py --dry-run           # list the jobs and their commands
+    python experiments/reproduce.py                     # everything, 2 jobs at a time (2 cores)
+    python experiments/reproduce.py --only p001 p004    # the jobs whose name starts with one of these
+    python experiments/reproduce.py -j 1 --out outputs/reproduce
+
+A *job* is one seed sweep (``experiments/train.py -m ... seed=0,1,2,3,4``) with the commands that
+read its output (learned values, the in-distribution test of the best-validation checkpoints, the
+paired analysis on the paper's profile), run in order in one shell; jobs are independent of each
+other and run ``-j`` at a time, the longest first (every command already uses ``threads=1``).  Each
+command is written verbatim as it appears in its results file (``tests/test_reproduce.py`` checks
+that), so a job's output directory is the one the results file cites and its ``summary.md`` can be
+compared with the table there.  The results files and ``results/REPORT.md`` are written by hand
+from those summaries (``python experiments/report.py`` collects them), so this script recomputes
+the evidence; it does not edit the results.
+
+Every job's wall time and CPU time (user + system of the job's shell and everything it ran) are
+appended to ``<out>/times.tsv`` and summed at the end: the "full REPORT regenerates in <= 2 h on
+2 cores" figure of issue 14 is that sum's wall time.  A job's stdout/stderr go to
+``<out>/<job>.log``; a failing job is reported and the others go on (exit status 1 at the end).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import time
+from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+__all__ = ["JOBS", "Job", "main", "select_jobs"]
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@dataclass(frozen=True)
+class Job:
+    """One sweep and the commands that read it.
+
+    Attributes:
+        name: ``<paper>_<family>``; ``--only`` selects by prefix.
+        results: the results file (under ``results/``) whose numbers the job recomputes.
+        cpu_s: CPU seconds it took when its results were produced (the order of the queue).
+        commands: shell commands, run in order from the repository root; the job stops at the first failure.
+    """
+
+    name: str
+    results: str
+    cpu_s: float
+    commands: tuple[str, ...]
+
+
+def _indist(sweep: str) -> tuple[str, str]:
+    """The in-distribution test of a sweep's best-validation checkpoints (link them, evaluate them)."""
+    link = (
+        f"mkdir -p outputs/sweeps/{sweep}_best && "
+        f"for s in 0 1 2 3 4; do ln -sf $PWD/$(ls outputs/sweeps/{sweep}/$s/checkpoints/epoch_*.ckpt) "
+        f"outputs/sweeps/{sweep}_best/$s.ckpt; done"
+    )
+    test = (
+        f"python experiments/eval.py -m seed=0,1,2,3,4 'ckpt_path=outputs/sweeps/{sweep}_best/${{seed}}.ckpt' "
+        f"config_from_checkpoint=false experiment={sweep} data.test_simulator.randomize=true logger=csv "
+        f"hydra.sweep.dir=outputs/sweeps/{sweep}_indist"
+    )
+    return link, test
+
+
+def _final(experiment: str, sweep: str, extra: str = "") -> str:
+    extra = f" {extra}" if extra else ""
+    return f"python experiments/train.py -m experiment={experiment}{extra} seed=0,1,2,3,4 hydra.sweep.dir=outputs/final/{sweep}"
+
+
+def _sweep(experiment: str, sweep: str | None = None) -> tuple[str, str]:
+    sweep = sweep or experiment
+    return (
+        f"python experiments/train.py -m experiment={experiment} seed=0,1,2,3,4 logger=csv hydra.sweep.dir=outputs/sweeps/{sweep}",
+        f"python experiments/learned_values.py sweep_dir=outputs/sweeps/{sweep}",
+    )
+
+
+def _sweep_and_test(experiment: str) -> tuple[str, ...]:
+    """A sweep over seeds, its learned values, and the in-distribution test of its checkpoints."""
+    return (*_sweep(experiment), *_indist(experiment))
+
+
+def _p003(experiment: str) -> tuple[str, str]:
+    return (
+        f"python experiments/train.py -m experiment={experiment} seed=0,1,2,3,4 learner.init_perturbation=0.3 logger=csv "
+        f"hydra.sweep.dir=outputs/p003_final/{experiment}",
+        f"python experiments/p003_paired.py sweep_dir=outputs/p003_final/{experiment}",
+    )
+
+
+def _diagnostic(seed: int, name: str, accel: str, bias: str, drift: str, r: str, psi: str) -> str:
+    """p001's diagnostic run: the per-channel filter started from given values (no perturbation)."""
+    start = f"accel_psd:[{accel}],clock_bias_psd:{bias},clock_drift_psd:{drift},R:[{','.join([r] * 7)}],psi:[{psi}]"
+    return (
+        f"python experiments/train.py experiment=p001_multipath logger=csv learner.init_perturbation=0 seed={seed} "
+        f"'learner.start_params={{{start}}}' hydra.run.dir=outputs/sweeps/p001_multipath_diag/{name}"
+    )
+
+
+_SEED3 = (
+    "1.174280025597408e-10,1.0355852011337935e-10,1.0179549044914812e-10",
+    "0.00884490415465248",
+    "0.0001009279278349384",
+    "10.25746491784498",
+)
+_SEED3_PSI = "0.5324177893726738,0.7932312298914563,0.900316999333693,{},0.6587029436416691,0.8181714107945728,0.8762549752454494"
+_SEED2 = (
+    "1.0816194026170879e-10,9.562720802221059e-11,9.380987550453708e-11",
+    "0.007858357937557346",
+    "0.00012323127752031612",
+    "8.902411665340848",
+)
+_SEED2_PSI = "0.6167321346094314,0.477924874564142,0.5050480703412692,0.5116023452183369,0.99,0.8341906082956223,0.5631344076349061"
+_DIAGNOSTICS = (
+    _diagnostic(3, "seed3_control", *_SEED3, _SEED3_PSI.format("0.9999979999999999")),
+    _diagnostic(3, "seed3_start099", *_SEED3, _SEED3_PSI.format("0.99")),
+    _diagnostic(2, "seed2_start099", *_SEED2, _SEED2_PSI),
+)
+
+_SIGMA_SWEEP = "python -m difffilter.papers.p000.sigma_sweep --out outputs/p000_sigma_sweep/rows.csv"
+_UKF_ONLY = "filter=p002_ukf 'learn=[Q,R]' '~experiment.hand_tuned.rho'"
+
+#: Every job behind results/p00*.md (CPU seconds from results/p00_compute_budget.md).
+JOBS: tuple[Job, ...] = (
+    Job("p000_infamily", "p000_gpsdr.md", 212, (_final("p000_infamily", "p000_infamily"),)),
+    Job("p000_gyro", "p000_gpsdr.md", 430, (_final("p000_gpsdr", "p000_gyro", "scenario=p000_gyro"),)),
+    Job("p000_gps", "p000_gpsdr.md", 431, (_final("p000_gpsdr", "p000_gps", "scenario=p000_gps"),)),
+    Job("p000_odometer", "p000_gpsdr.md", 432, (_final("p000_gpsdr", "p000_odometer", "scenario=p000_odometer"),)),
+    Job("p000_nominal", "p000_gpsdr.md", 384, (_final("p000_gpsdr", "p000_nominal", "scenario=p000_random"),)),
+    Job("p000_sigma_sweep", "p000_gpsdr.md", 290, (_SIGMA_SWEEP,)),
+    Job("p001_colored", "p001_colored.md", 339, _sweep("p001_colored")),
+    Job("p001_multipath", "p001_multipath.md", 348, _sweep_and_test("p001_multipath")),
+    Job("p001_multipath_shared", "p001_multipath.md", 344, _sweep_and_test("p001_multipath_shared")),
+    Job("p001_multipath_diagnostics", "p001_multipath.md", 261, _DIAGNOSTICS),
+    Job("p001_elevation", "p001_elevation.md", 360, _sweep_and_test("p001_elevation")),
+    Job("p002_infamily", "p002_pdr.md", 203, (_final("p002_infamily", "p002_infamily"),)),
+    Job("p002_disturbed_rcukf", "p002_pdr.md", 242, (_final("p002_pdr", "p002_disturbed_rcukf", "scenario=p002_disturbed"),)),
+    Job("p002_disturbed_ukf", "p002_pdr.md", 134, (_final("p002_pdr", "p002_disturbed_ukf", f"scenario=p002_disturbed {_UKF_ONLY}"),)),
+    Job("p002_pdr_rcukf", "p002_pdr.md", 195, (_final("p002_pdr", "p002_pdr_rcukf", "scenario=p002_pdr"),)),
+    Job("p002_pdr_ukf", "p002_pdr.md", 153, (_final("p002_pdr", "p002_pdr_ukf", f"scenario=p002_pdr {_UKF_ONLY}"),)),
+    Job("p003_modes", "p003_imm_sins.md", 556, _p003("p003_modes")),
+    Job("p003_physical", "p003_imm_sins.md", 556, _p003("p003_physical")),
+    Job("p003_imm_sins", "p003_imm_sins.md", 556, _p003("p003_imm_sins")),
+    Job("p004_blend", "p004_blend.md", 335, _sweep("p004_blend")),
+    Job("p004_outage", "p004_blend.md", 395, _sweep_and_test("p004_outage")),
+    Job("p004_mems", "p004_mems.md", 352, _sweep_and_test("p004_mems")),
+    Job("p004_urban", "p004_urban.md", 369, _sweep_and_test("p004_urban")),
+)
+
+
+def select_jobs(only: Sequence[str] | None = None, jobs: Sequence[Job] = JOBS) -> list[Job]:
+    """The jobs whose name starts with one of ``only`` (all when empty), longest (by ``cpu_s``) first.
+
+    Raises:
+        ValueError: a prefix of ``only`` matches no job.
+    """
+    chosen = list(jobs)
+    if only:
+        for prefix in only:
+            if not any(j.name.startswith(prefix) for j in jobs):
+                raise ValueError(f"--only: {prefix!r} matches no job (jobs: {', '.join(j.name for j in jobs)})")
+        chosen = [j for j in jobs if any(j.name.startswith(p) for p in only)]
+    return sorted(chosen, key=lambda j: -j.cpu_s)
+
+
+def _run(job: Job, out: Path) -> tuple[Job, int, float, float]:
+    """Run ``job``'s commands in one shell; return (job, exit status, wall s, CPU s of the shell and its children)."""
+    script = "set -e\n" + "\n".join(job.commands) + "\n"
+    with open(out / f"{job.name}.log", "w") as log:
+        start = time.perf_counter()
+        proc = subprocess.Popen(["bash", "-c", script], cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
+        _, status, usage = os.wait4(proc.pid, 0)
+        proc.returncode = os.waitstatus_to_exitcode(status)
+        wall = time.perf_counter() - start
+    return job, proc.returncode, wall, usage.ru_utime + usage.ru_stime
+
+
+def main(argv: Sequence[str] | None = None, jobs: Sequence[Job] = JOBS) -> int:
+    """Command-line entry point (``jobs``: the job table, replaced in tests); returns the exit status."""
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("-j", "--jobs", type=int, default=2, help="jobs at a time (default 2: one per core)")
+    parser.add_argument("--only", nargs="+", default=None, help="job name prefixes (default: every job)")
+    parser.add_argument("--out", type=Path, default=Path("outputs/reproduce"), help="logs and times.tsv (default outputs/reproduce)")
+    parser.add_argument("--dry-run", action="store_true", help="print the jobs' commands and stop")
+    args = parser.parse_args(argv)
+    if args.jobs < 1:
+        parser.error(f"-j/--jobs must be a positive integer, got {args.jobs}")
+    try:
+        jobs = select_jobs(args.only, jobs)
+    except ValueError as err:
+        parser.error(str(err))
+    if args.dry_run:
+        for job in jobs:
+            print(f"# {job.name} (results/{job.results}, ~{job.cpu_s:.0f} CPU s when recorded)")
+            print("\n".join(job.commands))
+        print(f"# {len(jobs)} jobs, ~{sum(j.cpu_s for j in jobs) / 60:.0f} CPU min when recorded")
+        return 0
+    out = args.out if args.out.is_absolute() else ROOT / args.out
+    out.mkdir(parents=True, exist_ok=True)
+    failed: list[str] = []
+    start = time.perf_counter()
+    cpu_total = 0.0
+    with open(out / "times.tsv", "a") as times, ThreadPoolExecutor(max_workers=args.jobs) as pool:
+        times.write("job\tstatus\twall_s\tcpu_s\n")
+        for job, status, wall, cpu in pool.map(lambda j: _run(j, out), jobs):
+            cpu_total += cpu
+            times.write(f"{job.name}\t{status}\t{wall:.1f}\t{cpu:.1f}\n")
+            times.flush()
+            print(f"{job.name}: {'ok' if status == 0 else f'FAILED ({status})'}, wall {wall:.0f} s, CPU {cpu:.0f} s", flush=True)
+            if status:
+                failed.append(job.name)
+    wall = time.perf_counter() - start
+    summary = f"all\t{len(failed)} failed\t{wall:.1f}\t{cpu_total:.1f}\n"
+    with open(out / "times.tsv", "a") as times:
+        times.write(summary)
+    print(f"{len(jobs)} jobs, {args.jobs} at a time: wall {wall / 60:.1f} min, CPU {cpu_total / 60:.1f} min; logs in {out}")
+    if failed:
+        print(f"failed: {', '.join(failed)} (see {out}/<job>.log)", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

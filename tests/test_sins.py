@@ -171,10 +171,20 @@ def test_simplified_ukf_builds_F_once_per_predict_with_unchanged_results(monkeyp
     kw = {"mask": sc.mask, "controls": sc.controls}
     model = make_p003_model(position_in_metres=True)
     new = SimplifiedUKF(model)(*args, **kw)
-    assert len(calls) == 31  # one F per predict, and one for the diffuse-prior check before the first step
+    # forward builds F once for the whole [B, T] run (SinsErrorDynamics.precompute_controls) and every
+    # predict, and the diffuse-prior check, read it
+    assert len(calls) == 1
     calls.clear()
     old = ThreeCallSUKF(model)(*args, **kw)
-    assert len(calls) == 91
+    assert len(calls) == 1
+    calls.clear()
+    # without the precomputed entry (the model on one step's inputs) each of the three calls builds F
+    one = {k: v[:, 0] for k, v in sc.controls.items()}
+    ThreeCallSUKF(model).predict({"mean": sc.initial_mean, "cov": sc.initial_cov}, one)
+    assert len(calls) == 3
+    calls.clear()
+    SimplifiedUKF(model).predict({"mean": sc.initial_mean, "cov": sc.initial_cov}, one)
+    assert len(calls) == 1
     torch.testing.assert_close(new.mean, old.mean, rtol=0, atol=0)
     torch.testing.assert_close(new.cov, old.cov, rtol=0, atol=0)
     torch.testing.assert_close(new.log_likelihood, old.log_likelihood, rtol=0, atol=0)
@@ -183,7 +193,7 @@ def test_simplified_ukf_builds_F_once_per_predict_with_unchanged_results(monkeyp
     high = make_p003_model(q_scale=1e4, position_in_metres=True)
     imm = IMM([SimplifiedUKF(model), SimplifiedUKF(high)], pi, torch.tensor([0.9, 0.1], dtype=F64))
     imm(*args, **kw)
-    assert len(calls) == 62  # one per mode and step, and one per mode for the diffuse-prior check
+    assert len(calls) == 1  # one for both modes (same settings), every step and the diffuse-prior check
 
 
 def test_schuler_oscillation_of_a_stationary_ins() -> None:

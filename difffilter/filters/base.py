@@ -40,6 +40,7 @@ from .protocol import Belief, Filter, FilterResult
 from .update import diffuse_gaussian_update, gaussian_update, square_root_deviations, untrusted_steps
 
 __all__ = [
+    "PRECOMPUTE_BLOCK",
     "Belief",
     "FilterResult",
     "GaussianFilter",
@@ -55,6 +56,12 @@ __all__ = [
     "square_root_deviations",
     "through_diffuse_phase",
 ]
+
+
+#: Trajectory-steps per block whose derived inputs (:meth:`~difffilter.filters.protocol.Filter.precompute_controls`)
+#: ``forward`` builds in one call: ``T`` steps at once up to ``B T = 8192`` (a ``[B, T, 20, 20]``
+#: float64 transition is then 26 MB), blocks of ``8192 // B`` steps beyond.
+PRECOMPUTE_BLOCK = 8192
 
 
 class RecursiveFilter(Filter):
@@ -139,6 +146,9 @@ class RecursiveFilter(Filter):
             else (controls[:, None] if isinstance(controls, Tensor) else {k: v[:, None] for k, v in controls.items()})
         )
         z, mk, _, _ = self.check_inputs(z, None, None, mk, u)
+        if u is not None:
+            # the models' derived inputs, once for every mode of a mixer (precompute_controls)
+            controls = slice_controls(self.precompute_controls(u), 0)
         with parametrize.cached():
             prior = self.predict(belief, controls)
             post, info = self.update(prior, z[:, 0], None if mk is None else mk[:, 0], controls)
@@ -181,14 +191,19 @@ class RecursiveFilter(Filter):
         if belief is None and (mean0 is None or cov0 is None):
             raise ValueError("initial_mean and initial_cov are required unless belief= is given")
         steps = z.shape[1]
+        # the models' derived inputs, built for a block of steps at a time (bounded memory)
+        block = max(1, PRECOMPUTE_BLOCK // z.shape[0])
+        derived = self.precompute_controls(slice_steps(controls, 0, block))
         means, covs, pmeans, pcovs, lls, nis, nobs = [], [], [], [], [], [], []
         extras: dict[str, list[Tensor]] = {}
         flags: list[tuple[Tensor | None, Tensor | None, bool]] = []
         with parametrize.cached():
             if belief is None:
-                belief = self.start_belief(mean0, cov0, slice_controls(controls, 0))
+                belief = self.start_belief(mean0, cov0, slice_controls(derived, 0))
             for t in range(steps):
-                u = slice_controls(controls, t)
+                if t and t % block == 0:
+                    derived = self.precompute_controls(slice_steps(controls, t, t + block))
+                u = slice_controls(derived, t % block)
                 prior = self.predict(belief, u)
                 post, info = self.update(prior, z[:, t], None if mask3 is None else mask3[:, t], u)
                 belief = self.finalize_belief(post)

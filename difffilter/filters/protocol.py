@@ -121,6 +121,16 @@ class Filter(nn.Module):
         """Filter ``measurements [B, T, m]`` from ``(initial_mean, initial_cov)`` or ``belief``."""
         raise NotImplementedError
 
+    def precompute_controls(self, controls: Controls) -> Controls:
+        """``controls [B, T, ...]`` with the entries that this filter's models derive from them
+        for every step at once (:meth:`~difffilter.models.base.DynamicsModel.precompute_controls`
+        of each dynamics and measurement model, in module order); called by ``forward`` after
+        :meth:`check_inputs` and before the time loop.  Unchanged when no model derives any."""
+        for module in self.modules():
+            if isinstance(module, (DynamicsModel, MeasurementModel)):
+                controls = module.precompute_controls(controls)
+        return controls
+
     # -- validation shared by every filter --------------------------------------------------
     def _param_dtype(self) -> torch.dtype | None:
         for p in self.parameters():

@@ -96,6 +96,21 @@ class DynamicsModel(nn.Module):
         """Check the whole run's inputs ``[B, T, ...]`` before filtering; raise ``ValueError``
         naming the input and the batch element(s) that are invalid (default: nothing to check)."""
 
+    def precompute_controls(self, controls: Controls) -> Controls:
+        """Whole-run inputs ``[B, T, ...]`` with entries derived from them added, computed once
+        for every step before the time loop (default: ``controls`` unchanged).
+
+        For a model whose per-step matrices depend on the inputs only (not on the state or on
+        parameters), e.g. a transition matrix ``Phi = expm(F(u) dt)``, one batched call over
+        ``[B, T]`` replaces ``T`` per-step calls.  The filters call it in ``forward`` after
+        validating the inputs; a model reads a derived entry in :meth:`matrix` etc. when present
+        and computes it itself otherwise (a single :meth:`~difffilter.filters.RecursiveFilter.step`
+        call, a model used on its own), with equal results.  Derived entries are named so that
+        two models that compute different values never share a key; a model whose key is
+        already present (another mode of an IMM with the same configuration) leaves it as is.
+        """
+        return controls
+
     #: ``False`` when the model declares non-additive process noise ``x_k = f(x, w, u)``: it then
     #: implements :meth:`with_noise`, and ``forward(x, u)`` is ``f(x, 0, u)``.
     additive_noise: bool = True
@@ -145,6 +160,10 @@ class MeasurementModel(nn.Module):
 
     def validate_controls(self, controls: Controls) -> None:
         """As :meth:`DynamicsModel.validate_controls`."""
+
+    def precompute_controls(self, controls: Controls) -> Controls:
+        """As :meth:`DynamicsModel.precompute_controls` (default: ``controls`` unchanged)."""
+        return controls
 
     #: ``False`` when the model declares non-additive measurement noise ``z = h(x, v, u)``: it
     #: then implements :meth:`with_noise`, and ``forward(x, u)`` is ``h(x, 0, u)``.

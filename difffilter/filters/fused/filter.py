@@ -165,6 +165,7 @@ class FusedFilter(nn.Module):
         """Same arguments and result as :meth:`RecursiveFilter.forward` of the wrapped filter."""
         filt = self.filter
         z, mask3, mean0, cov0 = filt.check_inputs(measurements, initial_mean, initial_cov, mask, controls)
+        controls = filt.precompute_controls(controls)
         if belief is None:
             if mean0 is None or cov0 is None:
                 raise ValueError("initial_mean and initial_cov are required unless belief= is given")

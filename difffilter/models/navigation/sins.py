@@ -28,6 +28,7 @@ integration); the error then restarts from ``x - feedback``, i.e. ``x_k = Phi_k 
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 
 import torch
 from torch import Tensor
@@ -200,7 +201,10 @@ class SinsErrorDynamics(DynamicsModel):
     evaluated at the INS-indicated navigation solution in ``u``.  Process noise by the trapezoidal
     rule ``Q_d = (Phi Q Phi^T + Q) dt / 2``.  :meth:`discrete_system` returns ``(Phi, Q_d)`` and
     :meth:`linear_prediction` ``(Phi x, Phi, Q_d)`` from one construction of ``F`` (what
-    :class:`~difffilter.filters.SimplifiedUKF` uses: ``F`` and ``expm`` dominate the step cost).
+    :class:`~difffilter.filters.SimplifiedUKF` uses).  ``Phi`` depends on the inputs only, so
+    :meth:`precompute_controls` (called by every filter's ``forward``) builds it for the whole
+    ``[B, T]`` run in one batched call, shared by the IMM modes of one configuration; the steps
+    read it from ``u`` (a step without it builds its own).
 
     Learnable: ``Q``, the **continuous-time** PSD matrix ``[20, 20]`` (default structure
     ``"scalar"``: one positive scale on :func:`sins_noise_psd`, the per-mode scale of p003's IMM).
@@ -267,7 +271,44 @@ class SinsErrorDynamics(DynamicsModel):
             F[..., idx, idx] = F[..., idx, idx] + rate
         return F
 
+    @property
+    def transition_key(self) -> str:
+        """Name of the ``Phi`` entry that :meth:`precompute_controls` adds: it spells out every
+        setting ``Phi`` depends on besides the inputs, so models that would compute different
+        matrices never share one (two IMM modes of one configuration do)."""
+        unit = "m" if self.position_in_metres else "rad"
+        times = f"{self.gyro_markov_time!r},{self.accel_markov_time!r},{self.clock_time!r}"
+        return f"sins.Phi[{self.discretization},{unit},{times},dt={self.dt!r}]"
+
+    def precompute_controls(self, controls: Controls) -> Controls:
+        """Add ``Phi [B, T, 20, 20]`` (:meth:`matrix` of every step, one batched call) under
+        :attr:`transition_key`.  ``Phi`` depends on the INS inputs only, not on the state or on
+        ``Q``, so the per-step matrix exponentials of a run (and of every IMM mode of this
+        configuration) become one.  Inputs without the SINS entries (or not a dict) are returned
+        unchanged (the per-step path then reports what is missing)."""
+        if not isinstance(controls, Mapping) or not all(k in controls for k in ("llh", "vel", "f_n", "C_bn")):
+            return controls
+        key = self.transition_key
+        if key in controls:
+            phi = controls[key]
+            lead = controls["llh"].shape[:-1]
+            if not isinstance(phi, Tensor) or tuple(phi.shape) != (*lead, 20, 20):
+                shape = tuple(phi.shape) if isinstance(phi, Tensor) else type(phi).__name__
+                raise ValueError(f"controls[{key!r}] must be a tensor [B, T, 20, 20] = [{', '.join(map(str, lead))}, 20, 20], got {shape}")
+            return controls
+        if "dt" not in controls and self.dt is None:
+            return controls
+        return {**controls, key: self._transition(controls)}
+
     def matrix(self, u: Controls = None) -> Tensor:
+        if isinstance(u, Mapping):
+            phi = u.get(self.transition_key)
+            if phi is not None:
+                return phi
+        return self._transition(u)
+
+    def _transition(self, u: Controls) -> Tensor:
+        """``Phi = expm(F dt)`` (or its series) of the inputs ``u [..., ...]``."""
         F = self.continuous_matrix(u)
         a = F * self._dt(u, F)[..., None, None]
         if self.discretization == "expm":

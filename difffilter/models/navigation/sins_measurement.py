@@ -3,6 +3,8 @@ differences INS - GPS (state layout and inputs: :mod:`difffilter.models.navigati
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 import torch
 from torch import Tensor
 
@@ -56,18 +58,52 @@ class SinsPseudorangeMeasurement(MeasurementModel):
             R = torch.diag(torch.tensor(var, dtype=dtype))
         register_covariance(self, "R", R, R_structure)
 
+    def precompute_controls(self, controls: Controls) -> Controls:
+        """Add the INS-only geometry of the nonlinear form for every step at once: ``a_j``
+        (``"sins.los" [B, T, K, 3]``), ``||a_j||`` (``"sins.range" [B, T, K]``), the metre scale of
+        the position states (``"sins.scale" [B, T, 3]``) and, with rates, ``w_I``
+        (``"sins.ins_rate" [B, T, K, 3]``).  They depend on the inputs only (not on the state, the
+        parameters or this model's settings), so :meth:`forward` of every sigma point, step and
+        IMM mode reads them instead of recomputing them.  Inputs without ``llh``/``sat_pos``
+        (or a linearized model) are returned unchanged."""
+        if self.linearized or not isinstance(controls, Mapping) or "llh" not in controls or "sat_pos" not in controls:
+            return controls
+        out = dict(controls)
+        llh = controls["llh"]
+        if "sins.los" not in out:
+            a = geo.geodetic_to_ecef(llh)[..., None, :] - controls["sat_pos"]
+            out["sins.los"], out["sins.range"] = a, torch.linalg.vector_norm(a, dim=-1)
+        if "sins.scale" not in out:
+            out["sins.scale"] = _position_scale(llh)
+        if self.rates and "sins.ins_rate" not in out and "vel" in controls and "sat_vel" in controls:
+            out["sins.ins_rate"] = self._ins_rate(controls)
+        return out
+
+    @staticmethod
+    def _ins_rate(u: Controls) -> Tensor:
+        """``w_I = C_n^e(llh_I) v_I - sdot_j`` ``[..., K, 3]``."""
+        llh = _get(u, "llh")
+        c_i = geo.enu_rotation(llh[..., 0], llh[..., 1])
+        return (_get(u, "vel")[..., None, :] @ c_i)[..., 0, None, :] - _get(u, "sat_vel")
+
+    @staticmethod
+    def _derived(u: Controls, key: str) -> Tensor | None:
+        return u.get(key) if isinstance(u, Mapping) else None
+
     def _errors(self, x: Tensor, u: Controls) -> tuple[Tensor, Tensor, Tensor]:
         llh = _get(u, "llh")
         pos = x[..., 0:3]
         if self.position_in_metres:
-            pos = pos / _position_scale(llh)
+            scale = self._derived(u, "sins.scale")
+            pos = pos / (_position_scale(llh) if scale is None else scale)
         return llh, pos, x[..., 3:6]
 
     def forward(self, x: Tensor, u: Controls = None) -> Tensor:
         llh, dllh, dv = self._errors(x, u)
-        s = _get(u, "sat_pos")
-        a = geo.geodetic_to_ecef(llh)[..., None, :] - s
-        na = torch.linalg.vector_norm(a, dim=-1)
+        a, na = self._derived(u, "sins.los"), self._derived(u, "sins.range")
+        if a is None or na is None:
+            a = geo.geodetic_to_ecef(llh)[..., None, :] - _get(u, "sat_pos")
+            na = torch.linalg.vector_norm(a, dim=-1)
         ea = a / na[..., None]
         if self.linearized:
             d = (geo.geodetic_jacobian(llh) @ dllh[..., None])[..., 0]
@@ -86,10 +122,11 @@ class SinsPseudorangeMeasurement(MeasurementModel):
         else:
             vel = _get(u, "vel")
             sv = _get(u, "sat_vel")
-            c_i = geo.enu_rotation(llh[..., 0], llh[..., 1])
+            w_i = self._derived(u, "sins.ins_rate")
+            if w_i is None:
+                w_i = self._ins_rate(u)
             true_llh = llh - dllh
             c_t = geo.enu_rotation(true_llh[..., 0], true_llh[..., 1])
-            w_i = (vel[..., None, :] @ c_i)[..., 0, None, :] - sv
             w_g = ((vel - dv)[..., None, :] @ c_t)[..., 0, None, :] - sv
             rate = (ea * w_i).sum(-1) - (b * w_g).sum(-1) / nb
         return torch.cat([rho, rate - x[..., 19, None]], -1)

@@ -55,37 +55,41 @@ class Job:
     commands: tuple[str, ...]
 
 
-def _indist(sweep: str) -> tuple[str, str]:
+def _indist(sweep: str, root: str = "outputs/sweeps") -> tuple[str, str]:
     """The in-distribution test of a sweep's best-validation checkpoints (link them, evaluate them)."""
     link = (
-        f"mkdir -p outputs/sweeps/{sweep}_best && "
-        f"for s in 0 1 2 3 4; do ln -sf $PWD/$(ls outputs/sweeps/{sweep}/$s/checkpoints/epoch_*.ckpt) "
-        f"outputs/sweeps/{sweep}_best/$s.ckpt; done"
+        f"mkdir -p {root}/{sweep}_best && "
+        f"for s in 0 1 2 3 4; do ln -sf $PWD/$(ls {root}/{sweep}/$s/checkpoints/epoch_*.ckpt) {root}/{sweep}_best/$s.ckpt; done"
     )
     test = (
-        f"python experiments/eval.py -m seed=0,1,2,3,4 'ckpt_path=outputs/sweeps/{sweep}_best/${{seed}}.ckpt' "
+        f"python experiments/eval.py -m seed=0,1,2,3,4 'ckpt_path={root}/{sweep}_best/${{seed}}.ckpt' "
         f"config_from_checkpoint=false experiment={sweep} data.test_simulator.randomize=true logger=csv "
-        f"hydra.sweep.dir=outputs/sweeps/{sweep}_indist"
+        f"hydra.sweep.dir={root}/{sweep}_indist"
     )
     return link, test
 
 
-def _final(experiment: str, sweep: str, extra: str = "") -> str:
+def _final(experiment: str, sweep: str, extra: str = "", root: str = "outputs/final") -> str:
     extra = f" {extra}" if extra else ""
-    return f"python experiments/train.py -m experiment={experiment}{extra} seed=0,1,2,3,4 hydra.sweep.dir=outputs/final/{sweep}"
+    return f"python experiments/train.py -m experiment={experiment}{extra} seed=0,1,2,3,4 hydra.sweep.dir={root}/{sweep}"
 
 
-def _sweep(experiment: str, sweep: str | None = None) -> tuple[str, str]:
-    sweep = sweep or experiment
-    return (
-        f"python experiments/train.py -m experiment={experiment} seed=0,1,2,3,4 logger=csv hydra.sweep.dir=outputs/sweeps/{sweep}",
-        f"python experiments/learned_values.py sweep_dir=outputs/sweeps/{sweep}",
-    )
+def _sweep(experiment: str, root: str = "outputs/sweeps", learned_values: bool = True) -> tuple[str, ...]:
+    train = f"python experiments/train.py -m experiment={experiment} seed=0,1,2,3,4 logger=csv hydra.sweep.dir={root}/{experiment}"
+    return (train, f"python experiments/learned_values.py sweep_dir={root}/{experiment}") if learned_values else (train,)
 
 
-def _sweep_and_test(experiment: str) -> tuple[str, ...]:
+def _sweep_and_test(experiment: str, root: str = "outputs/sweeps", learned_values: bool = True) -> tuple[str, ...]:
     """A sweep over seeds, its learned values, and the in-distribution test of its checkpoints."""
-    return (*_sweep(experiment), *_indist(experiment))
+    return (*_sweep(experiment, root, learned_values), *_indist(experiment, root))
+
+
+def _summary_copy(source: str, copy: str, option: str) -> tuple[str, str]:
+    """A sweep's jobs copied and summarised against another row (``summarize_sweep``'s ``option``)."""
+    return (
+        f"mkdir -p {copy} && cp -r {source}/{{0,1,2,3,4}} {copy}/",
+        f"python -c \"from difffilter.learn.sweep import summarize_sweep; summarize_sweep('{copy}', {option})\"",
+    )
 
 
 def _p003(experiment: str) -> tuple[str, str]:
@@ -128,7 +132,14 @@ _DIAGNOSTICS = (
 _SIGMA_SWEEP = "python -m difffilter.papers.p000.sigma_sweep --out outputs/p000_sigma_sweep/rows.csv"
 _UKF_ONLY = "filter=p002_ukf 'learn=[Q,R]' '~experiment.hand_tuned.rho'"
 
-#: Every job behind results/p00*.md (CPU seconds from results/p00_compute_budget.md).
+#: Output folder of the reruns with seeded starts of bounded parameters perturbed in logit space
+#: (results/p00_bounded_starts.md): they reproduce the current code's numbers of the families that
+#: learn a bounded value; the original rows of those families came from the old clamped starts
+#: (reproducible at commit 169863d, where the same commands wrote outputs/sweeps, outputs/final).
+RERUN = "outputs/rerun_logit"
+
+#: Every job behind the results/p00*.md numbers that the current code reproduces (CPU seconds
+#: measured when they were produced: results/p00_compute_budget.md, the reruns' own timings).
 JOBS: tuple[Job, ...] = (
     Job("p000_infamily", "p000_gpsdr.md", 212, (_final("p000_infamily", "p000_infamily"),)),
     Job("p000_gyro", "p000_gpsdr.md", 430, (_final("p000_gpsdr", "p000_gyro", "scenario=p000_gyro"),)),
@@ -136,23 +147,57 @@ JOBS: tuple[Job, ...] = (
     Job("p000_odometer", "p000_gpsdr.md", 432, (_final("p000_gpsdr", "p000_odometer", "scenario=p000_odometer"),)),
     Job("p000_nominal", "p000_gpsdr.md", 384, (_final("p000_gpsdr", "p000_nominal", "scenario=p000_random"),)),
     Job("p000_sigma_sweep", "p000_gpsdr.md", 290, (_SIGMA_SWEEP,)),
-    Job("p001_colored", "p001_colored.md", 339, _sweep("p001_colored")),
-    Job("p001_multipath", "p001_multipath.md", 348, _sweep_and_test("p001_multipath")),
-    Job("p001_multipath_shared", "p001_multipath.md", 344, _sweep_and_test("p001_multipath_shared")),
+    Job("p001_colored", "p001_colored.md", 255, _sweep("p001_colored", RERUN)),
+    Job("p001_multipath", "p001_multipath.md", 281, _sweep_and_test("p001_multipath", RERUN)),
+    Job("p001_multipath_shared", "p001_multipath.md", 278, _sweep_and_test("p001_multipath_shared", RERUN, learned_values=False)),
     Job("p001_multipath_diagnostics", "p001_multipath.md", 261, _DIAGNOSTICS),
-    Job("p001_elevation", "p001_elevation.md", 360, _sweep_and_test("p001_elevation")),
-    Job("p002_infamily", "p002_pdr.md", 203, (_final("p002_infamily", "p002_infamily"),)),
-    Job("p002_disturbed_rcukf", "p002_pdr.md", 242, (_final("p002_pdr", "p002_disturbed_rcukf", "scenario=p002_disturbed"),)),
-    Job("p002_disturbed_ukf", "p002_pdr.md", 134, (_final("p002_pdr", "p002_disturbed_ukf", f"scenario=p002_disturbed {_UKF_ONLY}"),)),
-    Job("p002_pdr_rcukf", "p002_pdr.md", 195, (_final("p002_pdr", "p002_pdr_rcukf", "scenario=p002_pdr"),)),
-    Job("p002_pdr_ukf", "p002_pdr.md", 153, (_final("p002_pdr", "p002_pdr_ukf", f"scenario=p002_pdr {_UKF_ONLY}"),)),
+    Job("p001_elevation", "p001_elevation.md", 293, _sweep_and_test("p001_elevation", RERUN)),
+    Job(
+        "p002_infamily",
+        "p002_pdr.md",
+        160,
+        (
+            _final("p002_infamily", "p002_infamily", root=RERUN),
+            *_summary_copy(f"{RERUN}/p002_infamily", f"{RERUN}/p002_infamily_exactref", "oracle='exact UKF'"),
+        ),
+    ),
+    Job(
+        "p002_disturbed",
+        "p002_pdr.md",
+        328,
+        (
+            _final("p002_pdr", "p002_disturbed_ukf", f"scenario=p002_disturbed {_UKF_ONLY}"),
+            _final("p002_pdr", "p002_disturbed_rcukf", "scenario=p002_disturbed", root=RERUN),
+            f"python -m difffilter.papers.p002.report {RERUN}/p002_disturbed_rcukf",
+        ),
+    ),
+    Job(
+        "p002_pdr",
+        "p002_pdr.md",
+        344,
+        (
+            _final("p002_pdr", "p002_pdr_ukf", f"scenario=p002_pdr {_UKF_ONLY}"),
+            _final("p002_pdr", "p002_pdr_rcukf", "scenario=p002_pdr", root=RERUN),
+            f"python -m difffilter.papers.p002.report {RERUN}/p002_pdr_rcukf outputs/final/p002_pdr_ukf",
+            f"python -m difffilter.papers.p002.report --between outputs/final/p002_pdr_ukf {RERUN}/p002_pdr_rcukf",
+        ),
+    ),
     Job("p003_modes", "p003_imm_sins.md", 556, _p003("p003_modes")),
     Job("p003_physical", "p003_imm_sins.md", 556, _p003("p003_physical")),
     Job("p003_imm_sins", "p003_imm_sins.md", 556, _p003("p003_imm_sins")),
-    Job("p004_blend", "p004_blend.md", 335, _sweep("p004_blend")),
-    Job("p004_outage", "p004_blend.md", 395, _sweep_and_test("p004_outage")),
-    Job("p004_mems", "p004_mems.md", 352, _sweep_and_test("p004_mems")),
-    Job("p004_urban", "p004_urban.md", 369, _sweep_and_test("p004_urban")),
+    Job("p004_blend", "p004_blend.md", 250, _sweep("p004_blend", RERUN, learned_values=False)),
+    Job(
+        "p004_outage",
+        "p004_blend.md",
+        298,
+        (
+            *_sweep("p004_outage", RERUN, learned_values=False),
+            *_summary_copy(f"{RERUN}/p004_outage", f"{RERUN}/p004_outage_vs_ukf", "reference='ukf'"),
+            *_indist("p004_outage", RERUN),
+        ),
+    ),
+    Job("p004_mems", "p004_mems.md", 302, _sweep_and_test("p004_mems", RERUN, learned_values=False)),
+    Job("p004_urban", "p004_urban.md", 321, _sweep_and_test("p004_urban", RERUN, learned_values=False)),
 )
 
 

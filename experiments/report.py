@@ -167,12 +167,16 @@ def results_table(rows_list: list[list[dict[str, str]]]) -> list[dict[str, str]]
 
 
 def _role_row(rows: list[dict[str, str]], role: str) -> dict[str, str] | None:
-    """The row named ``role`` (``"learned"``), else the first whose name has it as a word."""
+    """The row named ``role``, else the first whose name has it as a word; for ``"learned"`` the
+    last such row: a results file puts the rerun of a learned row (e.g. the logit-space starts of
+    results/p00_bounded_starts.md) below the row it supersedes, so the summary shows what the
+    current code reproduces."""
     exact = [r for r in rows if r.get("filter", "") == role]
     if exact:
         return exact[0]
     word = re.compile(rf"(^|[\s,(]){re.escape(role)}($|[\s,)])")
-    return next((r for r in rows if word.search(r.get("filter", "").lower())), None)
+    order = reversed(rows) if role == "learned" else rows
+    return next((r for r in order if word.search(r.get("filter", "").lower())), None)
 
 
 @dataclass

@@ -91,6 +91,12 @@ def test_report_from_run_directory_and_sections(report, tmp_path):
     text = report.collect(results_dir=results, write=False)
     p003 = next(x for x in text.splitlines() if x.startswith("| p003_imm |"))
     assert "| 3.5 | 3.15 | 3 | -10.0 % | 20 |" in p003 and "5 vs 7 steps" in p003
+    # a rerun row below a learned row supersedes it in the summary; the other roles keep the first match
+    table = "| filter | rmse_pos |\n|---|---|\n| RC-UKF hand-tuned | 3.0 |\n| RC-UKF learned | 1.7 |\n"
+    table += "| RC-UKF learned, rerun | 1.5 |\n| UKF hand-tuned | 1.6 |\n"
+    (results / "p002_pdr.md").write_text("## p002\n\n" + table)
+    p002 = next(x for x in report.collect(results_dir=results, write=False).splitlines() if x.startswith("| p002_pdr |"))
+    assert "| 3 | 1.5 | - | -50.0 % |" in p002
     # a second run does not read its own REPORT.md back as a section
     again = report.collect(results_dir=results, write=False)
     assert "REPORT" not in again

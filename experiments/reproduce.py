@@ -5,15 +5,16 @@
     python experiments/reproduce.py --only p001 p004    # the jobs whose name starts with one of these
     python experiments/reproduce.py -j 1 --out outputs/reproduce
 
-A *job* is one seed sweep (``experiments/train.py -m ... seed=0,1,2,3,4``) with the commands that
-read its output (learned values, the in-distribution test of the best-validation checkpoints, the
-paired analysis on the paper's profile), run in order in one shell; jobs are independent of each
-other and run ``-j`` at a time, the longest first (every command already uses ``threads=1``).  Each
-command is written verbatim as it appears in its results file (``tests/test_reproduce.py`` checks
-that), so a job's output directory is the one the results file cites and its ``summary.md`` can be
-compared with the table there.  The results files and ``results/REPORT.md`` are written by hand
-from those summaries (``python experiments/report.py`` collects them), so this script recomputes
-the evidence; it does not edit the results.
+A *job* is one seed sweep (``experiments/train.py -m ... seed=0,1,2,3,4``; two for p002, whose
+reports pair its UKF and RC-UKF sweeps) with the commands that read its output (learned values, the
+in-distribution test of the best-validation checkpoints, the paired analysis on the paper's
+profile), run in order in one shell; jobs are independent of each other and run ``-j`` at a time,
+the longest first (every command already uses ``threads=1``).  Each command is written verbatim as
+it appears in its results file, up to a ``nice`` prefix and a ``mkdir -p`` of its target folder
+(``tests/test_reproduce.py`` checks that), so a job's output directory is the one the results file
+cites and its ``summary.md`` can be compared with the table there.  The results files and
+``results/REPORT.md`` are written by hand from those summaries (``python experiments/report.py``
+collects them), so this script recomputes the evidence; it does not edit the results.
 
 Every job's wall time and CPU time (user + system of the job's shell and everything it ran) are
 appended to ``<out>/times.tsv`` and summed at the end: the "full REPORT regenerates in <= 2 h on

@@ -71,13 +71,18 @@ class SinsPseudorangeMeasurement(MeasurementModel):
         out = dict(controls)
         llh = controls["llh"]
         if "sins.los" not in out:
-            a = geo.geodetic_to_ecef(llh)[..., None, :] - controls["sat_pos"]
-            out["sins.los"], out["sins.range"] = a, torch.linalg.vector_norm(a, dim=-1)
+            out["sins.los"], out["sins.range"] = self._line_of_sight(llh, controls["sat_pos"])
         if "sins.scale" not in out:
             out["sins.scale"] = _position_scale(llh)
         if self.rates and "sins.ins_rate" not in out and "vel" in controls and "sat_vel" in controls:
             out["sins.ins_rate"] = self._ins_rate(controls)
         return out
+
+    @staticmethod
+    def _line_of_sight(llh: Tensor, sat_pos: Tensor) -> tuple[Tensor, Tensor]:
+        """``a_j`` = INS position (ECEF) - satellite ``[..., K, 3]`` and its length ``[..., K]``."""
+        a = geo.geodetic_to_ecef(llh)[..., None, :] - sat_pos
+        return a, torch.linalg.vector_norm(a, dim=-1)
 
     @staticmethod
     def _ins_rate(u: Controls) -> Tensor:
@@ -102,8 +107,7 @@ class SinsPseudorangeMeasurement(MeasurementModel):
         llh, dllh, dv = self._errors(x, u)
         a, na = self._derived(u, "sins.los"), self._derived(u, "sins.range")
         if a is None or na is None:
-            a = geo.geodetic_to_ecef(llh)[..., None, :] - _get(u, "sat_pos")
-            na = torch.linalg.vector_norm(a, dim=-1)
+            a, na = self._line_of_sight(llh, _get(u, "sat_pos"))
         ea = a / na[..., None]
         if self.linearized:
             d = (geo.geodetic_jacobian(llh) @ dllh[..., None])[..., 0]

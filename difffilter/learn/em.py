@@ -256,8 +256,11 @@ def fit_em(
                 values[t.name] = t.assign(pi if t.kind == "transition" else mu0)
             continue
         kinds = {t.kind for t in targets}
-        moments_q = transition_residual_moments(filt, smoothed, controls, time_chunk=time_chunk) if "Q" in kinds else None
-        moments_r = measurement_residual_moments(filt, smoothed, measurements, mask, controls, time_chunk=time_chunk) if "R" in kinds else None
+        moments_q = moments_r = None
+        if "Q" in kinds:
+            moments_q = transition_residual_moments(filt, smoothed, controls, time_chunk=time_chunk)
+        if "R" in kinds:
+            moments_r = measurement_residual_moments(filt, smoothed, measurements, mask, controls, time_chunk=time_chunk)
         for t in targets:
             current = getattr(t.owner, t.attr).detach()
             base = t.constraint.base if t.structure == "scalar" else None

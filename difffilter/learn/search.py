@@ -145,7 +145,8 @@ def _run(
     try:
         for i, cand in enumerate(candidates):
             assign_parameters(filt, setting(cand))
-            s = float(score(filt))
+            with torch.no_grad():
+                s = float(score(filt))
             s = s if math.isfinite(s) else math.inf
             table.append({**cand, "score": s})
             if s < best_s:

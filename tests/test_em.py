@@ -5,6 +5,9 @@ log-likelihood found by scipy; recovery of the simulating values; monotone likel
 
 from __future__ import annotations
 
+import re
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -390,3 +393,15 @@ def test_bad_inputs_raise_naming_the_argument():
         fit_em(KalmanFilter(linear(Q_structure="factor")), *args, learn=["Q"])
     with pytest.raises(TypeError, match="filter_or_model"):
         fit_em("kf", *args)  # type: ignore[arg-type]
+
+
+def test_docs_example_runs():
+    text = (Path(__file__).resolve().parents[1] / "docs" / "em_and_search.md").read_text()
+    blocks = re.findall(r"```python\n(.*?)```", text, re.S)
+    assert len(blocks) == 1
+    namespace: dict = {}
+    exec(compile(blocks[0], "docs/em_and_search.md", "exec"), namespace)  # noqa: S102 - our own docs
+    em = namespace["em"]
+    assert em.log_likelihoods[-1] > em.log_likelihoods[0]
+    assert 1.0 < float(namespace["kf"].model.R.detach()) < 16.0
+    assert len(namespace["found"].table) == 5

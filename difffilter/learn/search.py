@@ -31,7 +31,7 @@ from torch import Tensor, nn
 from ..filters.protocol import Filter
 from ..models.base import Controls
 from ..selection import assign_parameters, match_parameters, parameter_owners
-from .metrics import Index, rmse
+from ..evaluate.metrics import Index, rmse
 
 __all__ = ["SearchResult", "grid_search", "log_grid", "random_search", "validation_loss"]
 
@@ -93,7 +93,7 @@ def validation_loss(
         kind: ``"rmse"`` (of the filtered means' components ``index`` against ``truth_index``
             of the truth, e.g. the position) or ``"nll"`` (innovation negative log-likelihood
             per observed step, averaged over trajectories).
-        index, truth_index: components for ``"rmse"`` (see :func:`~difffilter.learn.metrics.rmse`).
+        index, truth_index: components for ``"rmse"`` (see :func:`~difffilter.evaluate.metrics.rmse`).
     """
     if kind not in ("rmse", "nll"):
         raise ValueError(f"kind must be 'rmse' or 'nll', got {kind!r}")

@@ -17,7 +17,7 @@ from difffilter.learn import fit_em
 from difffilter.mixers import IMM
 from difffilter.models import FunctionalModel, LinearModel
 from difffilter.sim import simulate
-from difffilter.smoothers import RTSSmoother, measurement_residual_moments, transition_residual_moments
+from difffilter.smoothers import IMMSmoother, RTSSmoother, measurement_residual_moments, transition_residual_moments
 
 F64 = torch.float64
 F_ = np.array([[0.9, 0.2], [0.0, 0.7]])
@@ -41,13 +41,15 @@ def data(B=6, T=60, seed=0, missing=0.0):
 
 
 # -- independent numpy reference ---------------------------------------------------------------
-def np_smoother(z, obs, m0, p0, F, H, Q, R):
-    """Kalman filter + RTS + lag-one covariance for one trajectory; x_{-1} ~ N(m0, p0)."""
+def np_smoother(z, obs, m0, p0, F, H, Q, R, offsets=None):
+    """Kalman filter + RTS + lag-one covariance for one trajectory; x_{-1} ~ N(m0, p0),
+    x_k = F x_{k-1} + offsets_k + w_k."""
     T = len(z)
+    off = np.zeros((T, len(m0))) if offsets is None else offsets
     mf, pf, mp, pp, ll = [], [], [], [], 0.0
     m, p = m0, p0
     for k in range(T):
-        m_pr, p_pr = F @ m, F @ p @ F.T + Q
+        m_pr, p_pr = F @ m + off[k], F @ p @ F.T + Q
         o = obs[k]
         if o.any():
             Ho, Ro = H[o], R[np.ix_(o, o)]
@@ -71,13 +73,16 @@ def np_smoother(z, obs, m0, p0, F, H, Q, R):
     return np.array(ms), np.array(ps), np.array(lag), ll
 
 
-def np_em_statistics(z, obs, m0, p0, F, H, Q, R):
-    """Per-step A_t from S11 - S10 F^T - F S10^T + F S00 F^T, M_t, and the log-likelihood."""
-    ms, ps, lag, ll = np_smoother(z, obs, m0, p0, F, H, Q, R)
+def np_em_statistics(z, obs, m0, p0, F, H, Q, R, offsets=None):
+    """Per-step A_t from S11 - S10 F^T - F S10^T + F S00 F^T (about the offset), M_t, and the
+    log-likelihood."""
+    ms, ps, lag, ll = np_smoother(z, obs, m0, p0, F, H, Q, R, offsets)
+    off = np.zeros((len(z), len(m0))) if offsets is None else offsets
     A, M = [], []
     for k in range(len(z)):
-        s11 = np.outer(ms[k + 1], ms[k + 1]) + ps[k + 1]
-        s10 = np.outer(ms[k + 1], ms[k]) + lag[k]
+        y = ms[k + 1] - off[k]  # x_k - c_k has the same covariances as x_k
+        s11 = np.outer(y, y) + ps[k + 1]
+        s10 = np.outer(y, ms[k]) + lag[k]
         s00 = np.outer(ms[k], ms[k]) + ps[k]
         A.append(s11 - s10 @ F.T - F @ s10.T + F @ s00 @ F.T)
         zk = np.where(obs[k], z[k], 0.0)
@@ -140,6 +145,20 @@ def test_one_em_iteration_is_the_closed_form_m_step():
     ll_after = np_loglik(d.measurements.numpy(), obs, M0, P0, F_, H_, Q_ref, R_ref)
     np.testing.assert_allclose(res.log_likelihoods[1], ll_after, rtol=1e-8)
     np.testing.assert_allclose(res.values["model.dynamics.Q"].numpy(), Q_ref, rtol=1e-8)
+
+
+def test_controls_enter_the_e_step():
+    B_ = np.array([[0.5], [1.0]])
+    u = torch.sin(torch.arange(30, dtype=F64) / 3.0)[None, :, None].expand(2, 30, 1).contiguous()
+    truth = linear(B=t(B_))
+    d = simulate(truth, num_steps=30, batch_size=2, initial_mean=t(M0), initial_cov=t(P0), seed=13, controls=u)
+    Q0, R0 = np.diag([1.0, 2.0]), np.diag([2.0, 1.5])
+    kf = KalmanFilter(linear(Q0, R0, B=t(B_)))
+    fit_em(kf, d.measurements, d.initial_mean, d.initial_cov, controls=u, num_iters=1)
+    obs = np.ones((30, 2), bool)
+    stats = [np_em_statistics(d.measurements[b].numpy(), obs, M0, P0, F_, H_, Q0, R0, u[b].numpy() @ B_.T) for b in range(2)]
+    np.testing.assert_allclose(kf.model.Q.detach().numpy(), sum(s[0].sum(0) for s in stats) / 60, rtol=1e-8)
+    np.testing.assert_allclose(kf.model.R.detach().numpy(), sum(s[1].sum(0) for s in stats) / 60, rtol=1e-8)
 
 
 # -- exact EM: monotone, its fixed point is the maximum of the likelihood -----------------------
@@ -373,6 +392,17 @@ def test_imm_transition_moves_towards_truth_and_stays_stochastic():
     torch.testing.assert_close(pi.sum(-1), torch.ones(2, dtype=F64))
     assert set(res.values) == {"transition"} and res.log_likelihoods[-1] > res.log_likelihoods[0]
     torch.testing.assert_close(imm.initial_probs.detach(), torch.tensor([0.5, 0.5], dtype=F64))
+
+
+def test_imm_smoother_pair_probabilities_are_consistent():
+    imm, z = switching_walk(2, 40, 14)
+    with torch.no_grad():
+        out = IMMSmoother(imm)(z, torch.zeros(1, dtype=F64), torch.eye(1, dtype=F64))
+    pairs = out.mode_pair_probs  # [B, T, j (at t-1), i (at t)]
+    assert pairs.shape == (2, 40, 2, 2) and bool((pairs >= 0).all())
+    torch.testing.assert_close(pairs.sum(-2), out.mode_probs)
+    before = torch.cat([out.initial_mode_probs[:, None], out.mode_probs[:, :-1]], 1)
+    torch.testing.assert_close(pairs.sum(-1), before)
 
 
 # -- bad input ----------------------------------------------------------------------------------

@@ -147,6 +147,20 @@ def test_one_em_iteration_is_the_closed_form_m_step():
     np.testing.assert_allclose(res.values["model.dynamics.Q"].numpy(), Q_ref, rtol=1e-8)
 
 
+def test_diffuse_prior_leaves_out_the_first_transition():
+    d = data(B=2, T=30, seed=15)
+    Q0, R0 = np.diag([1.0, 2.0]), np.diag([2.0, 1.5])
+    kf = KalmanFilter(linear(Q0, R0))
+    wide = 1e10 * np.eye(2)  # wide enough for the filter to start in exact diffuse form
+    fit_em(kf, d.measurements, d.initial_mean, t(wide), num_iters=1)
+    obs = np.ones((30, 2), bool)
+    stats = [np_em_statistics(d.measurements[b].numpy(), obs, M0, wide, F_, H_, Q0, R0) for b in range(2)]
+    np.testing.assert_allclose(kf.model.Q.detach().numpy(), sum(s[0][1:].sum(0) for s in stats) / 58, rtol=1e-4)
+    np.testing.assert_allclose(kf.model.R.detach().numpy(), sum(s[1].sum(0) for s in stats) / 60, rtol=1e-4)
+    with pytest.raises(ValueError, match="diffuse"):
+        fit_em(kf, d.measurements, d.initial_mean, t(wide), learn=["Q", "initial_cov"])
+
+
 def test_controls_enter_the_e_step():
     B_ = np.array([[0.5], [1.0]])
     u = torch.sin(torch.arange(30, dtype=F64) / 3.0)[None, :, None].expand(2, 30, 1).contiguous()

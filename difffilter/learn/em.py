@@ -12,7 +12,9 @@ For ``x_t = f(x_{t-1}, u_t) + w_t``, ``w_t ~ N(0, Q)``, ``z_t = h(x_t, u_t) + v_
    estimated quantity, pooled over all trajectories (:mod:`difffilter.learn.em_mstep`):
    ``Q = sum A_t / N`` (full; its diagonal, or a scale of a fixed matrix, for the other
    structures), ``R`` likewise over the observed steps, ``m_0 = mean_b x_{-1|T}``,
-   ``P_0 = mean_b [P_{-1|T} + (x_{-1|T} - m_0)(...)^T]``.
+   ``P_0 = mean_b [P_{-1|T} + (x_{-1|T} - m_0)(...)^T]``.  When the filter starts from a diffuse
+   prior (:mod:`difffilter.filters.diffuse`), the first transition ``x_{-1} -> x_0`` is left out
+   of ``Q``'s statistics and the initial moments are not estimated.
 
 For a :class:`~difffilter.filters.KalmanFilter` on a linear model this is exact EM (Shumway and
 Stoffer 1982): the innovation log-likelihood never decreases.  For the EKF/UKF families the
@@ -38,6 +40,7 @@ import torch
 from torch import Tensor, nn
 
 from ..filters.base import RecursiveFilter
+from ..filters.diffuse import DIFFUSE_COV
 from ..filters.ekf import EKF
 from ..filters.kalman import KalmanFilter
 from ..mixers.imm import IMM
@@ -235,6 +238,11 @@ def fit_em(
     if is_imm and initial:
         raise ValueError(f"learn: {sorted(initial)} are not estimated for an IMM (its modes' beliefs are mixed)")
     mean, cov = initial_mean, initial_cov
+    # a diffuse start (a prior too wide for plain covariance form) leaves x_{-1}'s smoothed
+    # moments undefined: the first transition is then left out of Q's statistics
+    diffuse = not is_imm and DIFFUSE_COV in smoother.initial_belief(measurements, mean, cov, None)
+    if diffuse and initial:
+        raise ValueError(f"learn: {sorted(initial)} cannot be estimated from a diffuse initial_cov (too wide for plain covariance form)")
     obs = observed_components(mask, tuple(measurements.shape), measurements.device)  # type: ignore[arg-type]
     history: list[float] = []
     values: dict[str, Tensor] = {}
@@ -266,7 +274,8 @@ def fit_em(
             base = t.constraint.base if t.structure == "scalar" else None
             if t.kind == "Q":
                 assert moments_q is not None
-                new = process_noise_step(moments_q.sum((0, 1)), moments_q.shape[0] * moments_q.shape[1], t.structure, base)
+                used = moments_q[:, 1:] if diffuse else moments_q
+                new = process_noise_step(used.sum((0, 1)), used.shape[0] * used.shape[1], t.structure, base)
             else:
                 assert moments_r is not None
                 new = measurement_noise_step(moments_r, obs, current, t.structure, base)

@@ -28,10 +28,10 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from ..evaluate.metrics import Index, rmse
 from ..filters.protocol import Filter
 from ..models.base import Controls
 from ..selection import assign_parameters, match_parameters, parameter_owners
-from ..evaluate.metrics import Index, rmse
 
 __all__ = ["SearchResult", "grid_search", "log_grid", "random_search", "validation_loss"]
 

@@ -35,6 +35,7 @@ import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import cast
 
 import torch
 from torch import Tensor, nn
@@ -96,12 +97,22 @@ class _Target:
 
     @property
     def constraint(self) -> nn.Module:
-        return self.owner.parametrizations[self.attr][0]  # type: ignore[index,union-attr]
+        return _constraint(self.owner, self.attr)
+
+    @property
+    def base(self) -> Tensor | None:
+        """The fixed matrix of a ``scalar`` structure (``None`` for the others)."""
+        return cast(Tensor, self.constraint.base) if self.structure == "scalar" else None
 
     def assign(self, value: Tensor) -> Tensor:
         value = to_constraint_set(value, self.constraint)
         setattr(self.owner, self.attr, value)
         return getattr(self.owner, self.attr).detach().clone()
+
+
+def _constraint(owner: nn.Module, attr: str) -> nn.Module:
+    """The constraint module of the parametrized attribute ``owner.<attr>``."""
+    return cast(nn.Module, owner.parametrizations[attr][0])  # type: ignore[index,union-attr]
 
 
 def _as_filter(filter_or_model: RecursiveFilter | StateSpaceModel) -> RecursiveFilter:
@@ -125,11 +136,11 @@ def _target(filt: RecursiveFilter, name: str, owner: nn.Module, attr: str) -> _T
     if owner is model.dynamics and attr == "Q":
         if type(owner).process_noise is not DynamicsModel.process_noise or not owner.additive_noise:
             raise TypeError(f"EM cannot estimate {name}: the dynamics' process noise is not the additive constant Q")
-        return _Target(name, "Q", owner, attr, covariance_structure(owner.parametrizations[attr][0]))  # type: ignore[index,union-attr]
+        return _Target(name, "Q", owner, attr, covariance_structure(_constraint(owner, attr)))
     if owner is model.measurement and attr == "R":
         if type(owner).measurement_noise is not MeasurementModel.measurement_noise or not owner.additive_noise:
             raise TypeError(f"EM cannot estimate {name}: the measurement noise is not the additive constant R")
-        return _Target(name, "R", owner, attr, covariance_structure(owner.parametrizations[attr][0]))  # type: ignore[index,union-attr]
+        return _Target(name, "R", owner, attr, covariance_structure(_constraint(owner, attr)))
     return None
 
 
@@ -259,7 +270,7 @@ def fit_em(
         iters += 1
         if is_imm:
             pairs = smoothed.extras["mode_pair_probs"].sum((0, 1))
-            pi, mu0 = markov_step(pairs, smoothed.extras["initial_mode_probs"].mean(0), filt.transition)
+            pi, mu0 = markov_step(pairs, smoothed.extras["initial_mode_probs"].mean(0), cast(Tensor, filt.transition).detach())
             for t in targets:
                 values[t.name] = t.assign(pi if t.kind == "transition" else mu0)
             continue
@@ -271,7 +282,7 @@ def fit_em(
             moments_r = measurement_residual_moments(filt, smoothed, measurements, mask, controls, time_chunk=time_chunk)
         for t in targets:
             current = getattr(t.owner, t.attr).detach()
-            base = t.constraint.base if t.structure == "scalar" else None
+            base = t.base
             if t.kind == "Q":
                 assert moments_q is not None
                 used = moments_q[:, 1:] if diffuse else moments_q

@@ -98,7 +98,10 @@ def _per_step(fn: Callable[..., Tensor], tensors: list[Tensor], controls: Contro
 def _transition_matrix(filt: RecursiveFilter, mean: Tensor, u: Controls) -> Tensor:
     if isinstance(filt, EKF):
         return filt.transition_jacobian(mean, u)
-    return filt.model.dynamics.matrix(u)  # SimplifiedUKF: linear dynamics
+    matrix = filt.model.dynamics.matrix(u)  # SimplifiedUKF: linear dynamics
+    if matrix is None:
+        raise TypeError(f"{type(filt).__name__}: the dynamics give no transition matrix to linearise with")
+    return matrix
 
 
 def transition_residual_moments(

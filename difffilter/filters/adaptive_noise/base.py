@@ -112,7 +112,9 @@ class AdaptiveNoiseFilter(RecursiveFilter):
         if not (model.dynamics.additive_noise and model.measurement.additive_noise):
             raise ValueError("inner's model declares non-additive noise: the adaptive filters estimate additive Q and R only")
         if isinstance(inner, UKF) and (inner.noise != "additive" or not inner.redraw_after_predict):
-            raise ValueError("inner UKF must use noise='additive' and redraw_after_predict=True (its update points must see the estimated Q)")
+            raise ValueError(
+                "inner UKF must use noise='additive' and redraw_after_predict=True (its update points must see the estimated Q)"
+            )
         super().__init__(model)
         self.inner = inner
         self.adapt_q = bool(adapt_q)

@@ -70,7 +70,8 @@ class VBAdaptiveR(AdaptiveNoiseFilter):
         hm = self.model.measurement
         obs = self.observed(z, mask)
         mo = self.measurement_moments(mean, cov, u)
-        r_prev = self.current_r(belief, u)
+        # the estimate is diagonal from the start: the model's off-diagonal entries are not used
+        r_prev = torch.diag_embed(torch.diagonal(self.current_r(belief, u), dim1=-2, dim2=-1))
         zero = torch.zeros_like(z)
         info = self.predictive_info(torch.where(obs, hm.residual(z, mo.zhat), zero), mo.spread + r_prev, mask)
         alpha_prev = belief["noise_alpha"]

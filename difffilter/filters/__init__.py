@@ -5,7 +5,6 @@ from .adaptive_noise import AdaptiveNoiseFilter, CovarianceMatching, SageHusa, V
 from .base import Belief, FilterResult, GaussianFilter, RecursiveFilter, StepInfo
 from .colored import ColoredNoiseUKF
 from .ekf import EKF
-from .fused import FusedFilter, fuse
 from .iterated import IteratedEKF
 from .kalman import KalmanFilter
 from .protocol import Filter
@@ -28,7 +27,6 @@ __all__ = [
     "Cubature",
     "Filter",
     "FilterResult",
-    "FusedFilter",
     "GaussianFilter",
     "IteratedEKF",
     "Julier",
@@ -40,5 +38,4 @@ __all__ = [
     "SimplifiedUKF",
     "SquareRootUKF",
     "StepInfo",
-    "fuse",
 ]

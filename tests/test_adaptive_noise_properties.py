@@ -129,6 +129,23 @@ def test_batch_equals_loop_and_masks_are_honoured(name):
 
 
 @pytest.mark.parametrize("name", sorted(BUILDERS))
+def test_one_bad_trajectory_does_not_contaminate_the_batch(name):
+    # an absurd trajectory (overflowing statistics) stays in its own row, values and gradients
+    z, _ = _simulate(3, 10, 3.0, seed=19)
+    z[1] = z[1] * 1e150
+    flt = BUILDERS[name](KalmanFilter(_model()))
+    full = flt(z, *_start())
+    ref = flt(z[[0, 2]], *_start())
+    torch.testing.assert_close(full.mean[[0, 2]], ref.mean, rtol=0, atol=1e-10)
+    torch.testing.assert_close(full.noise_R[[0, 2]], ref.noise_R, rtol=0, atol=1e-10)
+    raws = [getattr(flt.parametrizations, h).original for h in HYPER[name]]
+    g_full = torch.autograd.grad(full.log_likelihood[[0, 2]].sum(), raws)
+    g_ref = torch.autograd.grad(ref.log_likelihood.sum(), raws)
+    for a, b in zip(g_full, g_ref, strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize("name", sorted(BUILDERS))
 def test_float32_matches_float64(name):
     z, _ = _simulate(2, 20, 3.0, seed=7)
     r64 = BUILDERS[name](KalmanFilter(_model()))(z, *_start())

@@ -77,7 +77,7 @@ def test_r_estimate_converges_to_the_true_r(name):
         "sage_husa": lambda: SageHusa(KalmanFilter(model), b=0.995),
         "vb_r": lambda: VBAdaptiveR(KalmanFilter(model), rho=0.9975, iterations=2),
         # the nominal Q is right here: a confident tau (30) keeps P^ from absorbing the excess
-        # innovation (with the paper's tau = 3 the R estimate settles 21 % low, measured)
+        # innovation (with the paper's tau = 3 the error is 24 %, measured)
         "vb_qr": lambda: VBAdaptiveQR(KalmanFilter(model), rho=0.995, tau=30.0, iterations=3),
         "cov_match": lambda: CovarianceMatching(KalmanFilter(model), window=200.0),
     }[name]()

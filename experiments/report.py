@@ -28,18 +28,22 @@ column holding the published number of the matching filter, then the collected s
 
 from __future__ import annotations
 
-import csv
-import math
-import re
 import sys
-from collections.abc import Sequence
-from dataclasses import dataclass, field
 from pathlib import Path
 
-import hydra
-from omegaconf import DictConfig
+# The research tree (experiments/) is not installed: make it importable from the repository root.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from experiments import results_report
+import csv  # noqa: E402
+import math  # noqa: E402
+import re  # noqa: E402
+from collections.abc import Sequence  # noqa: E402
+from dataclasses import dataclass, field  # noqa: E402
+
+import hydra  # noqa: E402
+from omegaconf import DictConfig  # noqa: E402
+
+from experiments import results_report  # noqa: E402
 
 __all__ = [
     "PUBLISHED",

@@ -13,14 +13,18 @@ The per-family detail (every test set, every filter, every state block) is in
 
 from __future__ import annotations
 
-import argparse
-import shutil
 import sys
-from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 
-from experiments.results_tables import (
+# The research tree (experiments/) is not installed: make it importable from the repository root.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import argparse  # noqa: E402
+import shutil  # noqa: E402
+from collections.abc import Sequence  # noqa: E402
+from dataclasses import dataclass  # noqa: E402
+
+from experiments.results_tables import (  # noqa: E402
     ROOT,
     Row,
     anees_band,

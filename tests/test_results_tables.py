@@ -179,3 +179,19 @@ def test_rendered_metric_table_from_synthetic_rows(tmp_path):
     text = results_tables.render_metric(rows, {})
     assert text.splitlines()[2] == "| hand-tuned | 1 x 30 | 2 [1.9, 2.1] |  |  |  |  |"
     assert text.splitlines()[3] == "| learned | 5 x 30 | 1.8 [1.5, 2.5] |  | -10 [-12, -8] | win |  |"
+
+
+def test_collect_takes_a_sweeps_summary_csv_and_the_check_passes_after_rendering(tmp_path):
+    root = _copy_results(tmp_path)
+    sweep = root / "outputs" / "p003_final" / "p003_modes"
+    sweep.mkdir(parents=True)
+    data = root / "results" / "data" / "p003_modes.csv"
+    (sweep / "summary.csv").write_text(data.read_text().replace("0.9613", "0.9611", 1))
+    assert results_report.collect(root) == [sweep / "summary.csv"]
+    assert "0.9611" in data.read_text() and check(root) != []
+    render(root)
+    assert check(root) == [] and "0.9611 [0.8548, 1.068]" in (root / "results" / "REPORT.md").read_text()
+    (sweep / "summary.csv").write_text("group,filter\n,x\n")  # not a summary.csv: nothing is overwritten
+    with pytest.raises(ValueError, match="columns must be"):
+        results_report.collect(root)
+    assert "0.9611" in data.read_text()

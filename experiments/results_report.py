@@ -237,8 +237,18 @@ def build_report(families: Sequence[Family] = FAMILIES, root: Path = ROOT) -> st
         "| " + " | ".join(_HEADER) + " |",
         "|" + "---|" * len(_HEADER),
     ]
+    tally: dict[str, dict[str, int]] = {}
     for fam in families:
-        out.append("| " + " | ".join(summary_cells(fam, read_rows(_source(fam, root)))) + " |")
+        cells = summary_cells(fam, read_rows(_source(fam, root)))
+        out.append("| " + " | ".join(cells) + " |")
+        kind = tally.setdefault(fam.kind, {})
+        kind[cells[_HEADER.index("verdict")]] = kind.get(cells[_HEADER.index("verdict")], 0) + 1
+    out += [""] + [
+        f"Verdicts of learned against the best non-learned method, {kind} families: "
+        + ", ".join(f"{n} {v}" for v, n in sorted(counts.items()))
+        + "."
+        for kind, counts in tally.items()
+    ]
     out += [
         "",
         "Not in the table: the real drive (smartLoc Berlin, `results/smartloc_real.md`: median/RMS error per fold,",

@@ -39,7 +39,20 @@ from experiments.results_tables import (  # noqa: E402
     render_text,
 )
 
-__all__ = ["FAMILIES", "METHODS", "Family", "build_detail", "build_report", "check", "collect", "main", "render", "summary_cells"]
+__all__ = [
+    "FAMILIES",
+    "METHODS",
+    "Family",
+    "build_detail",
+    "build_report",
+    "check",
+    "collect",
+    "generated_files",
+    "main",
+    "render",
+    "results_files",
+    "summary_cells",
+]
 
 
 @dataclass(frozen=True)

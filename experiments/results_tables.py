@@ -48,10 +48,13 @@ __all__ = [
     "fmt",
     "fmt_ci",
     "paired_verdict",
+    "parse_args",
     "read_rows",
     "render_anees",
     "render_metric",
+    "render_table",
     "render_text",
+    "unmarked_tables",
 ]
 
 ROOT = Path(__file__).resolve().parents[1]

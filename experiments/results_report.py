@@ -151,11 +151,19 @@ def _paired(rows: Sequence[Row], group: str, name: str, best: str) -> Row | None
     return _get(rows, group, name, "diff_pct") if best == REFERENCE else _get(rows, group, name, "diff_pct", best)
 
 
+def _cell(rows: Sequence[Row], group: str, name: str, value: Row | None) -> str:
+    """A method's RMSE cell; with its tuning (or training) CPU seconds when the data have them."""
+    if value is None:
+        return "not run"
+    cpu = _get(rows, group, name, "tuning_cpu_s")
+    return fmt_ci(value.estimate, value.lo, value.hi) + (f"; {fmt(cpu.estimate)} CPU-s" if cpu else "")
+
+
 def summary_cells(fam: Family, rows: Sequence[Row], metric: str = "rmse_pos") -> list[str]:
     """The summary row of one family (columns of :func:`build_report`'s table)."""
     g = fam.group
     value = {name: _get(rows, g, name, metric) for _, name in (*METHODS, *LEARNED)}
-    shown = [fmt_ci(r.estimate, r.lo, r.hi) if (r := value[name]) else "not run" for _, name in (*METHODS, *LEARNED)]
+    shown = [_cell(rows, g, name, value[name]) for _, name in (*METHODS, *LEARNED)]
     ran = [(title, name) for title, name in METHODS if value[name] is not None]
     best_title, best = min(ran, key=lambda tn: value[tn[1]].estimate) if ran else ("-", "")
     learned = value["learned"]

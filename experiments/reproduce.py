@@ -102,6 +102,14 @@ def _summary_copy(source: str, copy: str, option: str) -> tuple[str, str]:
     )
 
 
+def _practitioners(family: str, root: str = "outputs/practitioners") -> tuple[str, str]:
+    """A family's sweep with its practitioners' rows, and its summary paired with the best of them."""
+    return (
+        f"python experiments/train.py -m experiment={family}_practitioners seed=0,1,2,3,4 logger=csv hydra.sweep.dir={root}/{family}",
+        f"python -m experiments.practitioners {root}/{family}",
+    )
+
+
 def _p003(experiment: str) -> tuple[str, str]:
     return (
         f"python experiments/train.py -m experiment={experiment} seed=0,1,2,3,4 learner.init_perturbation=0.3 logger=csv "
@@ -208,6 +216,9 @@ JOBS: tuple[Job, ...] = (
     ),
     Job("p004_mems", "p004_mems.md", 302, _sweep_and_test("p004_mems", RERUN, learned_values=False)),
     Job("p004_urban", "p004_urban.md", 321, _sweep_and_test("p004_urban", RERUN, learned_values=False)),
+    # issue 25: the families again with the practitioners' rows (results/p00_practitioners.md)
+    Job("p001_elevation_practitioners", "p00_practitioners.md", 600, _practitioners("p001_elevation")),
+    Job("p004_urban_practitioners", "p00_practitioners.md", 900, _practitioners("p004_urban")),
 )
 
 

@@ -34,7 +34,7 @@ import torch  # noqa: E402
 
 from experiments.results_report import METHODS, REFERENCE  # noqa: E402
 from experiments.results_tables import FIELDS  # noqa: E402
-from experiments.runner.sweep import SUMMARY_CSV, Job, _interval, _matrix, load_jobs, summarize_sweep  # noqa: E402
+from experiments.runner.sweep import Job, _interval, _matrix, load_jobs, summarize_sweep  # noqa: E402
 
 __all__ = ["best_non_learned", "main", "summarize_practitioners"]
 

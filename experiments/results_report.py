@@ -22,7 +22,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import argparse  # noqa: E402
 import shutil  # noqa: E402
 from collections.abc import Sequence  # noqa: E402
-from dataclasses import dataclass  # noqa: E402
+from dataclasses import dataclass, replace  # noqa: E402
 
 from experiments.results_tables import (  # noqa: E402
     ROOT,
@@ -67,6 +67,9 @@ class Family:
         results: the hand-written results file that discusses it.
         sweep: the sweep directory whose ``summary.csv`` the data file is (``experiments/reproduce.py``).
         group: the test set the summary row shows ("" when the sweep has one).
+        practitioners: whether the family also ran with the practitioners' rows (issue 25,
+            ``results/p00_practitioners.md``): its summary row then comes from
+            ``results/data/<name>_practitioners.csv`` (sweep ``outputs/practitioners/<name>``).
     """
 
     name: str
@@ -76,9 +79,23 @@ class Family:
     results: str
     sweep: str
     group: str = ""
+    practitioners: bool = False
+
+    def practitioners_family(self) -> Family:
+        """The family's practitioners sweep as a family of its own (its data file and detail page)."""
+        return replace(
+            self,
+            name=f"{self.name}_practitioners",
+            label=f"{self.label}, practitioners' rows",
+            results="p00_practitioners.md",
+            sweep=f"{PRACTITIONERS_ROOT}/{self.name}",
+            practitioners=False,
+        )
 
 
 _R = "outputs/rerun_logit"
+#: Where the practitioners sweeps (``experiments/reproduce.py`` jobs ``<family>_practitioners``) write.
+PRACTITIONERS_ROOT = "outputs/practitioners"
 FAMILIES: tuple[Family, ...] = (
     Family("p000_gyro", "p000", "mis-specified", "MEMS gyro bias", "p000_gpsdr.md", "outputs/final/p000_gyro", "test=scripted"),
     Family("p000_gps", "p000", "mis-specified", "GPS multipath/NLOS/outages", "p000_gpsdr.md", "outputs/final/p000_gps", "test=scripted"),
@@ -253,14 +270,20 @@ def build_report(families: Sequence[Family] = FAMILIES, root: Path = ROOT) -> st
         "",
         "Each family shows one test set (named); every test set, filter and state block is in its detail page.",
         "The numbers come from `results/data/<family>.csv` (the schema of a sweep's `summary.csv`); where they",
-        "were transcribed rather than copied from a sweep, `results/data/SOURCES.md` says so.",
+        "were transcribed rather than copied from a sweep, `results/data/SOURCES.md` says so.  A family labelled",
+        "*practitioners' rows* shows its sweep with the practitioners' methods (issue 25, pre-declared in",
+        "[p00_practitioners.md](p00_practitioners.md)): the family's experiment rerun with the current code plus",
+        "those rows, so its paper's-constants and learned cells are that sweep's (the family's earlier numbers stay",
+        "in its own detail page); `; N CPU-s` after a cell is the row's tuning cost (learned: its training), mean",
+        "over seeds.",
         "",
         "| " + " | ".join(_HEADER) + " |",
         "|" + "---|" * len(_HEADER),
     ]
     tally: dict[str, dict[str, int]] = {}
     for fam in families:
-        cells = summary_cells(fam, read_rows(_source(fam, root)))
+        shown = fam.practitioners_family() if fam.practitioners else fam
+        cells = summary_cells(shown, read_rows(_source(shown, root)))
         out.append("| " + " | ".join(cells) + " |")
         kind = tally.setdefault(fam.kind, {})
         kind[cells[_HEADER.index("verdict")]] = kind.get(cells[_HEADER.index("verdict")], 0) + 1
@@ -281,7 +304,7 @@ def build_report(families: Sequence[Family] = FAMILIES, root: Path = ROOT) -> st
         "| family | detail (generated) | discussion (results file) | sweep (`experiments/reproduce.py`) |",
         "|---|---|---|---|",
     ]
-    for fam in families:
+    for fam in (f for g in families for f in _with_practitioners(g)):
         out.append(f"| {fam.name} | [detail/{fam.name}.md](detail/{fam.name}.md) | [{fam.results}]({fam.results}) | `{fam.sweep}` |")
     return "\n".join(out) + "\n"
 
@@ -301,15 +324,31 @@ def build_detail(fam: Family, root: Path = ROOT) -> str:
         "",
         render_metric(rows, {}),
     ]
+    paired = [r for r in rows if r.filter == "learned" and r.quantity == "diff_pct" and r.reference]
+    cpu = [r for r in rows if r.quantity == "tuning_cpu_s"]
+    if paired:
+        out += ["", "Learned - best non-learned (paired per test run and seed, % of the best's mean):", ""]
+        out += [
+            f"- {r.group or 'test'}: learned - {r.reference}: {fmt_ci(r.estimate, r.lo, r.hi)} ({paired_verdict(r.lo, r.hi)})"
+            for r in paired
+        ]
+    if cpu:
+        out += ["", "Tuning CPU seconds per row (learned: training), mean [min, max] over seeds:", ""]
+        out += [f"- {r.group + ' ' if r.group else ''}{r.filter}: {fmt_ci(r.estimate, r.lo, r.hi)}" for r in cpu]
     if has_anees:
         out += ["", "ANEES per state block (verdict rule in REPORT.md):", "", render_anees(rows, {})]
     return "\n".join(out) + "\n"
 
 
+def _with_practitioners(fam: Family) -> tuple[Family, ...]:
+    return (fam, fam.practitioners_family()) if fam.practitioners else (fam,)
+
+
 def generated_files(root: Path = ROOT) -> dict[Path, str]:
     """Every wholly generated file (REPORT.md, the detail pages) and its text."""
     files = {root / "results" / "REPORT.md": build_report(FAMILIES, root)}
-    files.update({root / "results" / "detail" / f"{fam.name}.md": build_detail(fam, root) for fam in FAMILIES})
+    every = [f for fam in FAMILIES for f in _with_practitioners(fam)]
+    files.update({root / "results" / "detail" / f"{fam.name}.md": build_detail(fam, root) for fam in every})
     return files
 
 
@@ -352,7 +391,7 @@ def collect(root: Path = ROOT) -> list[Path]:
     """Copy each family's ``<sweep>/summary.csv``, where a run of ``experiments/reproduce.py`` left
     one, over its data file (the committed numbers then come from the run); returns those copied."""
     copied = []
-    for fam in FAMILIES:
+    for fam in (f for g in FAMILIES for f in _with_practitioners(g)):
         src = root / fam.sweep / "summary.csv"
         if src.exists():
             rows = read_rows(src)  # the schema is checked before anything is overwritten

@@ -18,7 +18,7 @@ from omegaconf import OmegaConf
 
 from difffilter.evaluate.intervals import crossed_interval
 from experiments.practitioners import best_non_learned, summarize_practitioners
-from experiments.results_report import Family, summary_cells
+from experiments.results_report import Family, build_report, summary_cells
 from experiments.results_tables import fmt_ci, read_rows
 from tests.smoke_helpers import run_train_smoke
 
@@ -107,3 +107,22 @@ def test_overlay_runs_end_to_end(tmp_path, overlay):
         assert math.isfinite(float(by_name[name]["rmse_pos"])), name
     for name in PRACTITIONER_ROWS - {"textbook"}:  # tuned on validation: a CPU cost
         assert float(by_name[name]["tuning_cpu_s"]) > 0, name
+
+
+def test_report_row_of_a_family_with_practitioners_comes_from_their_sweep(tmp_path):
+    data = tmp_path / "results" / "data"
+    data.mkdir(parents=True)
+    header = "group,filter,quantity,estimate,lo,hi,seeds,runs,reference\n"
+    (data / "x.csv").write_text(header + ",hand-tuned,rmse_pos,2.0,1.9,2.1,1,10,\n,learned,rmse_pos,1.5,1.4,1.6,5,10,\n")
+    (data / "x_practitioners.csv").write_text(
+        header
+        + ",hand-tuned,rmse_pos,2.5,2.4,2.6,1,10,\n,learned,rmse_pos,1.6,1.5,1.7,5,10,\n"
+        + ",textbook,rmse_pos,1.7,1.6,1.8,1,10,\n,learned,diff_pct,-5.0,-8.0,-2.0,5,10,textbook\n"
+    )
+    fam = Family("x", "p00x", "mis-specified", "synthetic", "x.md", "outputs/x", practitioners=True)
+    report = build_report((fam,), tmp_path)
+    row = next(line for line in report.splitlines() if line.startswith("| p00x"))
+    assert "synthetic, practitioners' rows" in row and "| 2.5 [2.4, 2.6] | 1.7 [1.6, 1.8] |" in row
+    assert "| textbook rule |" in row and "| -5 [-8, -2] | win |" in row
+    assert "detail/x_practitioners.md" in report and "detail/x.md" in report
+    assert fam.practitioners_family().sweep == "outputs/practitioners/x"

@@ -102,7 +102,15 @@ FAMILIES: tuple[Family, ...] = (
     Family(
         "p000_odometer", "p000", "mis-specified", "odometer scale/slip", "p000_gpsdr.md", "outputs/final/p000_odometer", "test=scripted"
     ),
-    Family("p001_elevation", "p001", "mis-specified", "elevation-dependent noise", "p001_elevation.md", f"{_R}/p001_elevation"),
+    Family(
+        "p001_elevation",
+        "p001",
+        "mis-specified",
+        "elevation-dependent noise",
+        "p001_elevation.md",
+        f"{_R}/p001_elevation",
+        practitioners=True,
+    ),
     Family(
         "p002_disturbed_rcukf",
         "p002",

@@ -219,6 +219,16 @@ JOBS: tuple[Job, ...] = (
     # issue 25: the families again with the practitioners' rows (results/p00_practitioners.md)
     Job("p001_elevation_practitioners", "p00_practitioners.md", 489, _practitioners("p001_elevation")),
     Job("p004_urban_practitioners", "p00_practitioners.md", 900, _practitioners("p004_urban")),
+    Job(
+        "p002_disturbed_practitioners",
+        "p00_practitioners.md",
+        700,
+        (
+            "python experiments/train.py -m experiment=p002_disturbed_practitioners seed=0,1,2,3,4 logger=csv "
+            "hydra.sweep.dir=outputs/practitioners/p002_disturbed_rcukf",
+            "python -m experiments.practitioners outputs/practitioners/p002_disturbed_rcukf",
+        ),
+    ),
 )
 
 

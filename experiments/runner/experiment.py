@@ -368,7 +368,7 @@ class Baselines:
 def build_baselines(cfg: DictConfig, hand: Filter, learner: FilterLearner, datamodule: Any) -> Baselines:
     """Every entry of ``experiment.baselines``: built from its ``filter`` (default the
     experiment's) with its ``params``; an entry with ``tune`` starts from the hand-tuned values
-    (then its ``params``) and is fitted on the training or validation data
+    (then its ``params``, where a null drops a hand-tuned value the filter lacks) and is fitted on the training or validation data
     (:mod:`experiments.runner.baselines`), which ``datamodule`` must then give."""
     dtype = as_dtype(cfg.dtype)
     exp = cfg.experiment
@@ -382,7 +382,8 @@ def build_baselines(cfg: DictConfig, hand: Filter, learner: FilterLearner, datam
             continue
         if datamodule is None:
             raise ValueError(f"experiment.baselines.{name} has tune: it needs the experiment's data module (build_baselines's datamodule)")
-        params = {**(_plain(exp.get("hand_tuned")) or {}), **(spec.get("params") or {})}
+        # a null in the entry's params drops that hand-tuned value (a filter that lacks the parameter)
+        params = {k: v for k, v in {**(_plain(exp.get("hand_tuned")) or {}), **(spec.get("params") or {})}.items() if v is not None}
         filt = build_filter(spec.get("filter") or cfg.filter, dtype=dtype, params=params or None)
         out.info[name] = tune_baseline(
             filt,

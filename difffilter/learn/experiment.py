@@ -79,6 +79,7 @@ from ..selection import assign_parameters, parameter_owners
 from ..smoothers import Smoother, make_smoother, smoother_spec
 from .callbacks import EpochSummary, GracefulInterrupt
 from .data import TrajectorySet
+from .divergence import DivergenceGuard
 from .evaluation import EXTRA_TESTS_DIR, PER_RUN_FILE, consistency_table, evaluate_runs, write_per_run
 from .learner import FilterLearner
 from .reporting import log_results, parameter_summary, parameter_values
@@ -295,6 +296,9 @@ def _trainer(cfg: DictConfig) -> tuple[pl.Trainer, list[Any]]:
     for kind in (EpochSummary, GracefulInterrupt):
         if not any(isinstance(c, kind) for c in callbacks):
             callbacks.append(kind())
+    # always on unless divergence.enabled=false: a run that walks off stops as `diverged`
+    if not any(isinstance(c, DivergenceGuard) for c in callbacks):
+        callbacks.append(DivergenceGuard(**(_plain(cfg.get("divergence")) or {})))
     # Lightning's tqdm bar, chosen here so that the console looks the same on every machine
     # (Lightning would pick its rich bar where the rich package happens to be installed); not in
     # the callbacks config, which trainer.enable_progress_bar=false would contradict.

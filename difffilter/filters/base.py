@@ -36,6 +36,7 @@ from torch.nn.utils import parametrize
 from ..models.base import Controls
 from ._common import StepInfo, detach_belief, mask_measurement_system, slice_controls
 from .diffuse import DIFFUSE_COV, DIFFUSE_SCALE, drop_resolved, measurement_sensitivity, split_prior, total_cov
+from .isolation import isolated_run
 from .protocol import Belief, Filter, FilterResult
 from .update import diffuse_gaussian_update, gaussian_update, square_root_deviations, untrusted_steps
 
@@ -186,7 +187,22 @@ class RecursiveFilter(Filter):
                 model's ``f`` and ``h`` at each step.
             belief: a full belief to continue from (e.g. ``result.final_belief`` of the previous
                 window in truncated back-propagation); replaces ``initial_mean``/``initial_cov``.
+
+        A trajectory whose result is non-finite passes no gradient to the others
+        (:func:`~difffilter.filters.isolation.isolated_run`).
         """
+        return isolated_run(self._run, measurements, initial_mean, initial_cov, mask, controls, belief)
+
+    def _run(
+        self,
+        measurements: Tensor,
+        initial_mean: Tensor | None,
+        initial_cov: Tensor | None,
+        mask: Tensor | None,
+        controls: Controls,
+        *,
+        belief: Belief | None = None,
+    ) -> FilterResult:
         z, mask3, mean0, cov0 = self.check_inputs(measurements, initial_mean, initial_cov, mask, controls)
         if belief is None and (mean0 is None or cov0 is None):
             raise ValueError("initial_mean and initial_cov are required unless belief= is given")

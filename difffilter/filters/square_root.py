@@ -54,8 +54,9 @@ class SquareRootUKF(UKF):
         n = mean.shape[-1]
         wm, wc = self._weights(n, mean)
         dyn = self.model.dynamics
-        if linear_space(dyn):  # exact deviations, however large the mean (ukf.linear_image)
-            xm, dev = linear_image(dyn, mean, centred_points(self.sigma_points, s), u)
+        lin = linear_space(dyn, u)
+        if lin is not None:  # exact deviations, however large the mean (ukf.linear_image)
+            xm, dev = linear_image(dyn, mean, centred_points(self.sigma_points, s), u, lin)
         else:
             prop = dyn(self.sigma_points.generate(mean, s), expand_controls(u))
             xm = weighted_mean(prop, wm, dyn)
@@ -72,10 +73,11 @@ class SquareRootUKF(UKF):
         n = mean.shape[-1]
         wm, wc = self._weights(n, mean)
         hm = self.model.measurement
-        exact = linear_space(hm)
-        if exact:
+        lin = linear_space(hm, u)
+        exact = lin is not None
+        if lin is not None:
             dx = centred_points(self.sigma_points, s)
-            zhat, dz = linear_image(hm, mean, dx, u)
+            zhat, dz = linear_image(hm, mean, dx, u, lin)
         else:
             chi = self.sigma_points.generate(mean, s)
             zeta = hm(chi, expand_controls(u))

@@ -65,14 +65,17 @@ def weighted_moments(points: Tensor, wm: Tensor, wc: Tensor, space: Space = None
     return mean, dev, cov
 
 
-def linear_space(space: Space) -> bool:
-    """Whether ``space`` declares itself linear (implements ``matrix(u)``) with plain differences:
-    additive noise, no angular components, no overridden ``residual``/``add``."""
+def linear_space(space: Space, u: Controls) -> Tensor | None:
+    """The matrix ``M`` of a model part that is linear at these inputs (``space.matrix(u)`` is
+    not None) and has plain differences (additive noise, no angular components, no overridden
+    ``residual``/``add``), else None."""
     if space is None or space.angular or not space.additive_noise:
-        return False
+        return None
     base = DynamicsModel if isinstance(space, DynamicsModel) else MeasurementModel
     diff = "add" if isinstance(space, DynamicsModel) else "residual"
-    return type(space).matrix is not base.matrix and getattr(type(space), diff) is getattr(base, diff)
+    if type(space).matrix is base.matrix or getattr(type(space), diff) is not getattr(base, diff):
+        return None
+    return space.matrix(u)
 
 
 def centred_points(sigma_points: SigmaPoints, sqrt_cov: Tensor) -> Tensor:
@@ -81,11 +84,12 @@ def centred_points(sigma_points: SigmaPoints, sqrt_cov: Tensor) -> Tensor:
     return sigma_points.generate(sqrt_cov.new_zeros(sqrt_cov.shape[:-1]), sqrt_cov)
 
 
-def linear_image(space: DynamicsModel | MeasurementModel, mean: Tensor, dev: Tensor, u: Controls) -> tuple[Tensor, Tensor]:
-    """``(f(x), dev M^T)`` for a :func:`linear_space` with matrix ``M``: the unscented transform
-    of a linear map, exact (the images' weighted mean is ``f(x)`` because the deviations of a
-    symmetric point set cancel exactly), whatever the size of ``x`` against the spread."""
-    return space(mean, u), dev @ space.matrix(u).mT
+def linear_image(space: DynamicsModel | MeasurementModel, mean: Tensor, dev: Tensor, u: Controls, matrix: Tensor) -> tuple[Tensor, Tensor]:
+    """``(f(x), dev M^T)`` for a part with :func:`linear_space` matrix ``M``: the unscented
+    transform of a linear map, exact (the images' weighted mean is ``f(x)`` because the
+    deviations of a symmetric point set cancel exactly), whatever the size of ``x`` against the
+    spread."""
+    return space(mean, u), dev @ matrix.mT
 
 
 def offset_untrusted(mean: Tensor, cov: Tensor, zhat: Tensor, pzz: Tensor, maha: Tensor) -> Tensor:
@@ -174,9 +178,10 @@ class UKF(RecursiveFilter):
         f = self.model.dynamics
         q, r = self._noise_matrices(mean, u)
         out: Belief = dict(belief)
-        if self.noise == "additive" and self.redraw_after_predict and linear_space(f):
+        lin = linear_space(f, u) if self.noise == "additive" and self.redraw_after_predict else None
+        if lin is not None:
             wm, wc = self._weights(n, mean)
-            xm, dev = linear_image(f, mean, centred_points(self.sigma_points, psd_sqrt(cov).factor), u)
+            xm, dev = linear_image(f, mean, centred_points(self.sigma_points, psd_sqrt(cov).factor), u, lin)
             new_cov = symmetrize((dev * wc[:, None]).mT @ dev + q)
         elif self.noise == "additive":
             chi = self._points(mean, cov)
@@ -233,11 +238,12 @@ class UKF(RecursiveFilter):
         mean, cov = belief["mean"], belief["cov"]
         hm = self.model.measurement
         dyn = self.model.dynamics
-        exact = "sigma_points" not in belief and self.noise == "additive" and linear_space(hm)
-        if exact:  # a linear measurement of redrawn points: deviations without a large mean
+        lin = linear_space(hm, u) if "sigma_points" not in belief and self.noise == "additive" else None
+        exact = lin is not None
+        if lin is not None:  # a linear measurement of redrawn points: deviations without a large mean
             wm, wc = self._weights(mean.shape[-1], mean)
             dx = centred_points(self.sigma_points, psd_sqrt(cov).factor)
-            zhat, dz = linear_image(hm, mean, dx, u)
+            zhat, dz = linear_image(hm, mean, dx, u, lin)
             add_r = True
         else:
             chi, vnoise, wm, wc, add_r = self._update_points(belief, u)

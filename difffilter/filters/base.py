@@ -34,7 +34,7 @@ from torch import Tensor
 from torch.nn.utils import parametrize
 
 from ..models.base import Controls
-from ._common import StepInfo, detach_belief, mask_measurement_system, slice_controls
+from ._common import StepInfo, cast_controls, detach_belief, mask_measurement_system, slice_controls
 from .diffuse import DIFFUSE_COV, DIFFUSE_SCALE, drop_resolved, measurement_sensitivity, split_prior, total_cov
 from .isolation import isolated_run
 from .protocol import Belief, Filter, FilterResult
@@ -146,6 +146,7 @@ class RecursiveFilter(Filter):
             if controls is None
             else (controls[:, None] if isinstance(controls, Tensor) else {k: v[:, None] for k, v in controls.items()})
         )
+        u = cast_controls(u, z)
         z, mk, _, _ = self.check_inputs(z, None, None, mk, u)
         if u is not None:
             # the models' derived inputs, once for every mode of a mixer (precompute_controls)
@@ -203,6 +204,7 @@ class RecursiveFilter(Filter):
         *,
         belief: Belief | None = None,
     ) -> FilterResult:
+        controls = cast_controls(controls, measurements)
         z, mask3, mean0, cov0 = self.check_inputs(measurements, initial_mean, initial_cov, mask, controls)
         if belief is None and (mean0 is None or cov0 is None):
             raise ValueError("initial_mean and initial_cov are required unless belief= is given")

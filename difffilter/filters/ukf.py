@@ -9,7 +9,7 @@ import torch
 from torch import Tensor
 
 from ..linalg import block_diag, psd_sqrt, symmetrize
-from ..models.base import Controls, DynamicsModel, MeasurementModel, StateSpaceModel, wrap_components
+from ..models.base import Controls, DynamicsModel, MeasurementModel, StateSpaceModel, check_angular_declaration, wrap_components
 from ._common import expand_controls
 from .base import Belief, RecursiveFilter, StepInfo, diffuse_gaussian_update, gaussian_update
 from .diffuse import DIFFUSE_COV, propagate_diffuse
@@ -154,6 +154,8 @@ class UKF(RecursiveFilter):
             raise ValueError(f"noise must be 'additive' or 'augmented', got {noise!r}")
         if noise == "additive" and not (model.dynamics.additive_noise and model.measurement.additive_noise):
             raise ValueError("the model declares non-additive noise (f(x, w, u) or h(x, v, u)): use UKF(..., noise='augmented')")
+        check_angular_declaration(model.dynamics)
+        check_angular_declaration(model.measurement)
         self.sigma_points = sigma_points if sigma_points is not None else MerweScaled(alpha=1.0, beta=2.0, kappa=0.0)
         self.redraw_after_predict = bool(redraw_after_predict)
         self.noise = noise

@@ -78,6 +78,7 @@ from ..models.layout import model_defaults
 from ..selection import assign_parameters, parameter_owners
 from ..smoothers import Smoother, make_smoother, smoother_spec
 from .callbacks import EpochSummary, GracefulInterrupt
+from .config_check import check_config
 from .data import TrajectorySet
 from .divergence import DivergenceGuard
 from .evaluation import EXTRA_TESTS_DIR, PER_RUN_FILE, consistency_table, evaluate_runs, write_per_run
@@ -319,6 +320,7 @@ def run_experiment(cfg: DictConfig) -> dict[str, Any]:
     with ``cfg.train: true``, ``cfg.ckpt_path`` or ``cfg.resume`` continue an interrupted training
     run (:func:`~difffilter.learn.runs.resume_checkpoint`).  The run directory gets a
     ``status.json`` (:func:`~difffilter.learn.runs.run_status`)."""
+    check_config(cfg)  # a number typed as text fails here, naming its key
     if cfg.get("threads"):
         torch.set_num_threads(int(cfg.threads))
     train = bool(cfg.get("train", True))

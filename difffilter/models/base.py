@@ -24,6 +24,7 @@ from torch import Tensor, nn
 from ..params import check_covariance, register_covariance
 
 __all__ = [
+    "check_angular_declaration",
     "Controls",
     "DynamicsModel",
     "FunctionalModel",
@@ -52,6 +53,44 @@ def wrap_components(x: Tensor, indices: tuple[int, ...]) -> Tensor:
     return torch.where(sel, wrap_angle(x), x)
 
 
+def check_angular_declaration(space: nn.Module) -> None:
+    """Refuse a model part whose overridden ``residual`` changes components it does not list in
+    ``angular`` (e.g. wraps a heading without declaring it).
+
+    The unscented filters average sigma-point images as angles (around a reference point) only
+    for the declared components; for the others they take the plain weighted mean and then the
+    model's ``residual``, which gives a silently wrong posterior when that residual wraps.  The
+    check compares ``residual(a, b)`` with ``a - b`` (declared components wrapped) on spread-out
+    probe values; a residual that cannot be evaluated on them is left alone."""
+    if not isinstance(space, (DynamicsModel, MeasurementModel)):
+        return
+    base = DynamicsModel if isinstance(space, DynamicsModel) else MeasurementModel
+    if type(space).residual is base.residual:
+        return
+    dim = int(getattr(space, "state_dim", None) or getattr(space, "measurement_dim", 0) or 0)
+    if dim <= 0:
+        return
+    dtype = next((p.dtype for p in space.parameters() if p.is_floating_point()), torch.float64)
+    gen = torch.Generator().manual_seed(0)
+    a, b = (10.0 * torch.randn(2, 16, dim, generator=gen, dtype=torch.float64)).to(dtype)
+    try:
+        with torch.no_grad():
+            got = space.residual(a, b)
+    except Exception:  # noqa: BLE001 - a residual that needs more than values: nothing to probe
+        return
+    want = wrap_components(a - b, tuple(space.angular))
+    if not isinstance(got, Tensor) or got.shape != want.shape:
+        return
+    bad = [i for i in range(dim) if not torch.allclose(got[:, i], want[:, i], rtol=1e-5, atol=1e-5)]
+    if bad:
+        raise ValueError(
+            f"{type(space).__name__}.residual changes components {bad} beyond a plain difference, but its angular = "
+            f"{tuple(space.angular)} does not list them: the unscented filters average only declared components as angles, "
+            f"so the posterior would be silently wrong; declare them (angular = {tuple(sorted(set(space.angular) | set(bad)))}, "
+            "the default residual then wraps them) or make residual a plain difference there"
+        )
+
+
 class DynamicsModel(nn.Module):
     """Transition ``f`` with process noise ``Q``.
 
@@ -68,6 +107,10 @@ class DynamicsModel(nn.Module):
 
     state_dim: int
     angular: tuple[int, ...] = ()
+    #: False for dynamics that ignore the per-step inputs (a ``LinearModel`` without ``B``, a
+    #: ``FunctionalModel(controls=False)``): controls given to a model whose parts all ignore
+    #: them are refused instead of silently dropped.
+    uses_controls: bool = True
 
     def residual(self, x: Tensor, x_ref: Tensor) -> Tensor:
         """State difference ``x - x_ref`` ``[..., n]``, angular components wrapped."""
@@ -137,6 +180,8 @@ class MeasurementModel(nn.Module):
 
     measurement_dim: int
     angular: tuple[int, ...] = ()
+    #: As :attr:`DynamicsModel.uses_controls`.
+    uses_controls: bool = True
 
     def forward(self, x: Tensor, u: Controls = None) -> Tensor:  # pragma: no cover - abstract
         raise NotImplementedError
@@ -240,6 +285,7 @@ class _FunctionalDynamics(DynamicsModel):
         check_covariance("Q", Q, semidefinite=True)
         self.state_dim = Q.shape[-1]
         self._f, self._jac, self._takes_u = f, jacobian, takes_u
+        self.uses_controls = bool(takes_u)
         register_covariance(self, "Q", Q, structure)
 
     def forward(self, x: Tensor, u: Controls = None) -> Tensor:
@@ -257,6 +303,7 @@ class _FunctionalMeasurement(MeasurementModel):
         check_covariance("R", R, semidefinite=True)
         self.measurement_dim = R.shape[-1]
         self._h, self._jac, self._takes_u = h, jacobian, takes_u
+        self.uses_controls = bool(takes_u)
         register_covariance(self, "R", R, structure)
 
     def forward(self, x: Tensor, u: Controls = None) -> Tensor:
@@ -282,7 +329,10 @@ class FunctionalModel(StateSpaceModel):
         R: measurement-noise covariance ``[m, m]``; learnable with structure ``R_structure``.
         f_jacobian, h_jacobian: optional analytic Jacobians ``[..., n, n]`` / ``[..., m, n]``.
         controls: whether ``f``/``h`` take the per-step inputs ``u`` as second argument.
-        Q_structure, R_structure: ``"full"``, ``"diagonal"``, ``"scalar"``, ``"factor"`` (a free
+        Q_structure, R_structure: ``"auto"`` (default: ``"full"`` when the value is positive
+            definite, ``"factor"`` when it is semi-definite, e.g. the white-noise-acceleration
+            ``Q``, ``"scalar"`` when a variance is below the dtype's floor, e.g. float32
+            ``R = 1e-20 I``), ``"full"``, ``"diagonal"``, ``"scalar"``, ``"factor"`` (a free
             factor of the value's rank: learnable semi-definite covariances) or ``"fixed"``
             (:func:`~difffilter.params.register_covariance`).
         angular_states, angular_measurements: indices of angle components (radians).
@@ -298,8 +348,8 @@ class FunctionalModel(StateSpaceModel):
         f_jacobian: Callable[..., Tensor] | None = None,
         h_jacobian: Callable[..., Tensor] | None = None,
         controls: bool = False,
-        Q_structure: str = "full",  # noqa: N803
-        R_structure: str = "full",  # noqa: N803
+        Q_structure: str = "auto",  # noqa: N803
+        R_structure: str = "auto",  # noqa: N803
         angular_states: tuple[int, ...] = (),
         angular_measurements: tuple[int, ...] = (),
     ) -> None:
@@ -332,6 +382,7 @@ class _LinearDynamics(DynamicsModel):
         self.state_dim = n
         self.register_buffer("F", F.detach().clone())
         self.register_buffer("B", None if B is None else B.detach().clone())
+        self.uses_controls = B is not None
         register_covariance(self, "Q", Q, structure)
 
     def forward(self, x: Tensor, u: Controls = None) -> Tensor:
@@ -357,6 +408,7 @@ class _LinearMeasurement(MeasurementModel):
         check_covariance("R", R, H.shape[0], semidefinite=True)
         self.measurement_dim = H.shape[0]
         self.register_buffer("H", H.detach().clone())
+        self.uses_controls = False
         register_covariance(self, "R", R, structure)
 
     def forward(self, x: Tensor, u: Controls = None) -> Tensor:
@@ -385,8 +437,8 @@ class LinearModel(StateSpaceModel):
         Q: Tensor,  # noqa: N803
         R: Tensor,  # noqa: N803
         B: Tensor | None = None,  # noqa: N803
-        Q_structure: str = "full",  # noqa: N803
-        R_structure: str = "full",  # noqa: N803
+        Q_structure: str = "auto",  # noqa: N803
+        R_structure: str = "auto",  # noqa: N803
     ) -> None:
         _check_matrix("F", F, None)
         for name, value in (("H", H), ("Q", Q), ("R", R), ("B", B)):

@@ -9,6 +9,7 @@ from torch import Tensor, nn
 from torch.nn.utils import parametrize
 
 from ...models.base import Controls
+from .._common import cast_controls
 from ..base import Belief, FilterResult, RecursiveFilter, slice_controls, through_diffuse_phase
 from ..diffuse import DIFFUSE_COV
 from ..isolation import isolated_run
@@ -182,6 +183,7 @@ class FusedFilter(nn.Module):
         belief: Belief | None = None,
     ) -> FilterResult:
         filt = self.filter
+        controls = cast_controls(controls, measurements)
         z, mask3, mean0, cov0 = filt.check_inputs(measurements, initial_mean, initial_cov, mask, controls)
         controls = filt.precompute_controls(controls)
         if belief is None:

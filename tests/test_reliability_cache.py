@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from difffilter.filters.fused import build, cache
+from difffilter.engines import build, cache
 
 pytestmark = pytest.mark.skipif(build.compiler_available() is not None, reason="no C++ compiler")
 
@@ -25,7 +25,7 @@ _ROOT = Path(__file__).resolve().parents[1]
 _SCRIPT = textwrap.dedent(
     """
     import ctypes, warnings
-    from difffilter.filters.fused import build
+    from difffilter.engines import build
     src = 'extern "C" double forward(double x) { return 3.0 * x + 1.0; }'
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")

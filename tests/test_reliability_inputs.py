@@ -35,6 +35,7 @@ from difffilter.models.navigation.gnss_imu import GnssMeasurement
 from difffilter.params import ScaledMatrix
 
 from .filter_contract import cv_matrices, numpy_kalman
+from .smoke_helpers import config_files
 
 F64, F32 = torch.float64, torch.float32
 CONF = Path(__file__).resolve().parents[1] / "conf"
@@ -82,7 +83,7 @@ def test_a_config_value_of_the_wrong_type_names_its_key(key: str, value: object,
 @pytest.mark.slow
 def test_every_shipped_experiment_passes_the_config_check(tmp_path: Path) -> None:
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        for path in sorted((CONF / "experiment").glob("*.yaml")):
+        for path in config_files("experiment"):
             for debug in ([], ["debug=smoke"]):
                 cfg = compose(config_name="train", overrides=[f"experiment={path.stem}", f"paths.output_dir={tmp_path}", *debug])
                 check_config(cfg)

@@ -13,8 +13,8 @@ from __future__ import annotations
 import pytest
 import torch
 
+from difffilter.engines.build import compiler_available
 from difffilter.filters import UKF, FusedFilter, KalmanFilter, SquareRootUKF
-from difffilter.filters.fused.build import compiler_available
 from difffilter.mixers import IMM
 from difffilter.models import LinearModel
 

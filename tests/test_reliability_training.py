@@ -5,7 +5,7 @@
   skipped steps, and leaves an ordinary run alone;
 * ``python experiments/train.py debug=smoke optimizer.lr=1e6`` (which used to exit 0 with a
   learned R of 1.5e-154 and status ``completed``) exits non-zero with ``diverged``;
-* a process killed by SIGKILL inside :func:`~difffilter.learn.runs.run_status` reads as
+* a process killed by SIGKILL inside :func:`~experiments.runner.runs.run_status` reads as
   ``killed``; a heartbeat that stopped reads as ``stale``; a live run reads as ``running``.
 """
 
@@ -28,9 +28,9 @@ from torch import nn
 
 from difffilter.learn.divergence import DivergenceGuard, TrainingDivergedError, scale_parameters
 from difffilter.learn.liveness import assess
-from difffilter.learn.runs import read_status, run_status
-from difffilter.learn.sweep import unfinished_jobs
 from difffilter.params import Interval, Positive, PositiveDefinite, register_constrained
+from experiments.runner.runs import read_status, run_status
+from experiments.runner.sweep import unfinished_jobs
 
 _ROOT = Path(__file__).resolve().parents[1]
 F64 = torch.float64
@@ -140,7 +140,7 @@ def test_train_with_a_huge_learning_rate_exits_non_zero_as_diverged(tmp_path: Pa
 _HOLD = textwrap.dedent(
     """
     import sys, time
-    from difffilter.learn.runs import run_status
+    from experiments.runner.runs import run_status
     with run_status(sys.argv[1], heartbeat_s=0.5):
         print("started", flush=True)
         time.sleep(120)

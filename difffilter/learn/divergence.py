@@ -26,7 +26,7 @@ reason in the message) when the run has diverged, meaning any of:
 * **no finite step for a while**: ``max_skipped_steps`` (default 20) consecutive steps skipped
   for a non-finite loss or gradient: the parameters no longer produce a usable filter.
 
-The limits are the ``divergence`` node of the training config (``conf/train.yaml``);
+The limits are the ``divergence`` node of the training config (``conf/common.yaml``);
 ``divergence.enabled=false`` turns the guard off.
 """
 

@@ -58,7 +58,15 @@ def _damage_flip(path: Path) -> None:  # same size, one byte differs: only the h
     path.write_bytes(bytes(data))
 
 
-@pytest.mark.parametrize("damage", [_damage_truncate, _damage_garbage, _damage_flip], ids=["truncated", "garbage", "flipped"])
+@pytest.mark.parametrize(
+    "damage",
+    [
+        _damage_truncate,  # the SIGBUS case: in the default suite
+        pytest.param(_damage_garbage, marks=pytest.mark.slow),  # three Python processes each: ~5 s apiece
+        pytest.param(_damage_flip, marks=pytest.mark.slow),
+    ],
+    ids=["truncated", "garbage", "flipped"],
+)
 def test_a_damaged_cached_kernel_is_rebuilt_with_one_warning(tmp_path: Path, damage) -> None:  # type: ignore[no-untyped-def]
     first = _load_in_subprocess(tmp_path)
     assert first.returncode == 0, first.stderr
@@ -73,6 +81,7 @@ def test_a_damaged_cached_kernel_is_rebuilt_with_one_warning(tmp_path: Path, dam
     assert "value=7.0 warnings=0" in third.stdout, third.stderr
 
 
+@pytest.mark.slow
 def test_an_entry_without_a_record_is_rebuilt_silently(tmp_path: Path) -> None:
     """An entry from before records existed cannot be verified: it is rebuilt, not loaded."""
     assert _load_in_subprocess(tmp_path).returncode == 0

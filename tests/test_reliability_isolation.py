@@ -13,8 +13,9 @@ from __future__ import annotations
 import pytest
 import torch
 
+from difffilter.engines import FusedFilter
 from difffilter.engines.build import compiler_available
-from difffilter.filters import UKF, FusedFilter, KalmanFilter, SquareRootUKF
+from difffilter.filters import UKF, KalmanFilter, SquareRootUKF
 from difffilter.mixers import IMM
 from difffilter.models import LinearModel
 

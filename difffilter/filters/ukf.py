@@ -9,7 +9,8 @@ import torch
 from torch import Tensor
 
 from ..linalg import block_diag, psd_sqrt, symmetrize
-from ..models.base import Controls, DynamicsModel, MeasurementModel, StateSpaceModel, check_angular_declaration, wrap_components
+from ..models.angular import check_angular_declaration
+from ..models.base import Controls, DynamicsModel, MeasurementModel, StateSpaceModel, wrap_components
 from ._common import expand_controls
 from .base import Belief, RecursiveFilter, StepInfo, diffuse_gaussian_update, gaussian_update
 from .diffuse import DIFFUSE_COV, propagate_diffuse

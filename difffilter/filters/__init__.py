@@ -7,6 +7,7 @@ from .ekf import EKF
 from .fused import FusedFilter, fuse
 from .iterated import IteratedEKF
 from .kalman import KalmanFilter
+from .parallel import ParallelKalmanFilter
 from .protocol import Filter
 from .sequential import SequentialUpdate
 from .sigma_points import Cubature, Julier, MerweScaled, SigmaPoints
@@ -28,6 +29,7 @@ __all__ = [
     "Julier",
     "KalmanFilter",
     "MerweScaled",
+    "ParallelKalmanFilter",
     "SequentialUpdate",
     "RecursiveFilter",
     "SigmaPoints",

@@ -5,16 +5,21 @@ from .base import Smoother
 from .factory import make_smoother, smoother_spec
 from .fixed_lag import FixedLagSmoother
 from .imm import IMMSmoother
+from .iterated import IteratedSmoother, statistical_linearisation
+from .parallel import ParallelRTSSmoother
 from .result import SmootherResult
 from .rts import RTSSmoother, UnscentedRTSSmoother
 
 __all__ = [
     "FixedLagSmoother",
     "IMMSmoother",
+    "IteratedSmoother",
+    "ParallelRTSSmoother",
     "RTSSmoother",
     "Smoother",
     "SmootherResult",
     "UnscentedRTSSmoother",
     "make_smoother",
     "smoother_spec",
+    "statistical_linearisation",
 ]

@@ -1,8 +1,8 @@
 """difffilter: batched, differentiable Kalman-family filters in PyTorch."""
 
-from . import filters, linalg, mixers, models, params, sim, smoothers
+from . import filters, func, linalg, mixers, models, params, sim, smoothers
 from ._util import as_dtype, document_init
-from .filters import EKF, RCUKF, UKF, ColoredNoiseUKF, Filter, GaussianFilter, KalmanFilter, RecursiveFilter, SimplifiedUKF, SquareRootUKF
+from .filters import EKF, RCUKF, UKF, ColoredNoiseUKF, Filter, GaussianFilter, KalmanFilter, ParallelKalmanFilter, RecursiveFilter, SimplifiedUKF, SquareRootUKF
 from .mixers import IMM, Blend
 from .models import FunctionalModel, LinearModel, StateSpaceModel
 
@@ -18,11 +18,13 @@ __all__ = [
     "GaussianFilter",
     "KalmanFilter",
     "LinearModel",
+    "ParallelKalmanFilter",
     "RecursiveFilter",
     "SimplifiedUKF",
     "SquareRootUKF",
     "StateSpaceModel",
     "as_dtype",
+    "func",
     "linalg",
     "mixers",
     "params",

@@ -23,7 +23,7 @@ FLOORS: list[set[str]] = [
     {"models"},
     {"filters"},
     {"mixers"},
-    {"smoothers"},
+    {"smoothers", "func"},
     {"sim"},
     {"learn"},
     {"papers"},

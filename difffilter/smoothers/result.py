@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from torch import Tensor
+from torch.utils import _pytree
 
 from ..filters.base import Belief, FilterResult
 
@@ -82,3 +83,14 @@ class SmootherResult:
     @property
     def total_log_likelihood(self) -> Tensor:
         return self.filtered.total_log_likelihood
+
+
+_FIELDS = ("mean", "cov", "filtered", "cross_cov", "initial_mean", "initial_cov", "extras")
+
+# A pytree node (the lag is static context), so that torch.func.vmap can return a SmootherResult.
+_pytree.register_pytree_node(
+    SmootherResult,
+    lambda r: ([getattr(r, k) for k in _FIELDS], r.lag),
+    lambda children, lag: SmootherResult(*children, lag=lag),
+    serialized_type_name="difffilter.SmootherResult",
+)

@@ -30,8 +30,10 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from typing import Any
 
+import torch
 from torch import Tensor, nn
-from torch.func import functional_call, grad, stack_module_state, vmap
+from torch.func import functional_call, grad, vmap
+from torch.nn.utils.parametrize import type_before_parametrizations
 
 from .filters import FusedFilter
 
@@ -48,10 +50,10 @@ def stack_parameters(modules: Sequence[nn.Module]) -> dict[str, Tensor]:
         raise ValueError("modules must hold at least one module")
     names = [n for n, _ in modules[0].named_parameters()]
     for i, mod in enumerate(modules[1:], 1):
-        if type(mod) is not type(modules[0]) or [n for n, _ in mod.named_parameters()] != names:
+        if type_before_parametrizations(mod) is not type_before_parametrizations(modules[0]) or [n for n, _ in mod.named_parameters()] != names:
             raise ValueError(f"modules[{i}] differs in type or parameters from modules[0]; stack modules of one structure")
-    params, _ = stack_module_state(modules)
-    return {k: v.detach() for k, v in params.items()}
+    tables = [dict(mod.named_parameters()) for mod in modules]
+    return {name: torch.stack([t[name].detach() for t in tables]) for name in names}
 
 
 def _check_module(module: nn.Module, params: dict[str, Tensor]) -> int:
@@ -59,6 +61,11 @@ def _check_module(module: nn.Module, params: dict[str, Tensor]) -> int:
         raise TypeError(f"module must be a difffilter filter or smoother (nn.Module), got {type(module).__name__}")
     if any(isinstance(m, FusedFilter) for m in module.modules()):
         raise TypeError("vmap_filter cannot run a FusedFilter (compiled kernels); vmap the filter it wraps instead")
+    if len(dict(module.named_parameters(remove_duplicate=False))) != len(dict(module.named_parameters())):
+        raise TypeError(
+            f"{type(module).__name__} shares a parameter between submodules (e.g. one model in two IMM modes), which "
+            "torch.func.functional_call does not restore reliably; give each submodule its own copy"
+        )
     if not isinstance(params, dict) or not params:
         raise ValueError("params must be a non-empty dict {name: [K, ...]} (e.g. from stack_parameters)")
     known = dict(module.named_parameters())

@@ -87,10 +87,17 @@ class SmootherResult:
 
 _FIELDS = ("mean", "cov", "filtered", "cross_cov", "initial_mean", "initial_cov", "extras")
 
-# A pytree node (the lag is static context), so that torch.func.vmap can return a SmootherResult.
-_pytree.register_pytree_node(
-    SmootherResult,
-    lambda r: ([getattr(r, k) for k in _FIELDS], r.lag),
-    lambda children, lag: SmootherResult(*children, lag=lag),
-    serialized_type_name="difffilter.SmootherResult",
-)
+
+def _flatten(r: SmootherResult) -> tuple[list, tuple]:
+    present = tuple(k for k in _FIELDS if getattr(r, k) is not None)
+    return [getattr(r, k) for k in present], (present, r.lag)
+
+
+def _unflatten(children: list, context: tuple) -> SmootherResult:
+    present, lag = context
+    return SmootherResult(**dict(zip(present, children)), lag=lag)
+
+
+# A pytree node (absent fields and the lag are static context), so that torch.func.vmap can
+# return a SmootherResult.
+_pytree.register_pytree_node(SmootherResult, _flatten, _unflatten, serialized_type_name="difffilter.SmootherResult")

@@ -2,7 +2,19 @@
 
 from . import filters, func, linalg, mixers, models, params, sim, smoothers
 from ._util import as_dtype, document_init
-from .filters import EKF, RCUKF, UKF, ColoredNoiseUKF, Filter, GaussianFilter, KalmanFilter, ParallelKalmanFilter, RecursiveFilter, SimplifiedUKF, SquareRootUKF
+from .filters import (
+    EKF,
+    RCUKF,
+    UKF,
+    ColoredNoiseUKF,
+    Filter,
+    GaussianFilter,
+    KalmanFilter,
+    ParallelKalmanFilter,
+    RecursiveFilter,
+    SimplifiedUKF,
+    SquareRootUKF,
+)
 from .mixers import IMM, Blend
 from .models import FunctionalModel, LinearModel, StateSpaceModel
 

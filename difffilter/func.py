@@ -21,7 +21,7 @@ per-sample value, so: input values are not validated (shapes and dtypes are, as 
 (:mod:`difffilter.filters.diffuse`) that depends on the vmapped values is not made: give an
 initial covariance that is not dangerously wide against the measurements (or set
 ``diffuse_prior = False`` on the filter to get the same values outside ``vmap``).
-:class:`~difffilter.filters.FusedFilter` (compiled kernels) is refused; an estimator whose code
+:class:`~difffilter.engines.FusedFilter` (compiled kernels) is refused; an estimator whose code
 branches on values elsewhere raises ``TypeError`` naming it.
 """
 
@@ -35,7 +35,7 @@ from torch import Tensor, nn
 from torch.func import functional_call, grad, vmap
 from torch.nn.utils.parametrize import type_before_parametrizations
 
-from .filters import FusedFilter
+from .engines import FusedFilter
 
 __all__ = ["per_sample_grads", "stack_parameters", "vmap_filter"]
 
@@ -50,7 +50,10 @@ def stack_parameters(modules: Sequence[nn.Module]) -> dict[str, Tensor]:
         raise ValueError("modules must hold at least one module")
     names = [n for n, _ in modules[0].named_parameters()]
     for i, mod in enumerate(modules[1:], 1):
-        if type_before_parametrizations(mod) is not type_before_parametrizations(modules[0]) or [n for n, _ in mod.named_parameters()] != names:
+        if (
+            type_before_parametrizations(mod) is not type_before_parametrizations(modules[0])
+            or [n for n, _ in mod.named_parameters()] != names
+        ):
             raise ValueError(f"modules[{i}] differs in type or parameters from modules[0]; stack modules of one structure")
     tables = [dict(mod.named_parameters()) for mod in modules]
     return {name: torch.stack([t[name].detach() for t in tables]) for name in names}

@@ -232,7 +232,9 @@ def psd_sqrt(a: Tensor) -> CholeskyResult:
     if vmapped(chol, info):
         # inside vmap: the exact semi-definite factor where the Cholesky factor fails (no jitter)
         ok = _chol_ok(chol, info)
-        semi = _semidefinite_factor(symmetrize(torch.where(ok[..., None, None], torch.eye(a.shape[-1], dtype=a.dtype, device=a.device), a)))[0]
+        semi = _semidefinite_factor(
+            symmetrize(torch.where(ok[..., None, None], torch.eye(a.shape[-1], dtype=a.dtype, device=a.device), a))
+        )[0]
         return CholeskyResult(torch.where(ok[..., None, None], chol, semi), torch.zeros(info.shape, dtype=a.dtype, device=a.device))
     if not bool(info.any()) and bool(torch.isfinite(torch.diagonal(chol, dim1=-2, dim2=-1).sum())):
         return CholeskyResult(chol, torch.zeros(info.shape, dtype=a.dtype, device=a.device))

@@ -25,9 +25,9 @@ FLOORS: list[set[str]] = [
     {"models"},
     {"filters"},
     {"mixers"},
-    {"smoothers", "func"},
+    {"smoothers"},
     {"sim"},
-    {"engines"},
+    {"engines", "func"},
     {"evaluate"},
     {"learn"},
 ]

@@ -86,7 +86,7 @@ def test_gradients_equal_sequential():
         loss = -out.total_log_likelihood.sum() + (out.mean**2).sum() + out.cov.diagonal(dim1=-2, dim2=-1).sum()
         params = [p for _, p in filt.named_parameters()] + [m0]
         grads.append(torch.autograd.grad(loss, params))
-    for a, b in zip(*grads):
+    for a, b in zip(*grads, strict=True):
         assert torch.allclose(a, b, atol=1e-9, rtol=0)
 
 

@@ -171,7 +171,7 @@ def test_gradients_through_iterations():
     for method in ("extended", "sigma"):
         sm = IteratedSmoother(model, method=method, iterations=2, sigma_points=Cubature())
 
-        def fn(omega):
+        def fn(omega, sm=sm):
             out = torch.func.functional_call(sm, {"filter.model.dynamics.omega": omega}, (z[:, :3], m0, p0), {"mask": mask[:, :3]})
             return out.mean, out.cov
 

@@ -67,7 +67,7 @@ def test_vmap_equals_loop(name):
     m0, p0 = torch.zeros(2, dtype=F64), torch.eye(2, dtype=F64)
     out = vmap_filter(modules[0], params, z, m0, p0, mask=mask)
     loop = [mod(z, m0, p0, mask=mask) for mod in modules]
-    for (label, batched), *refs in zip(_leaves(out), *(_leaves(r) for r in loop)):
+    for (label, batched), *refs in zip(_leaves(out), *(_leaves(r) for r in loop), strict=True):
         ref = torch.stack([r[1] for r in refs])
         assert batched.shape == ref.shape, label
         if ref.dtype == torch.bool:
@@ -90,7 +90,7 @@ def test_per_sample_grads_equal_separate_backward(name):
     for k, mod in enumerate(modules):
         named = dict(mod.named_parameters())
         ref = torch.autograd.grad(loss(mod(z, m0, p0, mask=mask)), list(named.values()))
-        for (pname, _), g in zip(named.items(), ref):
+        for (pname, _), g in zip(named.items(), ref, strict=True):
             assert torch.allclose(grads[pname][k], g, atol=1e-12, rtol=0), (k, pname)
 
 
@@ -127,7 +127,9 @@ def test_errors():
         vmap_filter(kf, {}, z, m0, p0)
     shared = _model(2)
     tied = IMM(
-        [KalmanFilter(shared), EKF(shared)], transition=torch.tensor([[0.9, 0.1], [0.1, 0.9]], dtype=F64), initial_probs=torch.tensor([0.5, 0.5], dtype=F64)
+        [KalmanFilter(shared), EKF(shared)],
+        transition=torch.tensor([[0.9, 0.1], [0.1, 0.9]], dtype=F64),
+        initial_probs=torch.tensor([0.5, 0.5], dtype=F64),
     )
     with pytest.raises(TypeError, match="shares a parameter"):
         vmap_filter(tied, stack_parameters([tied]), z, m0, p0)

@@ -64,9 +64,9 @@ class ParallelKalmanFilter(KalmanFilter):
     moments of all ``T`` steps come from one prefix scan of ``O(log T)`` sequential depth
     (Särkkä & García-Fernández 2021; equations in :mod:`difffilter.filters.scan`), then the
     priors, innovations, log-likelihoods and NIS of all steps from one batched call.  That is
-    what a GPU needs for long windows with few trajectories; on a CPU, where the batched
-    small-matrix work dominates, the sequential filter is usually faster (see
-    ``docs/parallel.md``).
+    what a GPU needs for long windows with few trajectories; it does about twice the
+    arithmetic of the sequential filter but in ``O(log T)`` batched calls instead of ``T`` rounds
+    of small ones (measured speeds: ``docs/parallel.md``).
 
     Supported as in :class:`KalmanFilter`: whole-step and per-component masks (the missing
     components removed exactly), controls (``f(x, u) = F(u) x + c(u)``,
@@ -108,9 +108,8 @@ class ParallelKalmanFilter(KalmanFilter):
             parts, t = [], 0
             # a diffuse part is resolved by the exact sequential update, step by step
             while t < steps and DIFFUSE_COV in belief:
-                part = RecursiveFilter.forward(
-                    self, z[:, t : t + 1], mask=None if mask3 is None else mask3[:, t : t + 1], controls=slice_steps(controls, t, t + 1), belief=belief
-                )  # fmt: skip
+                mk = None if mask3 is None else mask3[:, t : t + 1]
+                part = RecursiveFilter.forward(self, z[:, t : t + 1], mask=mk, controls=slice_steps(controls, t, t + 1), belief=belief)
                 parts.append(part)
                 belief, t = part.final_belief, t + 1
             if t < steps:

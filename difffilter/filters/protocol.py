@@ -29,8 +29,8 @@ import torch
 from torch import Tensor, nn
 from torch.utils import _pytree
 
-from ..models.base import Controls, DynamicsModel, MeasurementModel, StateSpaceModel
 from ..linalg import inside_vmap
+from ..models.base import Controls, DynamicsModel, MeasurementModel, StateSpaceModel
 from ..params import check_covariance
 
 __all__ = ["Belief", "Filter", "FilterResult"]

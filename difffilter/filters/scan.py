@@ -69,7 +69,7 @@ class AffineSystem(NamedTuple):
 def _interleave(even: Elements, odd: Elements) -> Elements:
     """``[e0, o0, e1, o1, ...]`` along dim 1; ``even`` has as many entries as ``odd`` or one more."""
     out = []
-    for e, o in zip(even, odd):
+    for e, o in zip(even, odd, strict=True):
         k = o.shape[1]
         pairs = torch.stack([e[:, :k], o], 2).reshape(e.shape[0], 2 * k, *e.shape[2:])
         out.append(torch.cat([pairs, e[:, k:]], 1) if e.shape[1] > k else pairs)
@@ -98,7 +98,7 @@ def associative_scan(op: Callable[[Elements, Elements], Elements], elems: Elemen
         even: Elements = tuple(e[:, :1] for e in elems)
     else:
         earlier = odd if steps % 2 else tuple(o[:, :-1] for o in odd)
-        even = tuple(torch.cat([e[:, :1], r], 1) for e, r in zip(elems, op(earlier, later)))
+        even = tuple(torch.cat([e[:, :1], r], 1) for e, r in zip(elems, op(earlier, later), strict=True))
     return _interleave(even, odd)
 
 

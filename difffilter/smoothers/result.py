@@ -95,7 +95,7 @@ def _flatten(r: SmootherResult) -> tuple[list, tuple]:
 
 def _unflatten(children: list, context: tuple) -> SmootherResult:
     present, lag = context
-    return SmootherResult(**dict(zip(present, children)), lag=lag)
+    return SmootherResult(**dict(zip(present, children, strict=True)), lag=lag)
 
 
 # A pytree node (absent fields and the lag are static context), so that torch.func.vmap can

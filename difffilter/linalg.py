@@ -86,6 +86,8 @@ def _chol_ok(chol: Tensor, info: Tensor) -> Tensor:
 
 def inside_vmap() -> bool:
     """Whether the code runs inside a ``torch.func.vmap`` transform (at any level)."""
+    if torch.compiler.is_compiling():  # a traced graph never holds functorch wrappers
+        return False
     stack = _functorch.get_interpreter_stack()
     return bool(stack) and any(i.key() == _functorch.TransformType.Vmap for i in stack)
 
@@ -94,6 +96,8 @@ def vmapped(*tensors: Tensor) -> bool:
     """Whether any of ``tensors`` is batched by ``torch.func.vmap``: its per-sample values cannot
     be read in Python (``bool()``, ``.item()``), so a data-dependent branch must take a path
     that is right for every sample (``torch.where`` over both, or the conservative one)."""
+    if torch.compiler.is_compiling():  # a traced graph never holds functorch wrappers
+        return False
     for t in tensors:
         while _functorch.maybe_get_level(t) != -1:
             if _functorch.is_batchedtensor(t):

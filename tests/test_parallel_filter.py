@@ -181,3 +181,15 @@ def test_masked_nan_never_reaches_values_or_gradients():
     assert torch.isfinite(out.mean).all() and torch.isfinite(out.filtered.log_likelihood).all()
     (gz,) = torch.autograd.grad(out.mean.sum() + out.total_log_likelihood.sum(), z)
     assert torch.isfinite(gz).all() and (gz[~mask] == 0).all()
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device (none on the CI machine)")
+def test_cuda_equals_cpu():
+    model = _model()
+    z, u, mask = _data(64)
+    m0, p0 = torch.zeros(3, dtype=F64), torch.eye(3, dtype=F64)
+    ref = ParallelRTSSmoother(ParallelKalmanFilter(model))(z, m0, p0, mask=mask, controls=u)
+    dev = "cuda"
+    out = ParallelRTSSmoother(ParallelKalmanFilter(model.to(dev)))(z.to(dev), m0.to(dev), p0.to(dev), mask=mask.to(dev), controls=u.to(dev))
+    assert torch.allclose(out.mean.cpu(), ref.mean, atol=1e-9)
+    assert torch.allclose(out.filtered.log_likelihood.cpu(), ref.filtered.log_likelihood, atol=1e-9)

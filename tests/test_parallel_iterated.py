@@ -10,7 +10,7 @@ import torch
 from torch import nn
 
 from difffilter.filters import Cubature, KalmanFilter
-from difffilter.models import DynamicsModel, MeasurementModel, StateSpaceModel, TimeVaryingLinearModel
+from difffilter.models import DynamicsModel, FunctionalModel, MeasurementModel, StateSpaceModel, TimeVaryingLinearModel
 from difffilter.params import register_covariance
 from difffilter.smoothers import IteratedSmoother, RTSSmoother
 
@@ -184,3 +184,24 @@ def test_bad_arguments():
         IteratedSmoother(model, method="newton")
     with pytest.raises(ValueError, match="iterations"):
         IteratedSmoother(model, iterations=0)
+
+
+def test_controls_and_float32():
+    def f(x, u):
+        return torch.stack([x[..., 0] + DT * x[..., 1], x[..., 1] + DT * (u[..., 0] - torch.sin(x[..., 0]))], -1)
+
+    def h(x, u):
+        return torch.stack([torch.sin(x[..., 0]) + u[..., 1], x[..., 1]], -1)
+
+    def model(dtype):
+        return FunctionalModel(f=f, h=h, Q=torch.eye(2, dtype=dtype) * 0.01, R=torch.eye(2, dtype=dtype) * 0.1, controls=True)
+
+    g = torch.Generator().manual_seed(5)
+    z = torch.randn(2, 6, 2, generator=g, dtype=F64) * 0.3
+    u = torch.randn(2, 6, 2, generator=g, dtype=F64)
+    m0, p0 = torch.zeros(2, dtype=F64), torch.eye(2, dtype=F64) * 0.5
+    for method in ("extended", "sigma"):
+        outs = [IteratedSmoother(model(F64), method=method, iterations=3, parallel=p)(z, m0, p0, controls=u) for p in (True, False)]
+        assert torch.allclose(outs[0].mean, outs[1].mean, atol=1e-10)
+        low = IteratedSmoother(model(torch.float32), method=method, iterations=3)(z.float(), m0.float(), p0.float(), controls=u.float())
+        assert low.mean.dtype == torch.float32 and torch.allclose(low.mean.double(), outs[0].mean, atol=1e-4)

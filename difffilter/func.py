@@ -13,16 +13,18 @@ sweeps, ensembles, per-seed training), or takes per-sample gradients (``vmap`` o
 Supported (tested against a Python loop): :class:`~difffilter.filters.KalmanFilter`,
 :class:`~difffilter.filters.ParallelKalmanFilter`, :class:`~difffilter.filters.EKF`,
 :class:`~difffilter.filters.IteratedEKF`, :class:`~difffilter.filters.UKF`,
-:class:`~difffilter.smoothers.RTSSmoother`, :class:`~difffilter.smoothers.ParallelRTSSmoother`
-and :class:`~difffilter.smoothers.IteratedSmoother`.  Inside ``vmap`` nothing can branch on a
+:class:`~difffilter.filters.SquareRootUKF`, :class:`~difffilter.smoothers.RTSSmoother`,
+:class:`~difffilter.smoothers.ParallelRTSSmoother`, :class:`~difffilter.smoothers.IteratedSmoother`
+and :class:`~difffilter.mixers.IMM` (each mode with its own model).  Inside ``vmap`` nothing can branch on a
 per-sample value, so: input values are not validated (shapes and dtypes are, as under
 ``torch.compile``); a Cholesky factorisation that fails gets the largest allowed jitter at once
 (:func:`~difffilter.linalg.safe_cholesky`); and a diffuse-prior split
 (:mod:`difffilter.filters.diffuse`) that depends on the vmapped values is not made: give an
 initial covariance that is not dangerously wide against the measurements (or set
 ``diffuse_prior = False`` on the filter to get the same values outside ``vmap``).
-:class:`~difffilter.engines.FusedFilter` (compiled kernels) is refused; an estimator whose code
-branches on values elsewhere raises ``TypeError`` naming it.
+:class:`~difffilter.engines.FusedFilter` (compiled kernels) and modules that share a parameter
+between submodules are refused; an estimator whose code branches on values elsewhere raises
+``TypeError`` naming it.
 """
 
 from __future__ import annotations

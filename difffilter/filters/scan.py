@@ -37,18 +37,15 @@ CPU and GPU and is differentiable and ``torch.func.vmap``-able.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
-from ..linalg import psd_solve, safe_cholesky, symmetrize
+from ..linalg import gaussian_log_density, psd_solve, safe_cholesky, symmetrize
 
 __all__ = ["AffineSystem", "associative_scan", "scan_filter", "scan_smoother"]
-
-_LOG_2PI = math.log(2.0 * math.pi)
 
 Elements = tuple[Tensor, ...]
 
@@ -186,11 +183,7 @@ def scan_filter(
     prior_mean = _mv(f, prev_mean) + c
     prior_cov = symmetrize(f @ prev_cov @ f.mT + q)
     s_chol = safe_cholesky(symmetrize(h @ prior_cov @ h.mT + r)).factor
-    e = resid - _mv(h, prior_mean)
-    white = torch.linalg.solve_triangular(s_chol, e[..., None], upper=False)[..., 0]
-    nis = (white * white).sum(-1)
-    logdet = 2.0 * torch.log(torch.diagonal(s_chol, dim1=-2, dim2=-1)).sum(-1)
-    loglik = -0.5 * (nis + logdet + nobs * _LOG_2PI)
+    loglik, nis = gaussian_log_density(resid - _mv(h, prior_mean), s_chol, nobs)
     return mean, cov, prior_mean, prior_cov, loglik, nis, nobs
 
 

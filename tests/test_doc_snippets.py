@@ -7,12 +7,9 @@ own claims (convergence, shapes, agreements) are checked by the page-specific te
 
 from __future__ import annotations
 
-import matplotlib
 import pytest
 
 from .readme_snippets import ROOT, doc_blocks, doc_pages, page_namespace
-
-matplotlib.use("Agg")
 
 PAGES = doc_pages()
 

@@ -42,7 +42,7 @@ __all__ = [
     "params",
     "smoothers",
 ]
-__version__ = "0.1.0"
+__version__ = "0.2.0.dev0"
 
 # help(UKF.__init__) shows UKF's arguments, not the text nn.Module.__init__ would pass on
 document_init(getattr(m, name) for m in (filters, mixers, models, params, sim, smoothers) for name in m.__all__)

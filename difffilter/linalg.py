@@ -292,7 +292,8 @@ def tria(a: Tensor) -> Tensor:
     s = r.mT
     sign = torch.sign(torch.diagonal(s, dim1=-2, dim2=-1))
     sign = torch.where(sign == 0, torch.ones_like(sign), sign)
-    return s * sign[..., None, :]
+    out: Tensor = s * sign[..., None, :]
+    return out
 
 
 def chol_rank1_update(chol: Tensor, v: Tensor, sign: float | Tensor = 1.0) -> Tensor:
@@ -357,7 +358,8 @@ def gaussian_log_density(
 
 def block_diag(*blocks: Tensor) -> Tensor:
     """Block-diagonal matrix of ``[..., d_i, d_i]`` blocks whose leading dims broadcast."""
-    shape = torch.broadcast_shapes(*(b.shape[:-2] for b in blocks))
+    # torch.broadcast_shapes is defined without annotations in torch's own source
+    shape = torch.broadcast_shapes(*(b.shape[:-2] for b in blocks))  # type: ignore[no-untyped-call]
     total = sum(b.shape[-1] for b in blocks)
     out = blocks[0].new_zeros(*shape, total, total)
     start = 0

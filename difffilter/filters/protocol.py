@@ -69,7 +69,8 @@ class FilterResult:
     def __getattr__(self, name: str) -> Tensor:
         extras = self.__dict__.get("extras", {})
         if name in extras:
-            return extras[name]
+            value: Tensor = extras[name]
+            return value
         raise AttributeError(name)
 
     @property

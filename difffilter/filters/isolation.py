@@ -25,6 +25,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from ..linalg import inside_vmap
 from .protocol import FilterResult
 
 __all__ = ["isolated_run", "nonfinite_trajectories"]
@@ -79,6 +80,8 @@ def isolated_run(
     result = run(measurements, initial_mean, initial_cov, mask, controls, belief=belief)
     bsz = measurements.shape[0]
     if bsz < 2 or not torch.is_grad_enabled() or not any(getattr(result, f).requires_grad for f in _FIELDS[:-1]):
+        return result
+    if inside_vmap():  # each sample is its own run there: nothing mixes, and values cannot be read
         return result
     bad = nonfinite_trajectories(result)
     if not bool(bad.any()) or bool(bad.all()):

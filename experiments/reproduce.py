@@ -218,7 +218,7 @@ JOBS: tuple[Job, ...] = (
     Job("p004_urban", "p004_urban.md", 321, _sweep_and_test("p004_urban", RERUN, learned_values=False)),
     # issue 25: the families again with the practitioners' rows (results/p00_practitioners.md)
     Job("p001_elevation_practitioners", "p00_practitioners.md", 489, _practitioners("p001_elevation")),
-    Job("p004_urban_practitioners", "p00_practitioners.md", 900, _practitioners("p004_urban")),
+    Job("p004_urban_practitioners", "p00_practitioners.md", 540, _practitioners("p004_urban")),
     Job(
         "p002_disturbed_practitioners",
         "p00_practitioners.md",

@@ -229,6 +229,16 @@ JOBS: tuple[Job, ...] = (
             "python -m experiments.practitioners outputs/practitioners/p002_disturbed_rcukf",
         ),
     ),
+    Job(
+        "p002_pdr_practitioners",
+        "p00_practitioners.md",
+        400,
+        (
+            "python experiments/train.py -m experiment=p002_pdr_practitioners seed=0,1,2,3,4 logger=csv "
+            "hydra.sweep.dir=outputs/practitioners/p002_pdr_rcukf",
+            "python -m experiments.practitioners outputs/practitioners/p002_pdr_rcukf",
+        ),
+    ),
 )
 
 

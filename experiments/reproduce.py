@@ -222,7 +222,7 @@ JOBS: tuple[Job, ...] = (
     Job(
         "p002_disturbed_practitioners",
         "p00_practitioners.md",
-        700,
+        363,
         (
             "python experiments/train.py -m experiment=p002_disturbed_practitioners seed=0,1,2,3,4 logger=csv "
             "hydra.sweep.dir=outputs/practitioners/p002_disturbed_rcukf",

@@ -119,6 +119,7 @@ FAMILIES: tuple[Family, ...] = (
         "p002_pdr.md",
         f"{_R}/p002_disturbed_rcukf",
         "test=P=0.4",
+        practitioners=True,
     ),
     Family("p003_physical", "p003", "mis-specified", "vibration, C/N0 shading", "p003_imm_sins.md", "outputs/p003_final/p003_physical"),
     Family("p004_urban", "p004", "mis-specified", "urban-canyon GNSS", "p004_urban.md", f"{_R}/p004_urban", practitioners=True),

@@ -234,7 +234,7 @@ JOBS: tuple[Job, ...] = (
     Job(
         "p002_pdr_practitioners",
         "p00_practitioners.md",
-        400,
+        421,
         (
             "python experiments/train.py -m experiment=p002_pdr_practitioners seed=0,1,2,3,4 logger=csv "
             "hydra.sweep.dir=outputs/practitioners/p002_pdr_rcukf",

@@ -160,7 +160,7 @@ FAMILIES: tuple[Family, ...] = (
         "p002_infamily_exactref", "p002", "in-family", "in-family walks (G vs exact UKF)", "p002_pdr.md", f"{_R}/p002_infamily_exactref"
     ),
     Family("p003_modes", "p003", "in-family", "two-level noise modes", "p003_imm_sins.md", "outputs/p003_final/p003_modes"),
-    Family("p004_mems", "p004", "in-family", "MEMS IMU noise", "p004_mems.md", f"{_R}/p004_mems"),
+    Family("p004_mems", "p004", "in-family", "MEMS IMU noise", "p004_mems.md", f"{_R}/p004_mems", practitioners=True),
 )
 
 #: Summary columns of the non-learned methods (column title, filter name in the CSVs).

@@ -220,7 +220,7 @@ JOBS: tuple[Job, ...] = (
     Job("p001_elevation_practitioners", "p00_practitioners.md", 489, _practitioners("p001_elevation")),
     Job("p004_urban_practitioners", "p00_practitioners.md", 540, _practitioners("p004_urban")),
     Job("p004_mems_practitioners", "p00_practitioners.md", 491, _practitioners("p004_mems")),
-    Job("p004_blend_practitioners", "p00_practitioners.md", 540, _practitioners("p004_blend")),
+    Job("p004_blend_practitioners", "p00_practitioners.md", 435, _practitioners("p004_blend")),
     Job(
         "p002_disturbed_practitioners",
         "p00_practitioners.md",

@@ -19,7 +19,7 @@ PACKAGE = ROOT / "difffilter"
 #: Floors from the bottom up.  Modules of one floor may import each other; ``smoothers`` is the
 #: floor a smoother package takes when it exists.
 FLOORS: list[set[str]] = [
-    {"_util", "constraints", "geometry", "linalg", "params", "selection"},
+    {"_util", "constraints", "geometry", "linalg", "params", "selection", "threads"},
     {"models"},
     {"filters"},
     {"mixers"},

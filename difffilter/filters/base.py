@@ -34,6 +34,7 @@ from torch import Tensor
 from torch.nn.utils import parametrize
 
 from ..models.base import Controls
+from ..threads import scoped_forward
 from ._common import StepInfo, detach_belief, mask_measurement_system, slice_controls
 from .diffuse import DIFFUSE_COV, DIFFUSE_SCALE, drop_resolved, measurement_sensitivity, split_prior, total_cov
 from .protocol import Belief, Filter, FilterResult
@@ -165,6 +166,7 @@ class RecursiveFilter(Filter):
         cov = self._check_cov(initial_cov, bsz, self.state_dim, initial_cov.dtype)
         return self.start_belief(mean, cov, controls)
 
+    @scoped_forward
     def forward(
         self,
         measurements: Tensor,

@@ -9,6 +9,7 @@ from torch import Tensor, nn
 from torch.nn.utils import parametrize
 
 from ...models.base import Controls
+from ...threads import scoped_forward
 from ..base import Belief, FilterResult, RecursiveFilter, slice_controls, through_diffuse_phase
 from ..diffuse import DIFFUSE_COV
 from .build import CompileError
@@ -152,6 +153,7 @@ class FusedFilter(nn.Module):
         name = type(self.filter).__name__
         warnings.warn(f"FusedFilter: the generated engine cannot run {name} ({reason}); using the inductor engine", stacklevel=3)
 
+    @scoped_forward
     def forward(
         self,
         measurements: Tensor,

@@ -4,6 +4,11 @@ The cache lives in ``$DIFFFILTER_CACHE_DIR`` (default ``~/.cache/difffilter/kern
 library is keyed by the source text, the compiler command and the machine's CPU flags, so a
 second process that builds the same kernel loads it without compiling.  Writes are atomic
 (a temporary file renamed into place), so concurrent processes may share the directory.
+
+Builds of different kernels never wait for each other; builds of one kernel happen once: threads
+of a process wait on a lock per cache key, processes (the jobs of a sweep sharing one cache) on
+an advisory file lock per cache key (``fcntl.flock``, where the platform has it), and whoever
+comes second loads what the first built.
 """
 
 from __future__ import annotations
@@ -16,14 +21,22 @@ import shutil
 import subprocess
 import tempfile
 import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
+
+try:
+    import fcntl
+except ImportError:  # not POSIX: processes may then build one kernel twice (writes stay atomic)
+    fcntl = None  # type: ignore[assignment]
 
 __all__ = ["cache_dir", "compile_library", "compiler_available", "CompileError"]
 
 _GCC_FLAGS = ["-fira-region=one"]
 _FLAGS = ["-march=native", "-fno-math-errno", "-fno-trapping-math", "-shared", "-fPIC", "-std=c++17", "-w"]
-_lock = threading.Lock()
+_lock = threading.Lock()  # guards the two dicts below, never held during a build
 _loaded: dict[str, ctypes.CDLL] = {}
+_key_locks: dict[str, threading.Lock] = {}
 
 
 class CompileError(RuntimeError):
@@ -65,6 +78,25 @@ def _is_gcc(cxx: str) -> bool:
     return "clang" not in out.lower() and ("gcc" in out.lower() or "g++" in out.lower() or "free software foundation" in out.lower())
 
 
+def _key_lock(key: str) -> threading.Lock:
+    with _lock:
+        return _key_locks.setdefault(key, threading.Lock())
+
+
+@contextmanager
+def _file_lock(path: Path) -> Iterator[None]:
+    """Exclusive advisory lock on ``path`` across processes (a no-op without ``fcntl``)."""
+    if fcntl is None:
+        yield
+        return
+    with open(path, "a") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
+
+
 def compile_library(source: str, *, tag: str = "kernel", opt: str = "-O2") -> ctypes.CDLL:
     """Compile ``source`` with optimisation level ``opt`` (or find it in the cache) and load it."""
     cxx = _compiler()
@@ -77,20 +109,32 @@ def compile_library(source: str, *, tag: str = "kernel", opt: str = "-O2") -> ct
     key = hashlib.sha256("\0".join([source, cxx, *flags, _cpu_flags()]).encode()).hexdigest()[:32]
     with _lock:
         lib = _loaded.get(key)
-        if lib is not None:
+    if lib is not None:
+        return lib
+    with _key_lock(key):
+        with _lock:
+            lib = _loaded.get(key)
+        if lib is not None:  # built by another thread meanwhile
             return lib
         root = cache_dir()
         root.mkdir(parents=True, exist_ok=True)
         target = root / f"{tag}_{key}.so"
         if not target.exists():
-            with tempfile.TemporaryDirectory(dir=root) as tmp:
-                src = Path(tmp) / "kernel.cpp"
-                src.write_text(source)
-                out = Path(tmp) / "kernel.so"
-                proc = subprocess.run([cxx, *flags, str(src), "-o", str(out)], capture_output=True, text=True)
-                if proc.returncode != 0:
-                    raise CompileError(f"{cxx} failed ({proc.returncode}): {proc.stderr[-3000:]}")
-                os.replace(out, target)
+            with _file_lock(root / f"{tag}_{key}.lock"):
+                if not target.exists():  # not built by another process meanwhile
+                    _build(cxx, flags, source, root, target)
         lib = ctypes.CDLL(str(target))
-        _loaded[key] = lib
+        with _lock:
+            _loaded[key] = lib
         return lib
+
+
+def _build(cxx: str, flags: list[str], source: str, root: Path, target: Path) -> None:
+    with tempfile.TemporaryDirectory(dir=root) as tmp:
+        src = Path(tmp) / "kernel.cpp"
+        src.write_text(source)
+        out = Path(tmp) / "kernel.so"
+        proc = subprocess.run([cxx, *flags, str(src), "-o", str(out)], capture_output=True, text=True)
+        if proc.returncode != 0:
+            raise CompileError(f"{cxx} failed ({proc.returncode}): {proc.stderr[-3000:]}")
+        os.replace(out, target)

@@ -63,6 +63,10 @@ __all__ = [
 #: ``forward`` builds in one call: ``T`` steps at once up to ``B T = 8192`` (a ``[B, T, 20, 20]``
 #: float64 transition is then 26 MB), blocks of ``8192 // B`` steps beyond.
 PRECOMPUTE_BLOCK = 8192
+#: ``hook(filter, measurements, initial_mean, initial_cov, mask, controls, belief)`` asked first by
+#: every :meth:`RecursiveFilter.forward`: a result to return, or None to run the filter's own
+#: loop.  Set by :mod:`difffilter.filters.fused` to its engine policy (``DIFFFILTER_ENGINE``).
+ENGINE_HOOK: list[Callable[..., FilterResult | None] | None] = [None]
 
 
 class RecursiveFilter(Filter):
@@ -189,6 +193,11 @@ class RecursiveFilter(Filter):
             belief: a full belief to continue from (e.g. ``result.final_belief`` of the previous
                 window in truncated back-propagation); replaces ``initial_mean``/``initial_cov``.
         """
+        hook = ENGINE_HOOK[0]
+        if hook is not None:
+            out = hook(self, measurements, initial_mean, initial_cov, mask, controls, belief)
+            if out is not None:
+                return out
         z, mask3, mean0, cov0 = self.check_inputs(measurements, initial_mean, initial_cov, mask, controls)
         if belief is None and (mean0 is None or cov0 is None):
             raise ValueError("initial_mean and initial_cov are required unless belief= is given")

@@ -1,6 +1,7 @@
 """difffilter: batched, differentiable Kalman-family filters in PyTorch."""
 
-from . import filters, linalg, mixers, models, params, sim, smoothers
+# engines: registers the DIFFFILTER_ENGINE policy every plain filter call asks
+from . import engines, filters, linalg, mixers, models, params, sim, smoothers
 from ._util import as_dtype, document_init
 from .filters import EKF, RCUKF, UKF, ColoredNoiseUKF, Filter, GaussianFilter, KalmanFilter, RecursiveFilter, SimplifiedUKF, SquareRootUKF
 from .mixers import IMM, Blend
@@ -23,6 +24,7 @@ __all__ = [
     "SquareRootUKF",
     "StateSpaceModel",
     "as_dtype",
+    "engines",
     "linalg",
     "mixers",
     "params",

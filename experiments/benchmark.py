@@ -15,20 +15,26 @@ is skipped with a message.
 
 from __future__ import annotations
 
-import logging
+import sys
+from pathlib import Path
 
-import hydra
-import torch
-from hydra.core.hydra_config import HydraConfig
-from omegaconf import DictConfig
+# The research tree (experiments/) is not installed: make it importable from the repository root.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from difffilter.bench.cases import BenchCase
-from difffilter.bench.suite import run_suite
-from difffilter.papers.p003.experiment import p003_imm, simulate
+import logging  # noqa: E402
+
+import hydra  # noqa: E402
+import torch  # noqa: E402
+from hydra.core.hydra_config import HydraConfig  # noqa: E402
+from omegaconf import DictConfig  # noqa: E402
+
+from experiments.benchmarks.cases import BenchCase  # noqa: E402
+from experiments.benchmarks.suite import run_suite  # noqa: E402
+from experiments.papers.p003.experiment import p003_imm, simulate  # noqa: E402
 
 log = logging.getLogger(__name__)
 
-#: p003's filter configuration (conf/filter/p003_imm_simplified.yaml)
+#: p003's filter configuration (experiments/papers/p003/conf/filter/p003_imm_simplified.yaml)
 P003_MODEL = {"num_satellites": 8, "linearized": False, "position_in_metres": True, "discretization": "expm"}
 
 

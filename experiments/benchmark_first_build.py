@@ -27,7 +27,8 @@ import time
 
 import torch
 
-from difffilter.filters import UKF, FusedFilter
+from difffilter.engines import FusedFilter
+from difffilter.filters import UKF
 from difffilter.models import FunctionalModel
 
 D = torch.float64

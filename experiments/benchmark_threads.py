@@ -24,7 +24,8 @@ import time
 
 import torch
 
-from difffilter.filters import UKF, FusedFilter
+from difffilter.engines import FusedFilter
+from difffilter.filters import UKF
 from difffilter.models import FunctionalModel
 from difffilter.threads import set_filter_threads
 

@@ -1,4 +1,4 @@
-"""The engine switch of plain filter calls (difffilter.filters.fused.policy, DIFFFILTER_ENGINE)."""
+"""The engine switch of plain filter calls (difffilter.engines.policy, DIFFFILTER_ENGINE)."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import warnings
 import pytest
 import torch
 
+from difffilter.engines import build, policy
 from difffilter.filters import UKF
-from difffilter.filters.fused import build, policy
 from difffilter.models import FunctionalModel
 
 D = torch.float64

@@ -1,4 +1,4 @@
-"""Kernel builds do not block each other (difffilter.filters.fused.build, .kernel): different
+"""Kernel builds do not block each other (difffilter.engines.build, .kernel): different
 kernels build at the same time, one kernel builds once across threads and processes sharing a
 cache, and a forward-only call runs while the reverse kernel is still being built.
 
@@ -18,8 +18,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from difffilter.filters import UKF, FusedFilter
-from difffilter.filters.fused import build
+from difffilter.engines import FusedFilter, build
+from difffilter.filters import UKF
 from difffilter.models import FunctionalModel
 
 pytestmark = pytest.mark.skipif(shutil.which("g++") is None, reason="needs g++")

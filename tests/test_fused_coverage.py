@@ -16,10 +16,11 @@ import torch
 from torch import Tensor
 from torch.fx.experimental.proxy_tensor import make_fx
 
-from difffilter.filters import UKF, FusedFilter
-from difffilter.filters.fused.adjoint import backprop
-from difffilter.filters.fused.graph import LANE, ScalarGraph, UnsupportedOp, evaluate
-from difffilter.filters.fused.lower import lower
+from difffilter.engines import FusedFilter
+from difffilter.engines.adjoint import backprop
+from difffilter.engines.graph import LANE, ScalarGraph, UnsupportedOp, evaluate
+from difffilter.engines.lower import lower
+from difffilter.filters import UKF
 from difffilter.models import FunctionalModel
 
 F64 = torch.float64

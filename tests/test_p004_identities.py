@@ -27,7 +27,7 @@ from difffilter.mixers import Blend
 from difffilter.models import LinearModel
 from difffilter.models.base import DynamicsModel, StateSpaceModel
 from difffilter.models.navigation.gnss_imu import GnssImuModel, PlanarGnssImuDynamics
-from difffilter.papers.p004 import p004_simulator
+from experiments.papers.p004 import p004_simulator
 
 f64 = torch.float64
 STEPS, RUNS = 80, 4
@@ -35,7 +35,7 @@ NOISE = ("sigma_accel", "sigma_gyro", "sigma_accel_bias_walk", "sigma_gyro_bias_
 
 
 def _sigma_points() -> MerweScaled:
-    return MerweScaled(alpha=1.0, beta=2.0, kappa=0.0)  # conf/filter/p004_blend.yaml
+    return MerweScaled(alpha=1.0, beta=2.0, kappa=0.0)  # experiments/papers/p004/conf/filter/p004_blend.yaml
 
 
 def _blend(model: StateSpaceModel, delta: float = 0.85, cls: type[Blend] = Blend) -> Blend:

@@ -8,13 +8,13 @@ from pathlib import Path
 
 import torch
 
+from difffilter.engines.kernel import unreferenced
+from difffilter.engines.lower import _op_name
+from difffilter.engines.trace import StepLayout, _step_function
 from difffilter.filters import UKF
-from difffilter.filters.fused.kernel import unreferenced
-from difffilter.filters.fused.lower import _op_name
-from difffilter.filters.fused.trace import StepLayout, _step_function
 from difffilter.models import FunctionalModel
 
-ENGINE = Path(__file__).resolve().parents[1] / "difffilter" / "filters" / "fused"
+ENGINE = Path(__file__).resolve().parents[1] / "difffilter" / "engines"
 D = torch.float64
 #: the private names the engine still reads, each behind a fallback that keeps results correct
 ALLOWED_PRIVATE = {

@@ -1,4 +1,4 @@
-"""A multirun over seeds leaves one summary table (difffilter.learn.sweep): numbers checked
+"""A multirun over seeds leaves one summary table (experiments.runner.sweep): numbers checked
 against independent numpy/scipy computations on synthetic job directories, and end to end with
 `experiments/train.py -m seed=...` (the Hydra callback)."""
 
@@ -15,9 +15,9 @@ import pytest
 import torch
 from scipy import stats
 
-from difffilter.learn.evaluation import read_per_run, write_per_run
-from difffilter.learn.intervals import gap_closed
-from difffilter.learn.sweep import main, summarize_sweep
+from difffilter.evaluate.evaluation import read_per_run, write_per_run
+from difffilter.evaluate.intervals import gap_closed
+from experiments.runner.sweep import main, summarize_sweep
 
 ROOT = Path(__file__).resolve().parents[1]
 f64 = torch.float64
@@ -98,7 +98,21 @@ def test_summary_of_synthetic_sweep_matches_independent_computation(tmp_path):
     assert ("experiment=y", "learned", "gap_closed") not in rows
     md = md_path.read_text()
     assert "## experiment=x (seeds 0, 1, 2, 3, 4; jobs 0, 1, 2, 3, 4)" in md and "## experiment=y" in md and "different test runs" in md
-    assert "| learned | all | 4 | " in md and "over-confident" in md
+    # the verdict: the ANEES interval against the 95 % chi-square band of the mean NEES over the N runs
+    n_runs = int(rows[("experiment=x", "learned", "rmse_pos")]["runs"])
+    band = stats.chi2.ppf([0.025, 0.975], 4 * n_runs) / n_runs
+    lo, hi = float(a["lo"]), float(a["hi"])
+    want = (
+        "consistent"
+        if band[0] <= lo and hi <= band[1]
+        else "over-confident"
+        if lo > band[1]
+        else "under-confident"
+        if hi < band[0]
+        else "undecided"
+    )
+    assert "| learned | all | 4 | " in md and f"] | {want} | 92 % |" in md
+    assert "| hand-tuned | all | 4 | 4 [4, 4] | consistent |" in md  # exactly d on every run: inside the band
     # the command line rebuilds the same summary
     assert main([str(tmp_path), "--draws", "1000"]).read_text() == md
 

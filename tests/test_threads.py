@@ -7,7 +7,8 @@ import pytest
 import torch
 
 from difffilter import threads as th
-from difffilter.filters import UKF, FusedFilter
+from difffilter.engines import FusedFilter
+from difffilter.filters import UKF
 from difffilter.models import FunctionalModel
 from difffilter.smoothers import RTSSmoother
 

@@ -1,10 +1,10 @@
 """Kalman-family filters: the :class:`Filter` contract and the recursive filters sharing one time loop."""
 
 from .adaptive import RCUKF
+from .adaptive_noise import AdaptiveNoiseFilter, CovarianceMatching, SageHusa, VBAdaptiveQR, VBAdaptiveR
 from .base import Belief, FilterResult, GaussianFilter, RecursiveFilter, StepInfo
 from .colored import ColoredNoiseUKF
 from .ekf import EKF
-from .fused import FusedFilter, fuse
 from .iterated import IteratedEKF
 from .kalman import KalmanFilter
 from .protocol import Filter
@@ -14,6 +14,11 @@ from .square_root import SquareRootUKF
 from .ukf import UKF, SimplifiedUKF
 
 __all__ = [
+    "AdaptiveNoiseFilter",
+    "CovarianceMatching",
+    "SageHusa",
+    "VBAdaptiveQR",
+    "VBAdaptiveR",
     "EKF",
     "RCUKF",
     "UKF",
@@ -22,7 +27,6 @@ __all__ = [
     "Cubature",
     "Filter",
     "FilterResult",
-    "FusedFilter",
     "GaussianFilter",
     "IteratedEKF",
     "Julier",
@@ -34,5 +38,4 @@ __all__ = [
     "SimplifiedUKF",
     "SquareRootUKF",
     "StepInfo",
-    "fuse",
 ]

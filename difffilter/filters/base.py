@@ -65,7 +65,7 @@ __all__ = [
 PRECOMPUTE_BLOCK = 8192
 #: ``hook(filter, measurements, initial_mean, initial_cov, mask, controls, belief)`` asked first by
 #: every :meth:`RecursiveFilter.forward`: a result to return, or None to run the filter's own
-#: loop.  Set by :mod:`difffilter.filters.fused` to its engine policy (``DIFFFILTER_ENGINE``).
+#: loop.  Set by :mod:`difffilter.engines` to its engine policy (``DIFFFILTER_ENGINE``).
 ENGINE_HOOK: list[Callable[..., FilterResult | None] | None] = [None]
 
 

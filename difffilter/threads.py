@@ -141,11 +141,16 @@ class _Hold:
 class _Enter(torch.autograd.Function):
     """Identity on the outputs; its backward (the first node of the pass) takes the setting."""
 
+    generate_vmap_rule = True  # usable under torch.func transforms
+
     @staticmethod
-    def forward(ctx: Any, hold: _Hold, *xs: Tensor) -> tuple[Tensor, ...]:  # type: ignore[override]
-        ctx.hold = hold
+    def forward(hold: _Hold, *xs: Tensor) -> tuple[Tensor, ...]:  # type: ignore[override]
+        return tuple(x.view_as(x) for x in xs)
+
+    @staticmethod
+    def setup_context(ctx: Any, inputs: tuple[Any, ...], output: Any) -> None:
+        ctx.hold = inputs[0]
         ctx.set_materialize_grads(False)
-        return xs
 
     @staticmethod
     def backward(ctx: Any, *grads: Tensor | None) -> tuple[Tensor | None, ...]:  # type: ignore[override]
@@ -156,10 +161,15 @@ class _Enter(torch.autograd.Function):
 class _Exit(torch.autograd.Function):
     """A zero joined to the initial belief; its backward (after the first step's) gives the setting back."""
 
+    generate_vmap_rule = True
+
     @staticmethod
-    def forward(ctx: Any, hold: _Hold, link: Tensor, like: Tensor) -> Tensor:  # type: ignore[override]
-        ctx.hold = hold
+    def forward(hold: _Hold, link: Tensor, like: Tensor) -> Tensor:  # type: ignore[override]
         return like.new_zeros(())
+
+    @staticmethod
+    def setup_context(ctx: Any, inputs: tuple[Any, ...], output: Any) -> None:
+        ctx.hold = inputs[0]
 
     @staticmethod
     def backward(ctx: Any, grad: Tensor) -> tuple[Tensor | None, ...]:  # type: ignore[override]

@@ -152,3 +152,32 @@ def test_environment_variable(monkeypatch):
         monkeypatch.setenv("DIFFFILTER_THREADS", bad)
         with pytest.raises(ValueError, match="DIFFFILTER_THREADS"):
             th._from_env()
+
+
+def test_double_backward_and_torch_func_pass_through(two_threads):
+    """The scope's autograd nodes are identities: a Hessian-vector product and ``torch.func.grad``
+    over the filter see the filter's own derivatives."""
+    model = FunctionalModel(
+        f=lambda x: 0.9 * x, h=lambda x: x[..., :1] ** 2 + x[..., 1:], Q=0.1 * torch.eye(2, dtype=D), R=0.2 * torch.eye(1, dtype=D)
+    )
+    ukf = UKF(model)
+    z = torch.randn(3, 5, 1, dtype=D, generator=torch.Generator().manual_seed(0))
+    p0 = torch.eye(2, dtype=D)
+
+    def loss(m0):
+        return ukf(z, m0, p0).log_likelihood.sum()
+
+    m0 = torch.tensor([0.3, -0.2], dtype=D, requires_grad=True)
+    (g,) = torch.autograd.grad(loss(m0), m0, create_graph=True)
+    (hv,) = torch.autograd.grad(g.sum(), m0)
+    th.set_filter_threads(None)
+    try:
+        (g_ref,) = torch.autograd.grad(loss(m0), m0, create_graph=True)
+        (hv_ref,) = torch.autograd.grad(g_ref.sum(), m0)
+        g_func_ref = torch.func.grad(loss)(m0.detach())
+    finally:
+        th.set_filter_threads(1)
+    torch.testing.assert_close(g, g_ref, rtol=0, atol=0)
+    torch.testing.assert_close(hv, hv_ref, rtol=0, atol=0)
+    torch.testing.assert_close(torch.func.grad(loss)(m0.detach()), g_func_ref, rtol=0, atol=0)
+    assert torch.get_num_threads() == two_threads

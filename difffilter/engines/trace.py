@@ -162,7 +162,9 @@ def _step_function(
         u = _unflatten_controls(layout, list(flat[i : i + nc]))
         i += nc
         values = {f"filter.{n}": v for (n, _), v in zip(trained, flat[i:], strict=True)}
-        prior, post, info, rec = functional_call(body, values, (belief, z, mask, u))
+        # tie_weights=False: only the names given are replaced (a parameter shared by two members
+        # of a Blend stays one kernel input, as the kernel's parameter layout expects)
+        prior, post, info, rec = functional_call(body, values, (belief, z, mask, u), tie_weights=False)
         seen["post"] = {k: post[k] for k in sorted(post)}
         seen["records"] = list(rec)
         seen["record_values"] = dict(rec)

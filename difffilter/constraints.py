@@ -291,7 +291,8 @@ class FactorCovariance(Constraint):
         if bool((lam[..., : n - self.rank] > tol).any()):
             raise ValueError(f"{self.name} must have rank <= {self.rank}, got eigenvalues {_show(lam)}")
         top = lam[..., n - self.rank :].clamp_min(0.0)
-        return vecs[..., :, n - self.rank :] * torch.sqrt(top)[..., None, :]
+        factor: Tensor = vecs[..., :, n - self.rank :] * torch.sqrt(top)[..., None, :]
+        return factor
 
 
 class RowStochastic(Constraint):

@@ -115,7 +115,7 @@ def constrained_values(module: nn.Module, prefix: str = "") -> dict[str, Tensor]
     out: dict[str, Tensor] = {}
     for mod_name, mod in module.named_modules(prefix=prefix):
         if parametrize.is_parametrized(mod):
-            for pname in mod.parametrizations.keys():  # type: ignore[union-attr]
+            for pname in mod.parametrizations.keys():
                 full = f"{mod_name}.{pname}" if mod_name else pname
                 out[full] = getattr(mod, pname).detach()
     return out
@@ -130,6 +130,8 @@ class ScaledMatrix(Constraint):
     """
 
     accepts_scalar = True
+    base: Tensor
+    _scale: Positive
 
     def __init__(self, base: Tensor, floor: float = 0.0) -> None:
         super().__init__()
@@ -138,7 +140,8 @@ class ScaledMatrix(Constraint):
         self.value_shape = tuple(base.shape)
 
     def forward(self, raw: Tensor) -> Tensor:
-        return self._scale(raw) * self.base
+        scale: Tensor = self._scale(raw)
+        return scale * self.base
 
     def right_inverse(self, value: Tensor) -> Tensor:
         value = self.check(value)
@@ -164,6 +167,8 @@ class GroupScaledCovariance(Constraint):
     """
 
     accepts_scalar = True
+    base: Tensor
+    groups: Tensor
 
     def __init__(self, base: Tensor, groups: Tensor) -> None:
         super().__init__()

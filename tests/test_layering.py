@@ -27,7 +27,7 @@ FLOORS: list[set[str]] = [
     {"mixers"},
     {"smoothers"},
     {"sim"},
-    {"engines"},
+    {"engines", "func"},
     {"evaluate"},
     {"learn"},
 ]

@@ -33,6 +33,7 @@ import torch
 from torch import Tensor
 from torch.nn.utils import parametrize
 
+from ..linalg import inside_vmap
 from ..models.base import Controls
 from ..threads import scoped_forward
 from ._common import StepInfo, detach_belief, mask_measurement_system, slice_controls
@@ -166,8 +167,9 @@ class RecursiveFilter(Filter):
         (``[B, ...]``, the first step's inputs) for the diffuse-prior check of a model that needs
         them (:meth:`start_belief`)."""
         bsz = batch_size if batch_size is not None else (initial_mean.shape[0] if initial_mean.ndim == 2 else 1)
-        mean = self._check_mean(initial_mean, bsz, self.state_dim, initial_mean.dtype)
-        cov = self._check_cov(initial_cov, bsz, self.state_dim, initial_cov.dtype)
+        values = not inside_vmap()  # per-sample values cannot be read inside vmap
+        mean = self._check_mean(initial_mean, bsz, self.state_dim, initial_mean.dtype, values=values)
+        cov = self._check_cov(initial_cov, bsz, self.state_dim, initial_cov.dtype, values=values)
         return self.start_belief(mean, cov, controls)
 
     @scoped_forward

@@ -12,7 +12,7 @@ pass, and the backward pass through it, with ``torch.set_num_threads(get_filter_
 (default 1), and restores the caller's setting afterwards: code outside the filter (a neural
 network feeding it, the optimiser) keeps the caller's thread count.  The backward pass is scoped
 by two autograd nodes: one on the outputs (first to run in the backward pass: sets the count),
-one joined to the initial belief with an exact zero (runs once the gradient reached the first
+one joined to the initial mean with an exact zero (runs once the gradient reached the first
 step: restores it).  A backward pass that fails midway (an exception in a hook) gives it back at
 the next filter call on the same Python thread.
 
@@ -249,11 +249,15 @@ def scoped_forward(forward: _F) -> _F:
                 hold = _Hold(threads)
                 link = torch.stack([t.reshape(-1)[0].to(like.dtype) for t in links]).sum()
                 zero = _Exit.apply(hold, link, like)
+                # the mean only: a covariance that needs no gradient stays one (a batch sharing
+                # one covariance keeps its shared-covariance path in the compiled engine)
                 if belief is not None:
-                    kwargs["belief"] = _anchor(belief, zero)
+                    if isinstance(belief, dict) and "mean" in belief:
+                        kwargs["belief"] = {**belief, "mean": _anchor(belief["mean"], zero)}
+                    else:
+                        kwargs["belief"] = _anchor(belief, zero)
                 else:
                     initial_mean = _anchor(initial_mean, zero)
-                    initial_cov = _anchor(initial_cov, zero)
         _local.inside = True
         try:
             with filter_threads(threads):

@@ -266,8 +266,14 @@ class Filter(nn.Module):
                 raise TypeError(f"{name} must be a tensor [B, T, ...]")
             if v.ndim < 2 or v.shape[0] != bsz or v.shape[1] != steps:
                 raise ValueError(f"{name} must have shape [B, T, ...] = [{bsz}, {steps}, ...], got {tuple(v.shape)}")
+        parts = [mod for mod in self.modules() if isinstance(mod, (DynamicsModel, MeasurementModel))]
+        if parts and not any(part.uses_controls for part in parts):
+            raise ValueError(
+                "controls were given, but no part of the model uses them (e.g. a LinearModel without B, a "
+                "FunctionalModel(controls=False)), so they would be silently ignored: drop controls=, or give the model its "
+                "inputs (LinearModel(B=...), FunctionalModel(controls=True))"
+            )
         if not values:
             return
-        for module in self.modules():
-            if isinstance(module, (DynamicsModel, MeasurementModel)):
-                module.validate_controls(controls)
+        for module in parts:
+            module.validate_controls(controls)

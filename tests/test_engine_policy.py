@@ -60,6 +60,7 @@ def test_auto_keeps_small_calls_eager(monkeypatch):
     assert not policy._runners
 
 
+@pytest.mark.slow  # builds a small UKF's kernels when the cache is cold
 @pytest.mark.skipif(build.compiler_available() is not None, reason="needs a C++ compiler")
 def test_auto_runs_large_calls_compiled_with_the_same_values_and_gradients(monkeypatch):
     ukf = _ukf()

@@ -98,6 +98,7 @@ def test_one_kernel_builds_once_across_threads_and_processes(wrapped, monkeypatc
     assert _events(log) == ["start", "end"]
 
 
+@pytest.mark.slow  # builds a small UKF's kernels on an empty cache (~10 s)
 def test_forward_runs_while_the_reverse_kernel_builds(wrapped, monkeypatch):
     tmp, log = wrapped
     gate = tmp / "gate"

@@ -20,6 +20,7 @@ PACKAGE = ROOT / "difffilter"
 #: floor a smoother package takes when it exists.
 FLOORS: list[set[str]] = [
     {"_util", "constraints", "geometry", "linalg", "params", "selection"},
+    {"datasets"},  # file formats and the data-set registry: numpy only, below every model
     {"models"},
     {"filters"},
     {"mixers"},

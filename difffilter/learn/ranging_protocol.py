@@ -9,9 +9,10 @@ For one fold (train / validation / test pieces, each a recording and a span of i
 2. the learned filter is the EKF of :func:`~difffilter.models.navigation.make_ranging_model`: per
    anchor range bias, per anchor noise scale on the file's variances, a smooth learnable reject
    gate, odometry scale and process noise, **all learned jointly**; ``seeds`` replicates start
-   from seeded perturbations of the untrained values and minimise the squared position error
-   against the reference on the training windows (a loss that does not reward a wide gate: a gate
-   that lets outliers in moves the position);
+   from seeded perturbations of the untrained values and minimise the mean + RMS position error
+   against the reference on the training windows (``loss: score``; ``mse``: the squared error) -
+   a loss that does not reward a wide gate (a gate that lets outliers in moves the position), and
+   the smooth counterpart of the validation score;
 3. after every epoch the validation pieces (each run whole) are scored by median + RMS position
    error; the filter used on test is the lowest-scoring of every (seed, epoch), **the untrained
    gated filter and the hand-tuned filter**, so the selection is never worse than either on
@@ -207,9 +208,15 @@ def _train_seed(start: torch.nn.Module, train: Mapping[str, Any], val: Sequence[
         for chunk in order.chunk(batches):
             u = {k: v[chunk] for k, v in train["u"].items()}
             res = filt(train["z"][chunk], train["m0"][chunk], train["P0"][chunk], mask=train["mask"][chunk], controls=u)
-            err = (res.mean[:, burn:, :2] - train["truth"][chunk, burn:]).pow(2).sum(-1)
-            ok = torch.isfinite(err)
-            loss = torch.where(ok, err, torch.zeros_like(err)).sum() / ok.sum().clamp(min=1)
+            sq = (res.mean[:, burn:, :2] - train["truth"][chunk, burn:]).pow(2).sum(-1)
+            ok = torch.isfinite(sq)
+            sq = torch.where(ok, sq, torch.zeros_like(sq))
+            count = ok.sum().clamp(min=1)
+            mse = sq.sum() / count
+            if cfg.get("loss", "score") == "mse":
+                loss = mse
+            else:  # mean error + RMS error: a smooth stand-in for the validation score (median + RMS)
+                loss = torch.sqrt(sq + 1e-6).sum() / count + torch.sqrt(mse)
             opt.zero_grad()
             loss.backward()
             torch.nn.utils.clip_grad_norm_(filt.parameters(), 10.0)
@@ -226,7 +233,8 @@ def _train_seed(start: torch.nn.Module, train: Mapping[str, Any], val: Sequence[
 def run_fold(pieces: Mapping[str, Sequence[Piece]], cfg: Mapping[str, Any], *, log: Callable[[str, float, int], None] | None = None) -> ProtocolResult:
     """Train, select and test one fold (module docstring).  ``cfg`` keys: ``windows`` {length,
     stride}, ``gate`` {threshold, floor, softness}, ``bias``, ``noise``, ``seeds``, ``epochs``,
-    ``lr``, ``batches``, ``burn_in``, ``init_perturbation``, ``bootstrap`` {block, draws, seed}."""
+    ``lr``, ``batches``, ``burn_in``, ``init_perturbation``, ``loss`` (``score`` or ``mse``),
+    ``bootstrap`` {block, draws, seed}."""
     t0 = time.time()
     num_a = {p.recording.num_anchors for ps in pieces.values() for p in ps}
     if len(num_a) != 1:

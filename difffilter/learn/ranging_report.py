@@ -47,20 +47,18 @@ def extras(filt: torch.nn.Module) -> dict[str, list[float]]:
     threshold / floor / softness, odometry scale, process noise (absent ones left out)."""
     meas, dyn = filt.model.measurement, filt.model.dynamics
     out: dict[str, list[float]] = {}
-    for key, owner, attr in (
-        ("range_bias", meas, "range_bias"),
-        ("noise_scale", meas, "noise_scale"),
-        ("odom_scale", dyn, "odom_scale"),
-        ("process_psd", dyn, "process_psd"),
-    ):
-        if hasattr(owner, attr) and (attr not in ("range_bias", "noise_scale") or getattr(meas, f"{attr.split('_')[0]}_mode", None) is not None):
-            out[key] = [float(v) for v in getattr(owner, attr).detach().reshape(-1)]
+    if getattr(meas, "bias_mode", None) is not None:
+        out["range_bias"] = [float(v) for v in meas.range_bias.detach().reshape(-1)]
+    if getattr(meas, "noise_mode", None) is not None:
+        out["noise_scale"] = [float(v) for v in meas.noise_scale.detach().reshape(-1)]
+    out["odom_scale"] = [float(dyn.odom_scale.detach())]
+    out["process_psd"] = [float(v) for v in dyn.process_psd.detach().reshape(-1)]
     gate = getattr(meas, "gate", None)
     if gate is not None:
-        out["gate_threshold"] = [float(gate.threshold)]
-        out["gate_floor"] = [float(gate.floor)]
+        out["gate_threshold"] = [float(torch.as_tensor(gate.threshold).detach())]
+        out["gate_floor"] = [float(torch.as_tensor(gate.floor).detach())]
         if gate.soft:
-            out["gate_softness"] = [float(gate.gate_softness)]
+            out["gate_softness"] = [float(gate.gate_softness.detach())]
     return out
 
 
@@ -100,7 +98,8 @@ def plot_extras(results: Mapping[str, ProtocolResult], *, range_var: float = 0.2
     ax[1].set(title="noise scale on file variance (untrained 1)", xlabel="anchor")
     ax[2].set(title=f"gate weight 1/f vs residual (R={range_var} m²)", xlabel="|range residual| (m)", ylim=(1e-6, 2))
     ax[3].set(title="test error CDF (dotted: hand-tuned)", xlabel="position error (m)", xscale="log")
-    ax[0].legend(fontsize=6)
+    if ax[0].get_legend_handles_labels()[0]:
+        ax[0].legend(fontsize=6)
     ax[2].legend(fontsize=7)
     return fig
 

@@ -75,7 +75,7 @@ def plot_extras(results: Mapping[str, ProtocolResult], *, range_var: float = 0.2
     """One figure: range bias and noise scale per anchor (each fold's selection against the
     untrained 0 / 1), the gate's weight ``1 / f`` against the range residual (untrained and
     learned), and test-error CDFs of hand-tuned vs learned."""
-    fig = Figure(figsize=(13, 3.6), layout="constrained")
+    fig = Figure(figsize=(16, 4.2), layout="constrained")
     ax = fig.subplots(1, 4)
     res = torch.linspace(0.0, 15.0, 301, dtype=torch.float64)
     for i, (fold, r) in enumerate(results.items()):
@@ -94,10 +94,13 @@ def plot_extras(results: Mapping[str, ProtocolResult], *, range_var: float = 0.2
     ax[2].semilogy(res, 1.0 / _gate_curve(extras(first.start), res, range_var), "k--", label="untrained gate")
     ax[0].axhline(0.0, color="k", ls="--", lw=0.8)
     ax[1].axhline(1.0, color="k", ls="--", lw=0.8)
-    ax[0].set(title="range bias (untrained 0)", xlabel="anchor", ylabel="m")
-    ax[1].set(title="noise scale on file variance (untrained 1)", xlabel="anchor")
-    ax[2].set(title=f"gate weight 1/f vs residual (R={range_var} m²)", xlabel="|range residual| (m)", ylim=(1e-6, 2))
-    ax[3].set(title="test error CDF (dotted: hand-tuned)", xlabel="position error (m)", xscale="log")
+    ax[0].set(xlabel="anchor", ylabel="m")
+    ax[1].set(xlabel="anchor", ylabel="factor")
+    ax[2].set(xlabel="|range residual| (m)", ylabel="weight 1/f", ylim=(1e-6, 2))
+    ax[3].set(xlabel="position error (m)", ylabel="fraction of test steps", xscale="log")
+    titles = ("range bias per anchor (untrained: 0)", "noise scale on the file's variance (untrained: 1)", f"gate weight vs residual (R = {range_var} m²)", "test error CDF (dotted: hand-tuned)")
+    for a, title in zip(ax, titles, strict=True):
+        a.set_title(title, fontsize=9)
     if ax[0].get_legend_handles_labels()[0]:
         ax[0].legend(fontsize=6)
     ax[2].legend(fontsize=7)

@@ -89,7 +89,10 @@ def plot_extras(results: Mapping[str, ProtocolResult], *, range_var: float = 0.2
             ax[2].semilogy(res, 1.0 / _gate_curve(ex, res, range_var), color=color)
         for row, style in (("hand-tuned", ":"), ("learned", "-")):
             e = torch.sort(r.errors[row]).values
-            ax[3].plot(e, torch.linspace(0, 1, len(e)), style, color=color)
+            ax[3].plot(e, torch.linspace(0, 1, len(e)), style, color=color, label=label if row == "learned" else None)
+    fell_back = [fold for fold, r in results.items() if r.selected["candidate"] == "hand-tuned"]
+    if fell_back:  # those folds have no gate, bias or scale to draw: say so instead of an empty panel
+        ax[0].text(0.02, 0.02, "validation chose hand-tuned (no extras):\n" + "\n".join(fell_back), transform=ax[0].transAxes, fontsize=7, va="bottom")
     first = next(iter(results.values()))
     ax[2].semilogy(res, 1.0 / _gate_curve(extras(first.start), res, range_var), "k--", label="untrained gate")
     ax[0].axhline(0.0, color="k", ls="--", lw=0.8)
@@ -101,8 +104,7 @@ def plot_extras(results: Mapping[str, ProtocolResult], *, range_var: float = 0.2
     titles = ("range bias per anchor (untrained: 0)", "noise scale on the file's variance (untrained: 1)", f"gate weight vs residual (R = {range_var} m²)", "test error CDF (dotted: hand-tuned)")
     for a, title in zip(ax, titles, strict=True):
         a.set_title(title, fontsize=9)
-    if ax[0].get_legend_handles_labels()[0]:
-        ax[0].legend(fontsize=6)
+    ax[3].legend(fontsize=6, loc="lower right")
     ax[2].legend(fontsize=7)
     return fig
 

@@ -51,7 +51,8 @@ def main() -> None:
         "seeds' epochs, its untrained start and hand-tuned; `untrained-gate` = that model at its start; "
         "`hand-tuned-hard-gate` = hand-tuned + 3-sigma reject gate (3 m floor); `snapshot-lsq` = per-step weighted "
         "least-squares multilateration. Δ = row - hand-tuned on the test block, 95 % paired moving-block bootstrap "
-        "(50-step blocks). Training loss: mean + RMS position error against the reference on 60-step windows. Adaptive filters and EM: not on main when this ran (hook: "
+        "(50-step blocks). Training loss: mean + RMS position error against the reference on 60-step windows. "
+        "Adaptive filters and EM: not on main when this ran (hook: "
         "`difffilter.learn.ranging_protocol.EXTRA_BASELINES`).\n",
     ]
     timing = []

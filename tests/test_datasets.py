@@ -55,7 +55,7 @@ def test_the_registry_names_files_checksums_and_licence() -> None:
 def test_a_missing_data_set_says_which_and_how_to_get_it(toy, tmp_path, monkeypatch) -> None:
     monkeypatch.setenv("DIFFFILTER_CACHE", str(tmp_path / "cache"))
     monkeypatch.delenv("DIFFFILTER_DATA", raising=False)
-    with pytest.raises(datasets.DataSetMissing) as err:
+    with pytest.raises(datasets.DataSetMissingError) as err:
         datasets.locate("toy_w3500x", tmp_path / "nowhere")
     msg = str(err.value)
     assert "'toy_w3500x' not found" in msg and str(tmp_path / "nowhere" / "toy_w3500x") in msg
@@ -108,10 +108,12 @@ def test_fetch_through_urllib_from_a_file_url(toy, tmp_path, monkeypatch) -> Non
     assert (folder / EXCERPT).read_bytes() == (ASSETS / EXCERPT).read_bytes()
 
 
-@pytest.mark.parametrize("name", ["smartloc_berlin_potsdamer", "librsf_w3500_heavy_tailed", "librsf_w3500_multimodal", "librsf_w3500_skewed"])
+@pytest.mark.parametrize(
+    "name", ["smartloc_berlin_potsdamer", "librsf_w3500_heavy_tailed", "librsf_w3500_multimodal", "librsf_w3500_skewed"]
+)
 def test_the_development_copies_match_the_registered_checksums(name: str) -> None:
     try:
         folder = datasets.locate(name)
-    except datasets.DataSetMissing:
+    except datasets.DataSetMissingError:
         pytest.skip(f"{name}: full data not present (../shared/data/real or DIFFFILTER_DATA)")
     datasets.verify(name, folder)

@@ -32,7 +32,9 @@ def test_kinds_columns_and_variances_of_the_excerpt() -> None:
     assert rec.where("range2", 0) == f"{INPUT}:61"
     r = load_ranging(INPUT, TRUTH)
     assert r.num_steps == 61 and r.num_anchors == 8 and r.mask.sum() == 488
-    assert np.all(r.range_var[r.mask] == 0.25) and np.allclose(r.odom_cov[1], np.diag([0.002475007062741, 0.0029091761804288, 0.00039647400273178]))
+    assert np.all(r.range_var[r.mask] == 0.25) and np.allclose(
+        r.odom_cov[1], np.diag([0.002475007062741, 0.0029091761804288, 0.00039647400273178])
+    )
     assert r.truth[5].tolist() == [5.0, 0.0] and r.heading0 == pytest.approx(np.pi) and r.dt[0] == 0 and np.all(r.dt[1:] == 1)
     # the odometry of step k moves with the heading of k-1, then turns (the reference confirms it)
     th = r.heading0 + np.cumsum(r.odom[:, 2])
@@ -61,11 +63,17 @@ def test_shared_truth_files_and_folder_kinds(tmp_path) -> None:
     ("edit", "match"),
     [
         (lambda ls: ls[:70] + ["range2 9 1.0 0.25 3.0"] + ls[70:], r"Edit_Input.txt:71: a range2 line needs at least 7 fields"),
-        (lambda ls: ls[:70] + ["range2 9 abc 0.25 1 2 5 0"] + ls[70:], r"Edit_Input.txt:71: field 3 of a range2 line is not a number: 'abc'"),
+        (
+            lambda ls: ls[:70] + ["range2 9 abc 0.25 1 2 5 0"] + ls[70:],
+            r"Edit_Input.txt:71: field 3 of a range2 line is not a number: 'abc'",
+        ),
         (lambda ls: ls[:70] + ["range2 9 nan 0.25 1 2 5 0"] + ls[70:], r"Edit_Input.txt:71: field 3 of a range2 line is not finite"),
         (lambda ls: ls[:5] + ls[6:7] + ls[5:6] + ls[7:], r"Edit_Input.txt:7: odom2 time stamp 6.0 goes back \(line 6 has 7.0\)"),
         (lambda ls: ls[:61] + [ls[60]] + ls[61:], r"Edit_Input.txt:62: anchor 1 measured twice at t=0.0 \(first at line 61\)"),
-        (lambda ls: [ln.replace(" 0.25 ", " -0.25 ", 1) if i == 65 else ln for i, ln in enumerate(ls)], r"Edit_Input.txt:66: range variance must be positive"),
+        (
+            lambda ls: [ln.replace(" 0.25 ", " -0.25 ", 1) if i == 65 else ln for i, ln in enumerate(ls)],
+            r"Edit_Input.txt:66: range variance must be positive",
+        ),
         (lambda ls: [ln for ln in ls if not ln.startswith("range2")], r"no range2 records"),
         (lambda ls: [ln for ln in ls if not ln.startswith("odom2")], r"no odom2 or odom2diff records"),
     ],

@@ -58,11 +58,22 @@ def test_folds_by_blocks_and_by_data_set() -> None:
 def test_selection_is_never_worse_than_its_start_or_hand_tuned_on_validation(monkeypatch, tmp_path) -> None:
     recs = _recordings()
     seen = []
-    monkeypatch.setitem(EXTRA_BASELINES, "extra-hook", lambda rec: seen.append(rec.name) or run_fold.__globals__["_filters"](rec.num_anchors, CFG)["hand-tuned"])
+    monkeypatch.setitem(
+        EXTRA_BASELINES,
+        "extra-hook",
+        lambda rec: seen.append(rec.name) or run_fold.__globals__["_filters"](rec.num_anchors, CFG)["hand-tuned"],
+    )
     res = run_fold(fold_pieces([recs[1]], CFG["folds"]["A"]), CFG)
     s = res.selected
     assert s["val_score"] <= s["val_untrained"] and s["val_score"] <= s["val_hand_tuned"]
-    assert [r["filter"] for r in res.rows] == ["hand-tuned", "learned", "untrained-gate", "hand-tuned-hard-gate", "extra-hook", "snapshot-lsq"]
+    assert [r["filter"] for r in res.rows] == [
+        "hand-tuned",
+        "learned",
+        "untrained-gate",
+        "hand-tuned-hard-gate",
+        "extra-hook",
+        "snapshot-lsq",
+    ]
     assert seen == ["W3500x_skewed"]
     hook = next(r for r in res.rows if r["filter"] == "extra-hook")
     assert hook["d_median"] == 0.0 and hook["d_rms"] == 0.0  # the hook returned the hand-tuned filter: identical errors
@@ -101,11 +112,33 @@ def test_run_ranging_writes_csv_per_fold_figure_and_tensorboard(tmp_path) -> Non
 @pytest.mark.slow
 def test_the_command_runs_on_a_ranging_folder(tmp_path) -> None:
     """``python experiments/realdata.py folder=<dir>`` with only a folder given (tiny settings)."""
-    over = [f"realdata_ranging.{k}={v}" for k, v in {"seeds": 1, "epochs": 1, "windows.length": 12, "windows.stride": 12, "bootstrap.draws": 100, "bootstrap.block": 5, "burn_in": 2}.items()]
+    over = [
+        f"realdata_ranging.{k}={v}"
+        for k, v in {
+            "seeds": 1,
+            "epochs": 1,
+            "windows.length": 12,
+            "windows.stride": 12,
+            "bootstrap.draws": 100,
+            "bootstrap.block": 5,
+            "burn_in": 2,
+        }.items()
+    ]
     env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
     out = subprocess.run(
-        [sys.executable, str(ROOT / "experiments" / "realdata.py"), f"folder={ASSETS}", f"hydra.run.dir={tmp_path}", "realdata_ranging.by_dataset=false", *over],
-        capture_output=True, text=True, env=env, cwd=ROOT, timeout=600,
+        [
+            sys.executable,
+            str(ROOT / "experiments" / "realdata.py"),
+            f"folder={ASSETS}",
+            f"hydra.run.dir={tmp_path}",
+            "realdata_ranging.by_dataset=false",
+            *over,
+        ],
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=ROOT,
+        timeout=600,
     )
     assert out.returncode == 0, out.stderr[-3000:]
     for name in ("W3500x_heavy-tailed", "W3500x_skewed"):

@@ -2,7 +2,7 @@
 format (:mod:`.librsf`, :mod:`.ranging`).
 
     >>> from difffilter import datasets
-    >>> folder = datasets.locate("librsf_w3500_skewed")        # local copy, or DataSetMissing saying how to get it
+    >>> folder = datasets.locate("librsf_w3500_skewed")        # local copy, or DataSetMissingError saying how to get it
     >>> rec = datasets.load("librsf_w3500_skewed")             # a RangingRecording
 """
 
@@ -13,13 +13,13 @@ from pathlib import Path
 from .catalog import LIBRSF_W3500, SMARTLOC_BERLIN
 from .librsf import COLUMNS, LibrsfFile, detect_kinds, read_librsf
 from .ranging import RangingRecording, find_recordings, folder_kind, load_ranging
-from .registry import DATASETS, DataSet, DataSetMissing, cache_dir, fetch, locate, register, search_roots, sha256_of, verify
+from .registry import DATASETS, DataSet, DataSetMissingError, cache_dir, fetch, locate, register, search_roots, sha256_of, verify
 
 __all__ = [
     "COLUMNS",
     "DATASETS",
     "DataSet",
-    "DataSetMissing",
+    "DataSetMissingError",
     "LIBRSF_W3500",
     "LibrsfFile",
     "RangingRecording",

@@ -85,7 +85,9 @@ def _odometry(rec: LibrsfFile) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return tab[:, 0], vals, cov
 
 
-def load_ranging(input_path: str | Path, truth_path: str | Path | None = None, *, min_ranges: int = 1, on_error: str = "raise") -> RangingRecording:
+def load_ranging(
+    input_path: str | Path, truth_path: str | Path | None = None, *, min_ranges: int = 1, on_error: str = "raise"
+) -> RangingRecording:
     """Assemble a 2-D ranging recording (module docstring).
 
     Args:
@@ -116,7 +118,10 @@ def load_ranging(input_path: str | Path, truth_path: str | Path | None = None, *
     seen = np.full((steps, num_a), -1, dtype=np.int64)
     for row, (k, a) in enumerate(zip(t_idx, a_idx, strict=True)):
         if seen[k, a] >= 0:
-            raise ValueError(f"{rec.where('range2', row)}: anchor {int(ids[a])} measured twice at t={times[k]} (first at line {rec.lines['range2'][seen[k, a]]})")
+            raise ValueError(
+                f"{rec.where('range2', row)}: anchor {int(ids[a])} measured twice at t={times[k]} "
+                f"(first at line {rec.lines['range2'][seen[k, a]]})"
+            )
         seen[k, a] = row
     mask = seen >= 0
     ranges, var = np.zeros((steps, num_a)), np.ones((steps, num_a))

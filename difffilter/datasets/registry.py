@@ -12,7 +12,7 @@ A data set is a folder of files (libRSF text files for the ones registered here)
    ``/<folder>``, filled by :func:`fetch` (``download=True``).
 
 A folder counts only when every file of the data set is there; with ``verify=True`` every file's
-sha256 must also match the registry.  A data set found nowhere raises :class:`DataSetMissing`
+sha256 must also match the registry.  A data set found nowhere raises :class:`DataSetMissingError`
 naming the data set, the places searched, and how to get it (the upstream addresses and the
 licence).  :func:`fetch` downloads into a temporary file, checks the sha256 and only then moves
 the file into place, so a broken or tampered download never becomes a cached file.
@@ -33,7 +33,7 @@ from typing import IO
 __all__ = [
     "DATASETS",
     "DataSet",
-    "DataSetMissing",
+    "DataSetMissingError",
     "cache_dir",
     "fetch",
     "locate",
@@ -52,7 +52,7 @@ _CC_BY_SA = (
 )
 
 
-class DataSetMissing(FileNotFoundError):
+class DataSetMissingError(FileNotFoundError):
     """A registered data set is not in any searched folder (the message says how to get it)."""
 
 
@@ -172,7 +172,7 @@ def locate(name: str, root: str | Path | None = None, *, download: bool = False,
 
     Raises:
         KeyError: ``name`` is not registered.
-        DataSetMissing: the data set is nowhere and ``download`` is False.
+        DataSetMissingError: the data set is nowhere and ``download`` is False.
     """
     ds = _get(name)
     searched = []
@@ -185,7 +185,7 @@ def locate(name: str, root: str | Path | None = None, *, download: bool = False,
             return folder
     if download:
         return fetch(name)
-    raise DataSetMissing(f"data set {name!r} not found (searched: {', '.join(searched)}).\n{ds.how_to_get()}")
+    raise DataSetMissingError(f"data set {name!r} not found (searched: {', '.join(searched)}).\n{ds.how_to_get()}")
 
 
 Opener = Callable[[str], IO[bytes]]

@@ -42,7 +42,17 @@ from ..filters import EKF
 from ..models.navigation.ranging2d import make_ranging_model
 from .holdout import error_statistics, paired_error_table
 
-__all__ = ["EXTRA_BASELINES", "Piece", "ProtocolResult", "fold_pieces", "multilateration", "piece_tensors", "run_fold", "start_belief", "summary_statistics"]
+__all__ = [
+    "EXTRA_BASELINES",
+    "Piece",
+    "ProtocolResult",
+    "fold_pieces",
+    "multilateration",
+    "piece_tensors",
+    "run_fold",
+    "start_belief",
+    "summary_statistics",
+]
 
 #: ``{row name: factory(recording) -> filter}``: further baselines evaluated on every test piece
 #: (adaptive filters, EM-tuned filters).  Empty here; a caller registers them.
@@ -171,9 +181,19 @@ def _filters(num_anchors: int, cfg: Mapping[str, Any]) -> dict[str, torch.nn.Mod
     kw = {"num_anchors": num_anchors}
     return {
         "hand-tuned": EKF(make_ranging_model(**kw, bias=None, noise=None, gate=None)),
-        "hand-tuned-hard-gate": EKF(make_ranging_model(**kw, bias=None, noise=None, gate="hard", gate_threshold=float(g["threshold"]), gate_floor=float(g["floor"]))),
+        "hand-tuned-hard-gate": EKF(
+            make_ranging_model(**kw, bias=None, noise=None, gate="hard", gate_threshold=float(g["threshold"]), gate_floor=float(g["floor"]))
+        ),
         "untrained-gate": EKF(
-            make_ranging_model(**kw, bias=cfg["bias"], noise=cfg["noise"], gate="soft", gate_threshold=float(g["threshold"]), gate_floor=float(g["floor"]), gate_softness=float(g["softness"]))
+            make_ranging_model(
+                **kw,
+                bias=cfg["bias"],
+                noise=cfg["noise"],
+                gate="soft",
+                gate_threshold=float(g["threshold"]),
+                gate_floor=float(g["floor"]),
+                gate_softness=float(g["softness"]),
+            )
         ),
     }
 
@@ -191,7 +211,14 @@ class ProtocolResult:
     seconds: float
 
 
-def _train_seed(start: torch.nn.Module, train: Mapping[str, Any], val: Sequence[Mapping[str, Any]], cfg: Mapping[str, Any], seed: int, log: Callable[[str, float, int], None] | None) -> dict[str, Any]:
+def _train_seed(
+    start: torch.nn.Module,
+    train: Mapping[str, Any],
+    val: Sequence[Mapping[str, Any]],
+    cfg: Mapping[str, Any],
+    seed: int,
+    log: Callable[[str, float, int], None] | None,
+) -> dict[str, Any]:
     filt = copy.deepcopy(start)
     gen = torch.Generator().manual_seed(int(seed))
     with torch.no_grad():
@@ -230,7 +257,9 @@ def _train_seed(start: torch.nn.Module, train: Mapping[str, Any], val: Sequence[
     return {"seed": seed, "scores": scores, "snapshots": snaps}
 
 
-def run_fold(pieces: Mapping[str, Sequence[Piece]], cfg: Mapping[str, Any], *, log: Callable[[str, float, int], None] | None = None) -> ProtocolResult:
+def run_fold(
+    pieces: Mapping[str, Sequence[Piece]], cfg: Mapping[str, Any], *, log: Callable[[str, float, int], None] | None = None
+) -> ProtocolResult:
     """Train, select and test one fold (module docstring).  ``cfg`` keys: ``windows`` {length,
     stride}, ``gate`` {threshold, floor, softness}, ``bias``, ``noise``, ``seeds``, ``epochs``,
     ``lr``, ``batches``, ``burn_in``, ``init_perturbation``, ``loss`` (``score`` or ``mse``),
@@ -259,8 +288,19 @@ def run_fold(pieces: Mapping[str, Sequence[Piece]], cfg: Mapping[str, Any], *, l
     else:
         learned = copy.deepcopy(start)
         learned.load_state_dict(state)
-    selected = {"candidate": name, "epoch": epoch, "val_score": score, "val_untrained": candidates[0][2], "val_hand_tuned": candidates[1][2]}
-    rows_f: dict[str, torch.nn.Module] = {"hand-tuned": base["hand-tuned"], "learned": learned, "untrained-gate": start, "hand-tuned-hard-gate": base["hand-tuned-hard-gate"]}
+    selected = {
+        "candidate": name,
+        "epoch": epoch,
+        "val_score": score,
+        "val_untrained": candidates[0][2],
+        "val_hand_tuned": candidates[1][2],
+    }
+    rows_f: dict[str, torch.nn.Module] = {
+        "hand-tuned": base["hand-tuned"],
+        "learned": learned,
+        "untrained-gate": start,
+        "hand-tuned-hard-gate": base["hand-tuned-hard-gate"],
+    }
     errors: dict[str, list[Tensor]] = {}
     for p in pieces["test"]:
         data = piece_tensors(p)

@@ -38,7 +38,10 @@ def fold_specs(recordings: Sequence[RangingRecording], cfg: Mapping[str, Any]) -
     if len(recordings) > 1 and cfg.get("by_dataset", True):
         for r in recordings:
             others = [o.name for o in recordings if o.name != r.name]
-            out[f"leave_out_{r.name}"] = (list(recordings), {"train_sets": others, "test_sets": [r.name], "val_fraction": float(cfg.get("val_fraction", 0.2))})
+            out[f"leave_out_{r.name}"] = (
+                list(recordings),
+                {"train_sets": others, "test_sets": [r.name], "val_fraction": float(cfg.get("val_fraction", 0.2))},
+            )
     return out
 
 
@@ -92,7 +95,14 @@ def plot_extras(results: Mapping[str, ProtocolResult], *, range_var: float = 0.2
             ax[3].plot(e, torch.linspace(0, 1, len(e)), style, color=color, label=label if row == "learned" else None)
     fell_back = [fold for fold, r in results.items() if r.selected["candidate"] == "hand-tuned"]
     if fell_back:  # those folds have no gate, bias or scale to draw: say so instead of an empty panel
-        ax[0].text(0.02, 0.02, "validation chose hand-tuned (no extras):\n" + "\n".join(fell_back), transform=ax[0].transAxes, fontsize=7, va="bottom")
+        ax[0].text(
+            0.02,
+            0.02,
+            "validation chose hand-tuned (no extras):\n" + "\n".join(fell_back),
+            transform=ax[0].transAxes,
+            fontsize=7,
+            va="bottom",
+        )
     first = next(iter(results.values()))
     ax[2].semilogy(res, 1.0 / _gate_curve(extras(first.start), res, range_var), "k--", label="untrained gate")
     ax[0].axhline(0.0, color="k", ls="--", lw=0.8)
@@ -101,7 +111,12 @@ def plot_extras(results: Mapping[str, ProtocolResult], *, range_var: float = 0.2
     ax[1].set(xlabel="anchor", ylabel="factor")
     ax[2].set(xlabel="|range residual| (m)", ylabel="weight 1/f", ylim=(1e-6, 2))
     ax[3].set(xlabel="position error (m)", ylabel="fraction of test steps", xscale="log")
-    titles = ("range bias per anchor (untrained: 0)", "noise scale on the file's variance (untrained: 1)", f"gate weight vs residual (R = {range_var} m²)", "test error CDF (dotted: hand-tuned)")
+    titles = (
+        "range bias per anchor (untrained: 0)",
+        "noise scale on the file's variance (untrained: 1)",
+        f"gate weight vs residual (R = {range_var} m²)",
+        "test error CDF (dotted: hand-tuned)",
+    )
     for a, title in zip(ax, titles, strict=True):
         a.set_title(title, fontsize=9)
     ax[3].legend(fontsize=6, loc="lower right")
@@ -119,20 +134,36 @@ def write_csv(path: Path, rows: Sequence[Mapping[str, Any]]) -> None:
             w.writerow({k: (f"{r[k]:.6g}" if isinstance(r.get(k), float) else r.get(k, "")) for k in COLUMNS})
 
 
+def _diff(row: Mapping[str, Any], stat: str) -> str:
+    if f"d_{stat}" not in row:
+        return ""
+    return f"{row[f'd_{stat}']:+.3f} [{row[f'd_{stat}_lo']:+.3f}, {row[f'd_{stat}_hi']:+.3f}]"
+
+
 def _markdown(results: Mapping[str, ProtocolResult]) -> str:
-    out = ["| fold | filter | p50 (m) | RMS (m) | p95 (m) | Δ p50 vs hand-tuned [95 % CI] | Δ RMS vs hand-tuned [95 % CI] |", "|---|---|---|---|---|---|---|"]
+    out = [
+        "| fold | filter | p50 (m) | RMS (m) | p95 (m) | Δ p50 vs hand-tuned [95 % CI] | Δ RMS vs hand-tuned [95 % CI] |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for fold, r in results.items():
         for row in r.rows:
-            d = lambda s: "" if f"d_{s}" not in row else f"{row[f'd_{s}']:+.3f} [{row[f'd_{s}_lo']:+.3f}, {row[f'd_{s}_hi']:+.3f}]"  # noqa: E731
-            out.append(f"| {fold} | {row['filter']} | {row['pos_err_p50']:.3f} | {row['rmse_pos']:.3f} | {row['pos_err_p95']:.3f} | {d('median')} | {d('rms')} |")
-    out += ["", "| fold | selected | validation score (median + RMS, m): selected / untrained gate / hand-tuned | seconds |", "|---|---|---|---|"]
+            stats = f"{row['pos_err_p50']:.3f} | {row['rmse_pos']:.3f} | {row['pos_err_p95']:.3f}"
+            out.append(f"| {fold} | {row['filter']} | {stats} | {_diff(row, 'median')} | {_diff(row, 'rms')} |")
+    out += [
+        "",
+        "| fold | selected | validation score (median + RMS, m): selected / untrained gate / hand-tuned | seconds |",
+        "|---|---|---|---|",
+    ]
     for fold, r in results.items():
         s = r.selected
-        out.append(f"| {fold} | {s['candidate']} epoch {s['epoch']} | {s['val_score']:.3f} / {s['val_untrained']:.3f} / {s['val_hand_tuned']:.3f} | {r.seconds:.0f} |")
+        scores = f"{s['val_score']:.3f} / {s['val_untrained']:.3f} / {s['val_hand_tuned']:.3f}"
+        out.append(f"| {fold} | {s['candidate']} epoch {s['epoch']} | {scores} | {r.seconds:.0f} |")
     return "\n".join(out) + "\n"
 
 
-def run_ranging(folder: str | Path, cfg: Mapping[str, Any], output_dir: str | Path, *, only: Sequence[str] | None = None) -> dict[str, ProtocolResult]:
+def run_ranging(
+    folder: str | Path, cfg: Mapping[str, Any], output_dir: str | Path, *, only: Sequence[str] | None = None
+) -> dict[str, ProtocolResult]:
     """Every fold of :func:`fold_specs` on the recordings of ``folder`` (``only``: these names);
     writes the report (module docstring) and returns ``{fold: result}``."""
     t0 = time.time()
@@ -165,7 +196,10 @@ def run_ranging(folder: str | Path, cfg: Mapping[str, Any], output_dir: str | Pa
         "recordings": [r.name for r in recordings],
         "issues": {r.name: r.issues for r in recordings},
         "config": json.loads(json.dumps(dict(cfg))),
-        "folds": {f: {"rows": r.rows, "selected": r.selected, "extras": extras(r.learned), "seconds": r.seconds, "history": r.history} for f, r in results.items()},
+        "folds": {
+            f: {"rows": r.rows, "selected": r.selected, "extras": extras(r.learned), "seconds": r.seconds, "history": r.history}
+            for f, r in results.items()
+        },
         "seconds": time.time() - t0,
     }
     (out / "summary.json").write_text(json.dumps(summary, indent=1))

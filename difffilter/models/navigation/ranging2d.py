@@ -40,7 +40,9 @@ class OdometryDynamics2D(DynamicsModel):
     state_dim = 3
     angular = (2,)
 
-    def __init__(self, *, odom_scale: float = 1.0, process_psd: tuple[float, float, float] = (1e-4, 1e-4, 1e-6), dtype: torch.dtype = torch.float64) -> None:
+    def __init__(
+        self, *, odom_scale: float = 1.0, process_psd: tuple[float, float, float] = (1e-4, 1e-4, 1e-6), dtype: torch.dtype = torch.float64
+    ) -> None:
         super().__init__()
         if not float(odom_scale) > 0 or len(process_psd) != 3 or min(process_psd) <= 0:
             raise ValueError(f"odom_scale must be > 0 and process_psd three positive numbers, got {odom_scale}, {process_psd}")
@@ -67,9 +69,7 @@ class OdometryDynamics2D(DynamicsModel):
         cov, dt = control(u, "odom_cov").to(x.dtype), control(u, "dt").to(x.dtype)[..., 0]
         c, s = _rot(x[..., 2])
         z = torch.zeros_like(c * dt)
-        g = torch.stack(
-            [torch.stack([c * dt, -s * dt, z], -1), torch.stack([s * dt, c * dt, z], -1), torch.stack([z, z, z + dt], -1)], -2
-        )
+        g = torch.stack([torch.stack([c * dt, -s * dt, z], -1), torch.stack([s * dt, c * dt, z], -1), torch.stack([z, z, z + dt], -1)], -2)
         q = self.odom_scale * (g @ cov @ g.transpose(-1, -2)) + torch.diag_embed(self.process_psd * dt[..., None])
         return 0.5 * (q + q.transpose(-1, -2))
 

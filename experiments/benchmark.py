@@ -15,16 +15,22 @@ is skipped with a message.
 
 from __future__ import annotations
 
-import logging
+import sys
+from pathlib import Path
 
-import hydra
-import torch
-from hydra.core.hydra_config import HydraConfig
-from omegaconf import DictConfig
+# The research tree (experiments/) is not installed: make it importable from the repository root.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from difffilter.bench.cases import BenchCase
-from difffilter.bench.suite import run_suite
-from difffilter.papers.p003.experiment import p003_imm, simulate
+import logging  # noqa: E402
+
+import hydra  # noqa: E402
+import torch  # noqa: E402
+from hydra.core.hydra_config import HydraConfig  # noqa: E402
+from omegaconf import DictConfig  # noqa: E402
+
+from experiments.benchmarks.cases import BenchCase  # noqa: E402
+from experiments.benchmarks.suite import run_suite  # noqa: E402
+from experiments.papers.p003.experiment import p003_imm, simulate  # noqa: E402
 
 log = logging.getLogger(__name__)
 

@@ -5,7 +5,7 @@
 
 The benchmark's KF (the linear CV model on the p000 GPS positions, float64), through
 ``FusedFilter(kf, engine="generated", threads=1)`` with ``generated_engine().shared_covariance``
-True (the covariance recursion once for the batch, :mod:`difffilter.filters.fused.shared`) and
+True (the covariance recursion once for the batch, :mod:`difffilter.engines.shared`) and
 False (every trajectory's own), one thread. Prints the best process CPU time of ``repeats``
 training steps (total log-likelihood and its gradient) per configuration, and the ratio (the
 engine's batch threshold for the shared path is lifted here, to measure small batches too).
@@ -13,16 +13,22 @@ engine's batch threshold for the shared path is lifted here, to measure small ba
 
 from __future__ import annotations
 
-import argparse
-import time
+import sys
+from pathlib import Path
 
-import torch
+# The research tree (experiments/) is not installed: make it importable from the repository root.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from difffilter.bench.cases import builtin_case
-from difffilter.bench.gpsdr import simulate_gpsdr
-from difffilter.bench.runner import BenchSettings
-from difffilter.filters import FusedFilter
-from difffilter.filters.fused import shared as shared_module
+import argparse  # noqa: E402
+import time  # noqa: E402
+
+import torch  # noqa: E402
+
+from difffilter.engines import FusedFilter  # noqa: E402
+from difffilter.engines import shared as shared_module  # noqa: E402
+from experiments.benchmarks.cases import builtin_case  # noqa: E402
+from experiments.benchmarks.gpsdr import simulate_gpsdr  # noqa: E402
+from experiments.benchmarks.runner import BenchSettings  # noqa: E402
 
 
 def cpu_per_training_step(batch: int, steps: int, repeats: int, shared: bool) -> float:

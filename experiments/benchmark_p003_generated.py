@@ -11,15 +11,21 @@ use a fresh ``DIFFFILTER_CACHE_DIR`` to time a cold build.
 
 from __future__ import annotations
 
-import argparse
-import time
+import sys
+from pathlib import Path
 
-import torch
+# The research tree (experiments/) is not installed: make it importable from the repository root.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from difffilter.filters.fused import FusedFilter
-from difffilter.filters.fused import trace as fused_trace
-from difffilter.filters.fused.graph import UnsupportedOp
-from difffilter.papers.p003.experiment import group_scale_q, p003_imm, simulate
+import argparse  # noqa: E402
+import time  # noqa: E402
+
+import torch  # noqa: E402
+
+from difffilter.engines import FusedFilter  # noqa: E402
+from difffilter.engines import trace as fused_trace  # noqa: E402
+from difffilter.engines.graph import UnsupportedOp  # noqa: E402
+from experiments.papers.p003.experiment import group_scale_q, p003_imm, simulate  # noqa: E402
 
 #: conf/filter/p003_imm_simplified.yaml and the learner of conf/experiment/p003_imm_sins.yaml
 MODEL = {"num_satellites": 8, "linearized": False, "position_in_metres": True, "discretization": "expm"}

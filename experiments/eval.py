@@ -8,17 +8,23 @@ Rebuilds the training run's test set, hand-tuned filter, oracle and baselines fr
 stored in the checkpoint, loads the learned filter from it, and writes results.md / results.csv
 / per_run.csv and TensorBoard events to outputs/eval/runs/<date>_<time>/: the same table as the
 training run's (``train.py train=false ckpt_path=...`` does the same).  The logic lives in
-difffilter.learn.experiment.run_experiment.
+experiments.runner.experiment.run_experiment.
 """
 
 from __future__ import annotations
 
-import logging
+import sys
+from pathlib import Path
 
-import hydra
-from omegaconf import DictConfig
+# The research tree (experiments/) is not installed: make it importable from the repository root.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from difffilter.learn.experiment import run_experiment
+import logging  # noqa: E402
+
+import hydra  # noqa: E402
+from omegaconf import DictConfig  # noqa: E402
+
+from experiments.runner.experiment import run_experiment  # noqa: E402
 
 log = logging.getLogger(__name__)
 

@@ -5,7 +5,7 @@ Usage (from the repository root)::
     PYTHONPATH=$PWD nice -n 10 python experiments/inductor_timing.py [kind] [batch] [steps] [repeats]
 
 ``kind`` is a built-in benchmark case (``ukf`` default, ``ekf``, ``kf``...) on the GPS/DR data of
-:mod:`difffilter.bench.gpsdr`, float64, one thread (``torch.set_num_threads(1)`` and inductor's
+:mod:`experiments.benchmarks.gpsdr`, float64, one thread (``torch.set_num_threads(1)`` and inductor's
 ``cpp.threads=1``).  Prints one line per measurement: the first forward call (builds the forward
 graph), the median of ``repeats`` forward calls, the first training step (builds the backward
 graph), the median of ``repeats`` training steps; wall-clock and process CPU seconds.  For a
@@ -15,16 +15,22 @@ unchanged on older checkouts for before/after comparisons.
 
 from __future__ import annotations
 
-import statistics
 import sys
-import time
+from pathlib import Path
 
-import torch
+# The research tree (experiments/) is not installed: make it importable from the repository root.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from difffilter.bench.cases import builtin_case, torch_runner
-from difffilter.bench.gpsdr import simulate_gpsdr
-from difffilter.bench.runner import BenchSettings
-from difffilter.filters import FusedFilter
+import statistics  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+
+import torch  # noqa: E402
+
+from difffilter.engines import FusedFilter  # noqa: E402
+from experiments.benchmarks.cases import builtin_case, torch_runner  # noqa: E402
+from experiments.benchmarks.gpsdr import simulate_gpsdr  # noqa: E402
+from experiments.benchmarks.runner import BenchSettings  # noqa: E402
 
 
 def _timed(fn: object) -> tuple[float, float]:

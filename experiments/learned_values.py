@@ -7,22 +7,28 @@ Options in conf/learned_values.yaml.
 
 Reads each job's ``results.csv`` (its ``parameter_values`` column, else ``parameters``, written by
 ``experiments/train.py`` for the parameters named in ``learn``) and groups the jobs as the sweep summary does
-(:func:`difffilter.learn.sweep.load_jobs`): per group, one row per seed with the learned values,
+(:func:`experiments.runner.sweep.load_jobs`): per group, one row per seed with the learned values,
 then the mean over seeds of every value, then the hand-tuned and oracle rows of the first job.
 """
 
 from __future__ import annotations
 
-import ast
-import re
-from collections.abc import Sequence
+import sys
 from pathlib import Path
-from typing import Any
 
-import hydra
-from omegaconf import DictConfig
+# The research tree (experiments/) is not installed: make it importable from the repository root.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from difffilter.learn.sweep import load_jobs
+import ast  # noqa: E402
+import re  # noqa: E402
+from collections.abc import Sequence  # noqa: E402
+from pathlib import Path  # noqa: E402
+from typing import Any  # noqa: E402
+
+import hydra  # noqa: E402
+from omegaconf import DictConfig  # noqa: E402
+
+from experiments.runner.sweep import load_jobs  # noqa: E402
 
 __all__ = ["main", "parse_parameters", "values_table"]
 

@@ -10,18 +10,23 @@ folder=<dir>`` uses); data: ``difffilter.datasets.locate("librsf_w3500_skewed")`
 
 from __future__ import annotations
 
-import argparse
-import json
-import os
-import subprocess
-import time
+import sys
 from pathlib import Path
 
-import torch
-import yaml
+# The research tree (experiments/) is not installed: make it importable from the repository root.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from difffilter.datasets import DATASETS, locate
-from difffilter.learn.ranging_report import run_ranging
+import argparse  # noqa: E402
+import json  # noqa: E402
+import os  # noqa: E402
+import subprocess  # noqa: E402
+import time  # noqa: E402
+
+import torch  # noqa: E402
+import yaml  # noqa: E402
+
+from difffilter.datasets import DATASETS, locate  # noqa: E402
+from experiments.ranging.report import run_ranging  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -53,7 +58,7 @@ def main() -> None:
         "least-squares multilateration. Δ = row - hand-tuned on the test block, 95 % paired moving-block bootstrap "
         "(50-step blocks). Training loss: mean + RMS position error against the reference on 60-step windows. "
         "Adaptive filters and EM: not on main when this ran (hook: "
-        "`difffilter.learn.ranging_protocol.EXTRA_BASELINES`).\n",
+        "`experiments.ranging.protocol.EXTRA_BASELINES`).\n",
     ]
     timing = []
     for key, ds in DATASETS.items():

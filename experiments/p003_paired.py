@@ -10,16 +10,22 @@ oracle and every seed's learned IMM on the same flights; writes ``summary_<metri
 differences, G, per-block ANEES, as the sweep's own summary) and ``switching.md`` (delays with
 intervals next to p003's 5/7 and 5/8 steps, per-step cost).  It also writes the sweep's own
 summaries for velocity and attitude (``summary_rmse_velocity.md``, ...).  Options in
-conf/p003_paired.yaml; the logic is :func:`difffilter.papers.p003.paired.paper_profile_report`.
+conf/p003_paired.yaml; the logic is :func:`experiments.papers.p003.paired.paper_profile_report`.
 """
 
 from __future__ import annotations
 
-import hydra
-import torch
-from omegaconf import DictConfig
+import sys
+from pathlib import Path
 
-from difffilter.papers.p003.paired import paper_profile_report, summarize_metrics
+# The research tree (experiments/) is not installed: make it importable from the repository root.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import hydra  # noqa: E402
+import torch  # noqa: E402
+from omegaconf import DictConfig  # noqa: E402
+
+from experiments.papers.p003.paired import paper_profile_report, summarize_metrics  # noqa: E402
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="p003_paired")

@@ -5,17 +5,23 @@
         '+model={sigma_accel_bias_walk: 1e-5, sigma_gyro_bias_walk: 1e-6, sigma_position_step: 0.0288675}'
                                      # the settings before issue 7's fixes (Q_pp = sigma_a^2 T^4/3)
 
-Options in conf/p004_paired.yaml; the logic is :func:`difffilter.papers.p004.paired.paired_report`
+Options in conf/p004_paired.yaml; the logic is :func:`experiments.papers.p004.paired.paired_report`
 (see its module docstring).
 """
 
 from __future__ import annotations
 
-import hydra
-import torch
-from omegaconf import DictConfig
+import sys
+from pathlib import Path
 
-from difffilter.papers.p004.paired import paired_report
+# The research tree (experiments/) is not installed: make it importable from the repository root.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import hydra  # noqa: E402
+import torch  # noqa: E402
+from omegaconf import DictConfig  # noqa: E402
+
+from experiments.papers.p004.paired import paired_report  # noqa: E402
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="p004_paired")

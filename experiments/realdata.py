@@ -9,24 +9,30 @@ a held-out validation block from several seeds, test with paired block-bootstrap
     python experiments/realdata.py evaluate_from=outputs/realdata/smartloc/<run>   # recompute a run's test tables (no training)
     python experiments/realdata.py evaluate_from=<run> compare_with=<other run>     # + paired differences against the other run's rows
 
-The logic is in difffilter.papers.smartloc.protocol / .report (pseudoranges) and
-difffilter.learn.ranging_protocol / .ranging_report (2-D ranging, conf/realdata_ranging); results.md, summary.json, the
+The logic is in experiments.papers.smartloc.protocol / .report (pseudoranges) and
+experiments.ranging.protocol / .report (2-D ranging, conf/realdata_ranging); results.md, summary.json, the
 noise-model figures and TensorBoard events go to the Hydra run directory.
 """
 
 from __future__ import annotations
 
-import logging
-import warnings
+import sys
+from pathlib import Path
 
-import hydra
-import torch
-from hydra.core.hydra_config import HydraConfig
-from omegaconf import DictConfig, OmegaConf
+# The research tree (experiments/) is not installed: make it importable from the repository root.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from difffilter.datasets import folder_kind
-from difffilter.learn.ranging_report import run_ranging
-from difffilter.papers.smartloc.report import resolve_config, run_evaluation, run_protocol, run_transfer
+import logging  # noqa: E402
+import warnings  # noqa: E402
+
+import hydra  # noqa: E402
+import torch  # noqa: E402
+from hydra.core.hydra_config import HydraConfig  # noqa: E402
+from omegaconf import DictConfig, OmegaConf  # noqa: E402
+
+from difffilter.datasets import folder_kind  # noqa: E402
+from experiments.papers.smartloc.report import resolve_config, run_evaluation, run_protocol, run_transfer  # noqa: E402
+from experiments.ranging.report import run_ranging  # noqa: E402
 
 log = logging.getLogger(__name__)
 

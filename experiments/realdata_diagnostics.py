@@ -11,21 +11,27 @@ the fixed baselines, which were public before v2).
 
 from __future__ import annotations
 
-import argparse
-import copy
-import json
-import math
+import sys
 from pathlib import Path
 
-import torch
-from hydra import compose, initialize_config_dir
-from omegaconf import OmegaConf
+# The research tree (experiments/) is not installed: make it importable from the repository root.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from difffilter.learn.data import TrajectorySet
-from difffilter.learn.holdout import contiguous_blocks
-from difffilter.learn.metrics import nll_per_step
-from difffilter.papers.smartloc.protocol import block_sets, cached_drives, fold_coefficients, hand_tuned_filter, train_jobs
-from difffilter.papers.smartloc.report import _baselines, resolve_config
+import argparse  # noqa: E402
+import copy  # noqa: E402
+import json  # noqa: E402
+import math  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import torch  # noqa: E402
+from hydra import compose, initialize_config_dir  # noqa: E402
+from omegaconf import OmegaConf  # noqa: E402
+
+from difffilter.evaluate.holdout import contiguous_blocks  # noqa: E402
+from difffilter.evaluate.metrics import nll_per_step  # noqa: E402
+from difffilter.learn.data import TrajectorySet  # noqa: E402
+from experiments.papers.smartloc.protocol import block_sets, cached_drives, fold_coefficients, hand_tuned_filter, train_jobs  # noqa: E402
+from experiments.papers.smartloc.report import _baselines, resolve_config  # noqa: E402
 
 GATES = [(2.5, 8.0), (3.0, 8.0), (3.5, 8.0), (3.72, 8.0), (4.0, 8.0), (4.5, 8.0), (5.0, 8.0), (4.2, 16.0), (2.5, 16.0), (1e6, 8.0)]
 

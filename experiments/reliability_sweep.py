@@ -8,23 +8,32 @@ Options in conf/reliability_sweep.yaml (a Hydra app like every entry point).
 Model: 2-D constant velocity ``[px, vx, py, vy]``, ``dt = 1``, white-noise-acceleration
 ``Q`` with intensity ``q``, both positions measured with ``R = r I`` (default ``r = 1e-8``,
 ``sigma_z = 1e-4``), ``T`` steps of one simulated trajectory (seeded), prior ``N(0, s I)``.
-The reference is :mod:`difffilter.bench.exact` (mpmath, 80 digits) on the same rounded
+The reference is :mod:`experiments.benchmarks.exact` (mpmath, 80 digits) on the same rounded
 inputs (float32 runs: the float32-rounded model and data).
 
 Printed per filter, dtype and ``s``: the maximum absolute error of the posterior mean (the
 issue's measure), and the scale-aware relative errors of the mean, the covariance and the step
-log-likelihood (:func:`difffilter.bench.exact.relative_errors`); ``nan`` when the filter's
+log-likelihood (:func:`experiments.benchmarks.exact.relative_errors`); ``nan`` when the filter's
 output is not finite.
 """
 
 from __future__ import annotations
 
-import hydra
-import numpy as np
-import torch
-from omegaconf import DictConfig
+import sys
+from pathlib import Path
 
-from difffilter.bench.exact import (
+# The research tree (experiments/) is not installed: make it importable from the repository root.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import hydra  # noqa: E402
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+from omegaconf import DictConfig  # noqa: E402
+
+from difffilter.filters import EKF, RCUKF, UKF, ColoredNoiseUKF, KalmanFilter, SimplifiedUKF, SquareRootUKF  # noqa: E402
+from difffilter.mixers import IMM, Blend  # noqa: E402
+from difffilter.models import LinearModel  # noqa: E402
+from experiments.benchmarks.exact import (  # noqa: E402
     cv_scenario,
     exact_colored_posteriors,
     exact_fading_kalman,
@@ -33,9 +42,6 @@ from difffilter.bench.exact import (
     relative_errors,
     simulate_linear,
 )
-from difffilter.filters import EKF, RCUKF, UKF, ColoredNoiseUKF, KalmanFilter, SimplifiedUKF, SquareRootUKF
-from difffilter.mixers import IMM, Blend
-from difffilter.models import LinearModel
 
 FILTERS = ("kf", "kf_nojoseph", "ekf", "ukf", "sukf", "srukf", "rcukf", "colored0", "colored", "imm", "blend")
 

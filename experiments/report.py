@@ -10,7 +10,7 @@ Options in conf/report.yaml (a Hydra app like every entry point; :func:`collect`
 Inputs: the per-experiment sections ``results/<name>.md`` (written by hand after the full-size
 runs: command, table, wall time, interpretation) and/or Hydra run directories holding the
 ``results.csv`` that ``experiments/train.py`` writes (a ``.md`` or ``.csv`` path works too), and/or
-multirun directories holding the ``summary.md`` of a sweep over seeds (:mod:`difffilter.learn.sweep`),
+multirun directories holding the ``summary.md`` of a sweep over seeds (:mod:`experiments.runner.sweep`),
 included as sections.
 The report opens with a summary (one line per experiment: hand-tuned, learned and oracle RMSE,
 learned ANEES with its 95 % t-interval over test runs against the value of a consistent filter

@@ -89,7 +89,7 @@ def _summary_copy(source: str, copy: str, option: str) -> tuple[str, str]:
     """A sweep's jobs copied and summarised against another row (``summarize_sweep``'s ``option``)."""
     return (
         f"mkdir -p {copy} && cp -r {source}/{{0,1,2,3,4}} {copy}/",
-        f"python -c \"from difffilter.learn.sweep import summarize_sweep; summarize_sweep('{copy}', {option})\"",
+        f"python -c \"from experiments.runner.sweep import summarize_sweep; summarize_sweep('{copy}', {option})\"",
     )
 
 
@@ -130,7 +130,7 @@ _DIAGNOSTICS = (
     _diagnostic(2, "seed2_start099", *_SEED2, _SEED2_PSI),
 )
 
-_SIGMA_SWEEP = "python -m difffilter.papers.p000.sigma_sweep --out outputs/p000_sigma_sweep/rows.csv"
+_SIGMA_SWEEP = "python -m experiments.papers.p000.sigma_sweep --out outputs/p000_sigma_sweep/rows.csv"
 _UKF_ONLY = "filter=p002_ukf 'learn=[Q,R]' '~experiment.hand_tuned.rho'"
 
 #: Output folder of the reruns with seeded starts of bounded parameters perturbed in logit space
@@ -169,7 +169,7 @@ JOBS: tuple[Job, ...] = (
         (
             _final("p002_pdr", "p002_disturbed_ukf", f"scenario=p002_disturbed {_UKF_ONLY}"),
             _final("p002_pdr", "p002_disturbed_rcukf", "scenario=p002_disturbed", root=RERUN),
-            f"python -m difffilter.papers.p002.report {RERUN}/p002_disturbed_rcukf",
+            f"python -m experiments.papers.p002.report {RERUN}/p002_disturbed_rcukf",
         ),
     ),
     Job(
@@ -179,8 +179,8 @@ JOBS: tuple[Job, ...] = (
         (
             _final("p002_pdr", "p002_pdr_ukf", f"scenario=p002_pdr {_UKF_ONLY}"),
             _final("p002_pdr", "p002_pdr_rcukf", "scenario=p002_pdr", root=RERUN),
-            f"python -m difffilter.papers.p002.report {RERUN}/p002_pdr_rcukf outputs/final/p002_pdr_ukf",
-            f"python -m difffilter.papers.p002.report --between outputs/final/p002_pdr_ukf {RERUN}/p002_pdr_rcukf",
+            f"python -m experiments.papers.p002.report {RERUN}/p002_pdr_rcukf outputs/final/p002_pdr_ukf",
+            f"python -m experiments.papers.p002.report --between outputs/final/p002_pdr_ukf {RERUN}/p002_pdr_rcukf",
         ),
     ),
     Job("p003_modes", "p003_imm_sins.md", 556, _p003("p003_modes")),

@@ -3,19 +3,25 @@ intervals: is a difference on one held-out segment of one real drive more than n
 
     python experiments/smartloc_paired.py 'run_dirs=[outputs/smartloc_A_v2,outputs/smartloc_B_v2]'
 
-Options in conf/smartloc_paired.yaml; the logic is :func:`difffilter.papers.smartloc.paired.compare`
+Options in conf/smartloc_paired.yaml; the logic is :func:`experiments.papers.smartloc.paired.compare`
 (see its module docstring).
 """
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
-import hydra
-import torch
-from omegaconf import DictConfig
+# The research tree (experiments/) is not installed: make it importable from the repository root.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from difffilter.papers.smartloc.paired import MARKDOWN_HEADER, block_bootstrap, compare, markdown_row
+from pathlib import Path  # noqa: E402
+
+import hydra  # noqa: E402
+import torch  # noqa: E402
+from omegaconf import DictConfig  # noqa: E402
+
+from experiments.papers.smartloc.paired import MARKDOWN_HEADER, block_bootstrap, compare, markdown_row  # noqa: E402
 
 __all__ = ["block_bootstrap", "compare", "main"]
 

@@ -14,17 +14,23 @@ events to the run directory, prints the table and returns the experiment's metri
 Hydra sweeper such as Optuna minimises).  SIGTERM/SIGINT (and SIGUSR2, submitit's warning before
 a SLURM time limit) write checkpoints/last.ckpt and exit with status 128 + the signal number
 (143/130/140); status.json in the run directory says completed, interrupted or failed.
-The logic lives in difffilter.learn.experiment.
+The logic lives in experiments.runner.experiment.
 """
 
 from __future__ import annotations
 
-import logging
+import sys
+from pathlib import Path
 
-import hydra
-from omegaconf import DictConfig
+# The research tree (experiments/) is not installed: make it importable from the repository root.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from difffilter.learn.experiment import run_experiment
+import logging  # noqa: E402
+
+import hydra  # noqa: E402
+from omegaconf import DictConfig  # noqa: E402
+
+from experiments.runner.experiment import run_experiment  # noqa: E402
 
 log = logging.getLogger(__name__)
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from pathlib import Path
 
-from difffilter.papers.smartloc import default_smartloc_path
+from experiments.papers.smartloc import default_smartloc_path
 
 SOURCE = default_smartloc_path()
 INPUT, TRUTH = "Berlin_Potsdamer_Platz_Input.txt", "Berlin_Potsdamer_Platz_GT.txt"

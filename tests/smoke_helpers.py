@@ -4,6 +4,7 @@ interrupt a run with a signal."""
 from __future__ import annotations
 
 import csv
+import importlib.util
 import os
 import signal
 import subprocess
@@ -42,3 +43,12 @@ class SignalAt(pl.Callback):
     def on_train_batch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule, outputs: Any, batch: Any, batch_idx: int) -> None:
         if trainer.global_step == self.step:
             os.kill(os.getpid(), self.signum)
+
+
+def plugin_installed(name: str) -> bool:
+    """Whether the Hydra plugin ``hydra_plugins.<name>`` (optional extra ``sweep``) is installed;
+    False also when no plugin at all is (``hydra_plugins`` itself is missing)."""
+    try:
+        return importlib.util.find_spec(f"hydra_plugins.{name}") is not None
+    except ModuleNotFoundError:
+        return False

@@ -1,6 +1,6 @@
 """Issue 17, defect 1: every filter stays exact over the prior's whole dynamic range.
 
-Reference: :mod:`difffilter.bench.exact`, plain textbook recursions in mpmath at 80 digits on
+Reference: :mod:`experiments.benchmarks.exact`, plain textbook recursions in mpmath at 80 digits on
 the same (dtype-rounded) inputs.  Model: 2-D constant velocity, ``q = 1``, both positions
 measured with ``R = 1e-8 I`` (``sigma_z = 1e-4``), prior ``N(0, s I)``; the issue measured
 mean errors of 1e-5 to 1e-1 and log-likelihood errors of ~20 nats at ``s = 1e12 .. 1e24``.
@@ -14,7 +14,11 @@ import numpy as np
 import pytest
 import torch
 
-from difffilter.bench.exact import (
+from difffilter.filters import EKF, RCUKF, UKF, ColoredNoiseUKF, KalmanFilter, SimplifiedUKF
+from difffilter.filters.diffuse import split_prior
+from difffilter.mixers import IMM, Blend
+from difffilter.models import LinearModel
+from experiments.benchmarks.exact import (
     cv_scenario,
     exact_colored_posteriors,
     exact_fading_kalman,
@@ -23,10 +27,6 @@ from difffilter.bench.exact import (
     relative_errors,
     simulate_linear,
 )
-from difffilter.filters import EKF, RCUKF, UKF, ColoredNoiseUKF, FusedFilter, KalmanFilter, SimplifiedUKF, SquareRootUKF
-from difffilter.filters.diffuse import split_prior
-from difffilter.mixers import IMM, Blend
-from difffilter.models import LinearModel
 
 pytest.importorskip("mpmath")
 

@@ -9,9 +9,9 @@ import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from difffilter.bench.runner import BenchSettings
-from difffilter.bench.smoothers import SMOOTHER_COLUMNS, run_smoother_benchmark
-from difffilter.bench.suite import run_suite
+from experiments.benchmarks.runner import BenchSettings
+from experiments.benchmarks.smoothers import SMOOTHER_COLUMNS, run_smoother_benchmark
+from experiments.benchmarks.suite import run_suite
 from tests.smoke_helpers import read_rows
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -1,4 +1,4 @@
-"""Smoke tests of the benchmark (experiments/benchmark.py, difffilter.bench): tiny sizes, no timing asserts.
+"""Smoke tests of the benchmark (experiments/benchmark.py, experiments.benchmarks): tiny sizes, no timing asserts.
 
 They check that the Hydra config composes, that every configured case produces a row with the
 expected columns, that the written tables are complete, and that difffilter and its peers compute
@@ -16,12 +16,12 @@ from pathlib import Path
 import pytest
 import torch
 
-from difffilter.bench.cases import BenchCase, builtin_case
-from difffilter.bench.gpsdr import make_gpsdr_model, simulate_gpsdr
-from difffilter.bench.memory import training_step_memory
-from difffilter.bench.runner import MAIN_COLUMNS, BenchSettings
-from difffilter.bench.suite import run_suite
 from difffilter.filters.ekf import autodiff_jacobian
+from experiments.benchmarks.cases import BenchCase, builtin_case
+from experiments.benchmarks.gpsdr import make_gpsdr_model, simulate_gpsdr
+from experiments.benchmarks.memory import training_step_memory
+from experiments.benchmarks.runner import MAIN_COLUMNS, BenchSettings
+from experiments.benchmarks.suite import run_suite
 from tests.smoke_helpers import read_rows
 
 ROOT = Path(__file__).resolve().parents[1]

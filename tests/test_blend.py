@@ -10,7 +10,7 @@ import torch
 from difffilter.filters import EKF, UKF, MerweScaled, SquareRootUKF
 from difffilter.mixers import Blend
 from difffilter.models import FunctionalModel
-from difffilter.papers.p004 import switching_statistics
+from experiments.papers.p004 import switching_statistics
 
 from .filter_contract import FilterContract
 

@@ -19,13 +19,13 @@ from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
-from tests.smoke_helpers import ROOT
+from tests.smoke_helpers import ROOT, plugin_installed
 
 CONF = ROOT / "conf"
 
 
 def _plugin(name: str) -> bool:
-    return importlib.util.find_spec(f"hydra_plugins.{name}") is not None
+    return plugin_installed(name)
 
 
 def _compose(tmp_path: Path, overrides: list[str], **kw):

@@ -4,7 +4,6 @@ few filter steps.  Running each experiment end-to-end is the slow variant."""
 
 from __future__ import annotations
 
-import importlib.util
 import inspect
 import re
 from pathlib import Path
@@ -19,9 +18,10 @@ from omegaconf import DictConfig, OmegaConf
 from difffilter._util import as_dtype
 from difffilter.filters import Filter
 from difffilter.learn.data import TrajectoryDataModule
-from difffilter.learn.experiment import apply_model_defaults, build_filter, build_learner, run_experiment
 from difffilter.learn.learner import FilterLearner
 from difffilter.models.base import StateSpaceModel
+from experiments.runner.experiment import apply_model_defaults, build_filter, build_learner, run_experiment
+from tests.smoke_helpers import plugin_installed
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
 # Groups of train.yaml (hydra/ is Hydra's own; a directory named like another primary config,
@@ -159,7 +159,7 @@ def test_debug_and_hydra_launcher_configs_compose(tmp_path):
     cfg = _compose(tmp_path, ["debug=smoke"])
     assert cfg.trainer.max_epochs <= 2 and cfg.data.max_steps is not None
     for launcher in sorted(p.stem for p in (CONF / "hydra" / "launcher").glob("*.yaml")):
-        if launcher.startswith("slurm") and importlib.util.find_spec("hydra_plugins.hydra_submitit_launcher") is None:
+        if launcher.startswith("slurm") and not plugin_installed("hydra_submitit_launcher"):
             continue  # extends the optional submitit plugin's configs (tests/test_cluster_configs.py)
         hcfg = _compose(tmp_path, [f"hydra/launcher={launcher}"], return_hydra_config=True)
         assert hcfg.hydra.launcher._target_.startswith("hydra_plugins.")

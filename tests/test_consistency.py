@@ -1,5 +1,5 @@
-"""Consistency verdicts (difffilter.learn.consistency) and the intervals behind them
-(difffilter.learn.intervals) against scipy, numpy and Monte Carlo; the Monte-Carlo tolerances
+"""Consistency verdicts (difffilter.evaluate.consistency) and the intervals behind them
+(difffilter.evaluate.intervals) against scipy, numpy and Monte Carlo; the Monte-Carlo tolerances
 are binomial standard errors of the coverage estimates."""
 
 from __future__ import annotations
@@ -11,11 +11,11 @@ import pytest
 import torch
 from scipy import stats
 
+from difffilter.evaluate import metrics as M  # noqa: N812 - short alias in formulas
+from difffilter.evaluate.consistency import block_truth_indices, consistency, nees_by_block, run_average, step_band_fraction
+from difffilter.evaluate.intervals import crossed_interval, t_interval
+from difffilter.evaluate.student_t import student_t_cdf, student_t_quantile
 from difffilter.filters import KalmanFilter
-from difffilter.learn import metrics as M  # noqa: N812 - short alias in formulas
-from difffilter.learn.consistency import block_truth_indices, consistency, nees_by_block, run_average, step_band_fraction
-from difffilter.learn.intervals import crossed_interval, t_interval
-from difffilter.learn.student_t import student_t_cdf, student_t_quantile
 from difffilter.models import LinearModel
 
 f64 = torch.float64

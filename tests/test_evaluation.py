@@ -1,4 +1,4 @@
-"""The evaluation protocol (difffilter.learn.evaluation, .intervals, .replicates): per-run
+"""The evaluation protocol (difffilter.evaluate.evaluation, .intervals, .replicates): per-run
 metrics against direct numpy computations, the per-run CSV, paired block bootstrap and gap
 closed against Monte Carlo, the seeded initial perturbation, and the replicate seeds."""
 
@@ -14,19 +14,19 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 from scipy import signal
 
+from difffilter.evaluate import metrics as M  # noqa: N812 - short alias in formulas
+from difffilter.evaluate.consistency import consistency
+from difffilter.evaluate.evaluation import evaluate_runs, read_per_run, write_per_run
+from difffilter.evaluate.intervals import block_bootstrap_difference, gap_closed
 from difffilter.filters import KalmanFilter
-from difffilter.learn import metrics as M  # noqa: N812 - short alias in formulas
-from difffilter.learn.consistency import consistency
 from difffilter.learn.data import TrajectorySet
-from difffilter.learn.evaluation import evaluate_runs, read_per_run, write_per_run
-from difffilter.learn.experiment import evaluate_filter, format_results
-from difffilter.learn.intervals import block_bootstrap_difference, gap_closed
 from difffilter.learn.replicates import perturb_initial_values, replicate_seed
 from difffilter.mixers import IMM
 from difffilter.models import LinearModel
 from difffilter.params import Interval, ScaledMatrix, register_constrained
 from difffilter.selection import select_parameters
 from difffilter.sim.sampling import sample_trajectories
+from experiments.runner.experiment import evaluate_filter, format_results
 from tests.test_configs import CONF
 
 f64 = torch.float64

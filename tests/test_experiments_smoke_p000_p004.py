@@ -11,9 +11,9 @@ import torch
 
 from difffilter.filters import EKF, UKF
 from difffilter.models.navigation.gnss_imu import GNSS_IMU_PAPER, GnssImuModel
-from difffilter.papers.p000 import p000_simulator
-from difffilter.papers.p004 import ImuSwitchingStatistics, blend_filter, p004_simulator
 from difffilter.selection import parameter_owners
+from experiments.papers.p000 import p000_simulator
+from experiments.papers.p004 import ImuSwitchingStatistics, blend_filter, p004_simulator
 from tests.smoke_helpers import run_train_smoke
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -101,7 +101,7 @@ def test_blend_filter_shares_one_model_and_matches_its_branches():
     ("experiment", "expected"),
     [
         # p000: the paper's CA filter hand-tuned vs learned; its EKF-vs-UKF comparison is the sigma_a sweep
-        # (difffilter.papers.p000.sigma_sweep), the random-drive test set lands in extra_tests/random
+        # (experiments.papers.p000.sigma_sweep), the random-drive test set lands in extra_tests/random
         ("p000_gpsdr", ["hand-tuned", "learned"]),
         ("p004_blend", ["hand-tuned", "learned", "oracle", "ekf", "ukf", "switch", "gate"]),
     ],

@@ -15,10 +15,10 @@ from hydra import compose, initialize_config_dir
 from difffilter.filters import UKF
 from difffilter.filters.colored import ColoredNoiseUKF
 from difffilter.filters.sigma_points import MerweScaled
-from difffilter.learn.experiment import run_experiment
-from difffilter.papers.p001 import p001_simulator, start_learner
-from difffilter.papers.smartloc import default_smartloc_path
 from difffilter.selection import assign_parameters
+from experiments.papers.p001 import p001_simulator, start_learner
+from experiments.papers.smartloc import default_smartloc_path
+from experiments.runner.experiment import run_experiment
 
 ROOT = Path(__file__).resolve().parents[1]
 F64 = torch.float64
@@ -84,7 +84,7 @@ def test_start_learner_sets_the_start_values_on_the_learner_copy_only() -> None:
 # -- smartLoc ---------------------------------------------------------------------------------
 @needs_smartloc
 def test_smartloc_windows_follow_the_segments() -> None:
-    from difffilter.papers.smartloc import smartloc_simulator
+    from experiments.papers.smartloc import smartloc_simulator
 
     segments = {
         "train": {"start": 0.0, "stop": 0.6, "length": 200, "stride": 50},
@@ -107,7 +107,7 @@ def test_smartloc_windows_follow_the_segments() -> None:
 
 @needs_smartloc
 def test_shared_psi_and_snapshot_baseline() -> None:
-    from difffilter.papers.smartloc import SharedPsiColoredUKF, SnapshotWLS, single_epoch_wls, smartloc_model, smartloc_simulator
+    from experiments.papers.smartloc import SharedPsiColoredUKF, SnapshotWLS, single_epoch_wls, smartloc_model, smartloc_simulator
 
     model = smartloc_model()
     filt = SharedPsiColoredUKF(model, psi=0.3, sigma_points=_sp())
@@ -172,7 +172,7 @@ def test_experiment_smoke(tmp_path: Path, experiment: str, rows: list[str], extr
 
 @needs_smartloc
 def test_constant_gate_keeps_estimates_and_drops_the_rejected_gradient() -> None:
-    from difffilter.papers.smartloc import SharedPsiColoredUKF, smartloc_model, smartloc_simulator
+    from experiments.papers.smartloc import SharedPsiColoredUKF, smartloc_model, smartloc_simulator
 
     seg = {"test": {"start": 650, "stop": 720}}  # inside the canyon: ranges get rejected
     data = smartloc_simulator(batch_size=1, seed=2, segments=seg)
@@ -199,7 +199,7 @@ def test_constant_gate_keeps_estimates_and_drops_the_rejected_gradient() -> None
 def test_smartloc_learner_softens_the_gate_of_the_learned_copy_only() -> None:
     import copy
 
-    from difffilter.papers.smartloc import SharedPsiColoredUKF, smartloc_learner, smartloc_model
+    from experiments.papers.smartloc import SharedPsiColoredUKF, smartloc_learner, smartloc_model
 
     hand = SharedPsiColoredUKF(smartloc_model(), psi=0.0, sigma_points=_sp())
     plain = smartloc_learner(copy.deepcopy(hand), "nll", learn=["psi", "noise_scale"])

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from difffilter.papers.p002 import (
+from experiments.papers.p002 import (
     EstimatorBaseline,
     gps_only_estimate,
     gps_only_positions,
@@ -19,7 +19,7 @@ from difffilter.papers.p002 import (
     pdr_only_positions,
     simulate_p002,
 )
-from difffilter.papers.p003 import PAPER_PHASES, empirical_transition, model_options, p003_imm, p003_mode_model
+from experiments.papers.p003 import PAPER_PHASES, empirical_transition, model_options, p003_imm, p003_mode_model
 from tests.smoke_helpers import read_rows, run_train_smoke
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -128,7 +128,7 @@ def test_group_scaled_covariance():
 def test_p003_learner_splits_q_of_the_learned_copy_only():
     import copy
 
-    from difffilter.papers.p003 import learned_from_state, p003_learner
+    from experiments.papers.p003 import learned_from_state, p003_learner
 
     hand = p003_imm(model={"num_satellites": 4})
     q_hand = [f.model.dynamics.Q.detach().clone() for f in hand.filters]
@@ -174,7 +174,7 @@ def test_experiment_smoke(tmp_path, experiment, expected):
         # the non-filter baselines have no innovation likelihood
         assert all(math.isnan(float(r["nll"])) for r in rows if r["filter"] in ("GPS only", "PDR only"))
         return
-    from difffilter.papers.p003 import paper_profile_report
+    from experiments.papers.p003 import paper_profile_report
 
     per_run = read_rows(tmp_path / "per_run.csv")
     assert {"rmse_velocity", "rmse_attitude", "nees_clock"} <= set(per_run[0])

@@ -14,27 +14,26 @@ import pytest
 import torch
 from torch import Tensor
 
-from difffilter.bench.cases import builtin_case
-from difffilter.bench.gpsdr import make_gpsdr_model, simulate_gpsdr
-from difffilter.bench.runner import BenchSettings
+from difffilter.engines import FusedFilter, fuse
+from difffilter.engines.step import cholesky_lower as _chol
 from difffilter.filters import (
     EKF,
     RCUKF,
     UKF,
     Cubature,
-    FusedFilter,
     Julier,
     KalmanFilter,
     MerweScaled,
     SimplifiedUKF,
     SquareRootUKF,
-    fuse,
 )
-from difffilter.filters.fused.step import cholesky_lower as _chol
 from difffilter.models import tracking_model
 from difffilter.models.base import DynamicsModel, MeasurementModel, StateSpaceModel, wrap_angle
 from difffilter.models.motion import Singer
 from difffilter.params import register_covariance
+from experiments.benchmarks.cases import builtin_case
+from experiments.benchmarks.gpsdr import make_gpsdr_model, simulate_gpsdr
+from experiments.benchmarks.runner import BenchSettings
 
 F64 = torch.float64
 FIELDS = ("mean", "cov", "prior_mean", "prior_cov", "log_likelihood", "nis", "num_observed")

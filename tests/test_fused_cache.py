@@ -1,4 +1,4 @@
-"""The generated engine's on-disk cache of lowered steps (``difffilter.filters.fused.cache``).
+"""The generated engine's on-disk cache of lowered steps (``difffilter.engines.cache``).
 
 * the key changes with everything material: dtype, mask, a model option, a frozen value, the
   set of trained parameters, the source text of a user's model class;
@@ -19,9 +19,9 @@ import textwrap
 import pytest
 import torch
 
-from difffilter.filters import EKF, UKF, FusedFilter, MerweScaled
-from difffilter.filters.fused import cache
-from difffilter.filters.fused.trace import StepLayout
+from difffilter.engines import cache
+from difffilter.engines.trace import StepLayout
+from difffilter.filters import EKF, UKF
 from difffilter.models.base import StateSpaceModel
 from tests.test_fused import FIELDS, _range_bearing_data
 

@@ -1,4 +1,4 @@
-"""The generated engine's shared-covariance Kalman filter (``difffilter.filters.fused.shared``).
+"""The generated engine's shared-covariance Kalman filter (``difffilter.engines.shared``).
 
 When a plain KalmanFilter's covariances are the same for every trajectory (same initial
 covariance, same mask, no controls) the engine runs the covariance recursion once; every output
@@ -11,8 +11,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from difffilter.filters import UKF, FusedFilter, KalmanFilter
-from difffilter.filters.fused import shared
+from difffilter.engines import shared
+from difffilter.filters import UKF
 from difffilter.models.base import LinearModel
 from tests.test_fused import _range_bearing_data
 

@@ -9,9 +9,7 @@ import pytest
 import pytorch_lightning as pl
 import torch
 
-from difffilter.filters import KalmanFilter
-from difffilter.learn.data import TrajectorySet, WindowedTrajectories
-from difffilter.learn.holdout import (
+from difffilter.evaluate.holdout import (
     EpochSnapshots,
     LogDistancePrior,
     bound_parameters,
@@ -21,7 +19,9 @@ from difffilter.learn.holdout import (
     paired_error_table,
     select_candidate,
 )
-from difffilter.learn.intervals import block_bootstrap_difference
+from difffilter.evaluate.intervals import block_bootstrap_difference
+from difffilter.filters import KalmanFilter
+from difffilter.learn.data import TrajectorySet, WindowedTrajectories
 from difffilter.learn.learner import FilterLearner
 from difffilter.models.base import StateSpaceModel
 from difffilter.models.motion import ConstantVelocity

@@ -1,6 +1,8 @@
-"""The package's floors (docs/architecture.md): a module may import only from its own floor or the
-floors below, no import hides inside a function body (except optional dependencies), and the
-Hydra entry points import the installed package instead of editing ``sys.path``.
+"""The two trees and the library's floors (docs/architecture.md): the library (``difffilter/``) never
+imports the research tree (``experiments/``); inside the library a module may import only from its
+own floor or the floors below; no import hides inside a function body (except optional
+dependencies); one paper's package never imports another's; the Hydra entry points put the
+repository root on ``sys.path`` in one stated line and nothing else.
 
 The rules are read off the source with ``ast``, so a violation is found even in a module no other
 test imports.
@@ -26,12 +28,13 @@ FLOORS: list[set[str]] = [
     {"mixers"},
     {"smoothers"},
     {"sim"},
+    {"engines"},
+    {"evaluate"},
     {"learn"},
-    {"papers"},
 ]
-#: Units that may import every floor below ``papers`` (the package root re-exports, the
-#: benchmark measures).
-ABOVE_ALL_BUT_PAPERS = {"__init__", "bench"}
+#: Units that may import every floor (the package root re-exports).
+ABOVE_ALL_BUT_PAPERS = {"__init__"}
+EXPERIMENTS = ROOT / "experiments"
 #: Third-party packages that are optional (extras ``test``/``bench``): importing them lazily,
 #: inside the function that needs them, is how their absence stays harmless.
 OPTIONAL = {"dynamax", "filterpy", "jax", "mpmath", "scipy"}
@@ -42,7 +45,7 @@ def _rank(unit: str) -> float:
         if unit in floor:
             return float(i)
     if unit in ABOVE_ALL_BUT_PAPERS:
-        return len(FLOORS) - 1.5  # above learn, below papers
+        return float(len(FLOORS))
     raise AssertionError(f"difffilter.{unit} is on no floor: add it to FLOORS in tests/test_layering.py")
 
 
@@ -95,12 +98,12 @@ def _violations(package: Path = PACKAGE) -> tuple[list[str], list[str]]:
                 top = target[0]
                 if in_function and top not in OPTIONAL:
                     nested.append(f"{where}:{node.lineno} imports {'.'.join(target)} inside a function")
+                if top == "experiments":
+                    layering.append(f"{where}:{node.lineno}: the library imports the research tree ({'.'.join(target)})")
                 if top != "difffilter" or len(target) < 2:
                     continue
                 other = target[1]
                 if other == unit:
-                    if unit == "papers" and len(parts) > 2 and len(target) > 2 and target[2] != parts[2]:
-                        layering.append(f"{where}:{node.lineno}: paper {parts[2]} imports paper {target[2]}")
                     continue
                 if _rank(other) > rank or (other in ABOVE_ALL_BUT_PAPERS and unit not in ABOVE_ALL_BUT_PAPERS):
                     layering.append(f"{where}:{node.lineno}: {unit} imports the higher floor {other} ({'.'.join(target)})")
@@ -117,28 +120,66 @@ def test_no_import_inside_a_function_body_except_optional_dependencies():
     assert not nested, "\n".join(nested)
 
 
+def _paper_crossings(papers: Path) -> list[str]:
+    """Imports from one paper's package into another's (``experiments/papers/<paper>/``)."""
+    out = []
+    for path in sorted(papers.rglob("*.py")):
+        parts = ["experiments", "papers", *path.relative_to(papers).with_suffix("").parts]
+        is_package = path.name == "__init__.py"
+        if is_package:
+            parts = parts[:-1]
+        if len(parts) < 3:
+            continue
+        for node, _ in _walk(ast.parse(path.read_text(), filename=str(path))):
+            for target in _imported(node, parts, is_package):
+                if target[:2] == ["experiments", "papers"] and len(target) > 2 and target[2] != parts[2]:
+                    out.append(f"{path.relative_to(papers.parent)}:{node.lineno}: paper {parts[2]} imports paper {target[2]}")
+    return out
+
+
+def test_no_paper_imports_another():
+    crossings = _paper_crossings(EXPERIMENTS / "papers")
+    assert not crossings, "\n".join(crossings)
+
+
+def test_no_paper_code_in_the_library():
+    assert not (PACKAGE / "papers").exists() and not (PACKAGE / "bench").exists()
+    offenders = [str(p.relative_to(ROOT)) for p in PACKAGE.rglob("*.py") if any(f"p00{i}" in p.name for i in range(5))]
+    assert not offenders, offenders
+
+
 def test_the_checker_sees_violations(tmp_path):
-    # A fake package with each kind of violation: the checker must report them (it is not vacuous).
+    # A fake tree with each kind of violation: the checker must report them (it is not vacuous).
     fake = tmp_path / "difffilter"
-    for sub in ("models", "learn", "papers/p001", "papers/p002"):
+    for sub in ("models", "learn"):
         (fake / sub).mkdir(parents=True)
         (fake / sub / "__init__.py").write_text("")
     (fake / "__init__.py").write_text("")
     (fake / "models" / "__init__.py").write_text("from ..learn import data\n")
     (fake / "models" / "m.py").write_text("def f():\n    import torch\n    from scipy import stats\n")
-    (fake / "papers" / "p002" / "x.py").write_text("from ..p001 import simulator\nfrom ...learn import data\n")
+    (fake / "learn" / "x.py").write_text("from experiments.papers.p001 import simulator\n")
     layering, nested = _violations(fake)
-    assert any("paper p002 imports paper p001" in v for v in layering), layering
-    assert not any("papers imports the higher floor" in v for v in layering), layering
     assert any("models imports the higher floor learn" in v for v in layering), layering
+    assert any("the library imports the research tree" in v for v in layering), layering
     assert [v for v in nested if "torch" in v] and not [v for v in nested if "scipy" in v], nested
+    papers = tmp_path / "experiments" / "papers"
+    for sub in ("p001", "p002"):
+        (papers / sub).mkdir(parents=True)
+        (papers / sub / "__init__.py").write_text("")
+    (papers / "p002" / "x.py").write_text("from ..p001 import simulator\nfrom difffilter.learn import data\n")
+    crossings = _paper_crossings(papers)
+    assert len(crossings) == 1 and "paper p002 imports paper p001" in crossings[0], crossings
 
 
 @pytest.mark.parametrize("script", sorted((ROOT / "experiments").glob("*.py")), ids=lambda p: p.name)
 def test_entry_points_use_the_installed_package(script):
-    tree = ast.parse(script.read_text())
-    for node in ast.walk(tree):
-        if isinstance(node, ast.Attribute) and node.attr == "path" and isinstance(node.value, ast.Name) and node.value.id == "sys":
-            pytest.fail(f"{script.name} edits sys.path: the package is installed (pip install -e .)")
+    text = script.read_text()
+    tree = ast.parse(text)
+    edits = [n for n in ast.walk(tree) if isinstance(n, ast.Attribute) and n.attr == "path" and isinstance(n.value, ast.Name) and n.value.id == "sys"]
+    # The one allowed edit: the repository root first on sys.path, so that `experiments.*` (not
+    # installed) imports; the library itself comes from the installed package.
+    allowed = "sys.path.insert(0, str(Path(__file__).resolve().parents[1]))"
+    if edits and (len(edits) != 1 or text.count(allowed) != 1):
+        pytest.fail(f"{script.name} edits sys.path beyond the repository-root line: the library is installed (pip install -e .)")
     nested = [node.lineno for node, inside in _walk(tree) if inside]
     assert not nested, f"{script.name} imports inside a function (lines {nested})"

@@ -14,6 +14,7 @@ import pytest
 import pytorch_lightning as pl
 import torch
 
+from difffilter.evaluate import evaluate_filter
 from difffilter.filters import KalmanFilter
 from difffilter.learn import (
     FilterLearner,
@@ -22,7 +23,6 @@ from difffilter.learn import (
     NLLLoss,
     TrajectoryDataModule,
     assign_parameters,
-    evaluate_filter,
     learnable_values,
     match_parameters,
     select_parameters,
@@ -517,7 +517,7 @@ def test_reevaluating_a_window_starts_from_the_previous_window():
 
 def test_bounded_jitter_caps_the_ladder_and_restores_it():
     from difffilter import linalg
-    from difffilter.learn.stability import bounded_jitter
+    from difffilter.evaluate.stability import bounded_jitter
 
     a = torch.tensor([[1.0, 1.0], [1.0, 1.0 - 1e-7]], dtype=f64)  # needs ~1e-7 relative jitter
     assert float(linalg.safe_cholesky(a).jitter) == pytest.approx(1e-6)

@@ -14,7 +14,7 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from difffilter.learn.evaluation import write_per_run
+from difffilter.evaluate.evaluation import write_per_run
 
 SCRIPT = Path(__file__).resolve().parents[1] / "experiments" / "learned_values.py"
 

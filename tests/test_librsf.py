@@ -9,8 +9,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from difffilter.papers.smartloc import find_drives, load_drive, load_smartloc
-from difffilter.papers.smartloc.librsf import read_records
+from experiments.papers.smartloc import find_drives, load_drive, load_smartloc
+from experiments.papers.smartloc.librsf import read_records
 
 from .librsf_fixture import HAVE_DATA, write_drive
 

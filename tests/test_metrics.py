@@ -1,4 +1,4 @@
-"""Metrics of difffilter.learn.metrics against independent references (numpy, scipy,
+"""Metrics of difffilter.evaluate.metrics against independent references (numpy, scipy,
 Monte-Carlo statistics with tolerances from the sample size)."""
 
 from __future__ import annotations
@@ -11,10 +11,10 @@ import pytest
 import torch
 from scipy import stats
 
+from difffilter.evaluate import metrics as M  # noqa: N812 - short alias in formulas
+from difffilter.evaluate.consistency import consistency, nis_per_step
 from difffilter.filters import KalmanFilter
 from difffilter.filters.base import FilterResult
-from difffilter.learn import metrics as M  # noqa: N812 - short alias in formulas
-from difffilter.learn.consistency import consistency, nis_per_step
 from difffilter.models import LinearModel
 from difffilter.sim import sample_trajectories
 

@@ -19,11 +19,11 @@ from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
 from difffilter.filters import UKF
-from difffilter.learn.experiment import run_experiment
 from difffilter.models import ModelDefaults, StateLayout, describe, model_defaults, tracking_model
 from difffilter.models.motion import Singer
-from difffilter.papers.smartloc import default_smartloc_path
 from difffilter.sim import ModelSimulator
+from experiments.papers.smartloc import default_smartloc_path
+from experiments.runner.experiment import run_experiment
 from tests.assets.ct_model import ct_model
 from tests.smoke_helpers import read_rows
 

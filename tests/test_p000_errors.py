@@ -13,7 +13,7 @@ from difffilter.filters.sigma_points import Julier
 from difffilter.models import tracking_model
 from difffilter.models.motion import ConstantVelocity
 from difffilter.models.navigation.gpsdr import A_MAX_VEHICLE, GPSDR_PAPER
-from difffilter.papers.p000 import (
+from experiments.papers.p000 import (
     LiteralReuseUKF,
     SensorErrors,
     gauss_markov,

@@ -14,7 +14,8 @@ import torch
 from difffilter.filters import ColoredNoiseUKF, Julier, MerweScaled
 from difffilter.models import FunctionalModel
 from difffilter.models.base import MeasurementModel, StateSpaceModel
-from difffilter.papers.p001 import (
+from difffilter.selection import assign_parameters
+from experiments.papers.p001 import (
     LAW_KEYS,
     P001_CONFIG,
     ElevationPseudorange,
@@ -24,7 +25,6 @@ from difffilter.papers.p001 import (
     paper_law,
     simulate_p001,
 )
-from difffilter.selection import assign_parameters
 
 from .filter_contract import cv_matrices, make_data
 from .test_colored import _dense_posteriors

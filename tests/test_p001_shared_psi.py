@@ -14,9 +14,9 @@ from hydra import compose, initialize_config_dir
 from difffilter._util import as_dtype
 from difffilter.filters.colored import ColoredNoiseUKF
 from difffilter.filters.sigma_points import Julier
-from difffilter.learn.experiment import apply_model_defaults, build_filter, build_learner, run_experiment
-from difffilter.papers.p001 import p001_simulator
-from difffilter.papers.smartloc import SharedPsiColoredUKF
+from experiments.papers.p001 import p001_simulator
+from experiments.papers.smartloc import SharedPsiColoredUKF
+from experiments.runner.experiment import apply_model_defaults, build_filter, build_learner, run_experiment
 
 ROOT = Path(__file__).resolve().parents[1]
 CONF = str(ROOT / "conf")

@@ -1,4 +1,4 @@
-"""p003's scenario families (difffilter.papers.p003.noise): the schedules, the injected noise has
+"""p003's scenario families (experiments.papers.p003.noise): the schedules, the injected noise has
 the stated statistics, the oracles, the learned layout with log-scaled R groups, the switching
 statistics."""
 
@@ -12,10 +12,10 @@ import pytest
 import torch
 
 from difffilter import geometry as geo
+from difffilter.evaluate.metrics import mode_switch_delay
 from difffilter.filters import SimplifiedUKF
-from difffilter.learn.metrics import mode_switch_delay
 from difffilter.mixers import IMM
-from difffilter.papers.p003 import (
+from experiments.papers.p003 import (
     LOAD_LIMITS,
     PAPER_PHASES,
     antenna_gain_db,
@@ -39,7 +39,7 @@ from difffilter.papers.p003 import (
     true_transition,
     vibration_scale,
 )
-from difffilter.papers.p003.flight import attitude_matrix
+from experiments.papers.p003.flight import attitude_matrix
 
 f64 = torch.float64
 G = 9.80665

@@ -14,7 +14,7 @@ from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
 from difffilter.models.navigation.gnss_imu import GNSS_IMU_PAPER, GnssImuModel, GnssMeasurement
-from difffilter.papers.p004 import p004_simulator, simulate_p004
+from experiments.papers.p004 import p004_simulator, simulate_p004
 
 F64 = torch.float64
 # conf/scenario/p004_mems_*.yaml

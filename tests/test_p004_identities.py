@@ -27,7 +27,7 @@ from difffilter.mixers import Blend
 from difffilter.models import LinearModel
 from difffilter.models.base import DynamicsModel, StateSpaceModel
 from difffilter.models.navigation.gnss_imu import GnssImuModel, PlanarGnssImuDynamics
-from difffilter.papers.p004 import p004_simulator
+from experiments.papers.p004 import p004_simulator
 
 f64 = torch.float64
 STEPS, RUNS = 80, 4

@@ -9,7 +9,7 @@ import torch
 
 from difffilter.filters import EKF, UKF, MerweScaled
 from difffilter.models.navigation.pdr import PDRMeasurement, PDRModel, PDRStepDynamics, wrap_angle, wrap_measurement
-from difffilter.papers.p002 import (
+from experiments.papers.p002 import (
     BLOCKAGE_PROBS,
     gps_only_positions,
     pdr_only_positions,
@@ -17,7 +17,7 @@ from difffilter.papers.p002 import (
     simulate_p002,
     simulate_p002_random,
 )
-from difffilter.papers.p002.track import p002_track
+from experiments.papers.p002.track import p002_track
 
 F64 = torch.float64
 

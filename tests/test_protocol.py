@@ -10,7 +10,7 @@ from difffilter.filters import UKF, Filter, GaussianFilter, KalmanFilter, Recurs
 from difffilter.filters.protocol import Filter as ProtocolFilter
 from difffilter.mixers import IMM, Blend
 from difffilter.models import LinearModel
-from difffilter.papers.p002 import EstimatorBaseline, gps_only_estimate, pdr_model
+from experiments.papers.p002 import EstimatorBaseline, gps_only_estimate, pdr_model
 
 F64 = torch.float64
 

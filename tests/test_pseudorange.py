@@ -15,8 +15,8 @@ from difffilter.geometry import EARTH_RATE, SPEED_OF_LIGHT, enu_rotation, geodet
 from difffilter.models.base import StateSpaceModel
 from difffilter.models.navigation.clock import ConstantVelocityClock, OdometryClockDynamics, clock_process_noise
 from difffilter.models.navigation.pseudorange import GnssStateLayout, PseudorangeMeasurement
-from difffilter.papers.p001 import make_p001_model, simulate_p001
 from difffilter.selection import named_raw_parameters
+from experiments.papers.p001 import make_p001_model, simulate_p001
 
 F64 = torch.float64
 ORIGIN = geodetic_to_ecef(torch.tensor([math.radians(52.5), math.radians(13.37), 76.0], dtype=F64))

@@ -11,8 +11,8 @@ import pytest
 import torch
 
 from difffilter.filters import EKF
-from difffilter.learn.ranging_protocol import multilateration
 from difffilter.models.navigation import OdometryDynamics2D, RangeMeasurement2D, make_ranging_model
+from difffilter.models.navigation.ranging2d import multilateration
 
 D = torch.float64
 ANCHORS = torch.tensor([[0.0, 0.0], [20.0, 0.0], [20.0, 15.0], [-5.0, 12.0]], dtype=D)

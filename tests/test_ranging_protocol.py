@@ -1,4 +1,4 @@
-"""The 2-D ranging protocol (difffilter.learn.ranging_protocol / .ranging_report) on the excerpts
+"""The 2-D ranging protocol (experiments.ranging.protocol / .report) on the excerpts
 shipped with the tests: folds by blocks and by data set, selection never worse than the untrained
 start or hand-tuned on validation, results.csv per fold with the expected rows and columns, the
 extras figure and TensorBoard events; and ``experiments/realdata.py folder=<ranging folder>``."""
@@ -16,8 +16,8 @@ import pytest
 import torch
 
 from difffilter.datasets import find_recordings, load_ranging
-from difffilter.learn.ranging_protocol import EXTRA_BASELINES, fold_pieces, run_fold
-from difffilter.learn.ranging_report import extras, fold_specs, run_ranging, write_csv
+from experiments.ranging.protocol import EXTRA_BASELINES, fold_pieces, run_fold
+from experiments.ranging.report import extras, fold_specs, run_ranging, write_csv
 
 ASSETS = Path(__file__).parent / "assets" / "librsf"
 ROOT = Path(__file__).resolve().parents[1]

@@ -15,8 +15,8 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from difffilter.papers.smartloc import load_drive, protocol, report
-from difffilter.papers.smartloc.report import resolve_config, run_evaluation, run_protocol, run_transfer
+from experiments.papers.smartloc import load_drive, protocol, report
+from experiments.papers.smartloc.report import resolve_config, run_evaluation, run_protocol, run_transfer
 
 from .librsf_fixture import HAVE_DATA, write_drive
 

@@ -21,9 +21,9 @@ from torch import nn
 
 import difffilter.learn  # noqa: F401  (registers the replicate_seed resolver)
 from difffilter.learn.replicates import perturb_initial_values
-from difffilter.papers.smartloc import SharedPsiColoredUKF
 from difffilter.params import Bounded, Interval, register_constrained
 from difffilter.selection import assign_parameters, parameter_owners, select_parameters
+from experiments.papers.smartloc import SharedPsiColoredUKF
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
 

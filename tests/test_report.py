@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from difffilter.learn.experiment import write_results
+from experiments.runner.experiment import write_results
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -20,9 +20,9 @@ from hydra import compose, initialize_config_dir
 
 from difffilter.learn.callbacks import TrainingInterrupted
 from difffilter.learn.data import TrajectorySet, WindowedTrajectories
-from difffilter.learn.experiment import run_experiment
-from difffilter.learn.runs import read_status
 from difffilter.sim import ModelSimulator
+from experiments.runner.experiment import run_experiment
+from experiments.runner.runs import read_status
 from tests.smoke_helpers import ROOT, read_rows
 from tests.test_learn import CV_PRIOR, cv_model
 

@@ -20,8 +20,8 @@ from tensorboard.plugins.hparams import plugin_data_pb2
 
 from difffilter.learn import FilterLearner
 from difffilter.learn.checkpoints import read_checkpoint, run_config
-from difffilter.learn.experiment import build_filter, run_experiment
 from difffilter.learn.learner import load_filter
+from experiments.runner.experiment import build_filter, run_experiment
 from tests.smoke_helpers import ROOT, read_rows
 
 ENV = {**os.environ, "PYTHONPATH": str(ROOT)}

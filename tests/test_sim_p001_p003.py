@@ -9,8 +9,8 @@ import pytest
 import torch
 
 from difffilter import geometry as geo
-from difffilter.papers.p001 import P001_CONFIG, make_p001_model, simulate_p001
-from difffilter.papers.p003 import PAPER_PHASES, flight_profile, make_p003_model, manoeuvre_flags, simulate_p003
+from experiments.papers.p001 import P001_CONFIG, make_p001_model, simulate_p001
+from experiments.papers.p003 import PAPER_PHASES, flight_profile, make_p003_model, manoeuvre_flags, simulate_p003
 
 F64 = torch.float64
 

@@ -14,7 +14,7 @@ from difffilter.filters import EKF, SimplifiedUKF
 from difffilter.geometry import CircularOrbitConstellation, normal_gravity
 from difffilter.models.navigation.sins import SinsErrorDynamics, sins_error_matrix
 from difffilter.models.navigation.sins_measurement import SinsPseudorangeMeasurement
-from difffilter.papers.p003 import make_p003_model, simulate_p003
+from experiments.papers.p003 import make_p003_model, simulate_p003
 
 F64 = torch.float64
 

@@ -10,12 +10,12 @@ from __future__ import annotations
 import pytest
 import torch
 
+from difffilter.engines import FusedFilter
 from difffilter.filters import SimplifiedUKF
 from difffilter.filters.base import slice_controls
-from difffilter.filters.fused import FusedFilter
 from difffilter.models.navigation.sins import SinsErrorDynamics
 from difffilter.models.navigation.sins_measurement import SinsPseudorangeMeasurement
-from difffilter.papers.p003 import p003_imm, p003_mode_model, simulate
+from experiments.papers.p003 import p003_imm, p003_mode_model, simulate
 
 F64 = torch.float64
 

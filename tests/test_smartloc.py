@@ -9,7 +9,7 @@ import torch
 
 from difffilter.filters import EKF, UKF
 from difffilter.geometry import ecef_to_geodetic
-from difffilter.papers.smartloc import (
+from experiments.papers.smartloc import (
     default_smartloc_path,
     load_smartloc,
     make_smartloc_model,

@@ -1,4 +1,4 @@
-"""Synthetic pseudoranges on the smartLoc geometry (difffilter.papers.smartloc.synthetic) and the
+"""Synthetic pseudoranges on the smartLoc geometry (experiments.papers.smartloc.synthetic) and the
 ``smartloc_synthetic_simulator`` scenario adapter: the error model is what it says, the
 calibration recovers a known model from a synthetic drive, bad input is refused."""
 
@@ -7,8 +7,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from difffilter.papers.smartloc import default_smartloc_path, load_smartloc
-from difffilter.papers.smartloc.synthetic import PseudorangeErrorModel, calibrate_error_model, simulate_smartloc_drives, synthetic_drive
+from experiments.papers.smartloc import default_smartloc_path, load_smartloc
+from experiments.papers.smartloc.synthetic import PseudorangeErrorModel, calibrate_error_model, simulate_smartloc_drives, synthetic_drive
 
 HAVE_SMARTLOC = (default_smartloc_path() / "Berlin_Potsdamer_Platz_Input.txt").exists()
 pytestmark = pytest.mark.skipif(not HAVE_SMARTLOC, reason="smartLoc data folder ../shared/data/real not present")
@@ -39,7 +39,7 @@ def _model(**kw) -> PseudorangeErrorModel:
 
 
 def test_measurements_are_the_filter_model_of_the_true_state_plus_the_error(drive) -> None:
-    from difffilter.papers.smartloc import make_smartloc_model
+    from experiments.papers.smartloc import make_smartloc_model
 
     batch, mean0, cov0, extra = simulate_smartloc_drives(drive, [0, 300, 700], 150, _model(), seed=3)
     assert batch.measurements.shape == (3, 150, drive.num_slots) and mean0.shape == (3, 7) and cov0.shape == (3, 7, 7)
@@ -122,7 +122,7 @@ def test_bad_input_is_refused(drive) -> None:
 
 
 def test_scenario_adapter_synthetic_train_real_test() -> None:
-    from difffilter.papers.smartloc import smartloc_simulator, smartloc_synthetic_simulator
+    from experiments.papers.smartloc import smartloc_simulator, smartloc_synthetic_simulator
 
     train = smartloc_synthetic_simulator(batch_size=4, seed=0, segments=SEGMENTS)
     val = smartloc_synthetic_simulator(batch_size=2, seed=1, segments=SEGMENTS, dtype="float32")
@@ -151,7 +151,7 @@ def test_experiment_smoke_with_synthetic_training(tmp_path) -> None:
 
     from hydra import compose, initialize_config_dir
 
-    from difffilter.learn.experiment import run_experiment
+    from experiments.runner.experiment import run_experiment
 
     root = Path(__file__).resolve().parents[1]
     with initialize_config_dir(config_dir=str(root / "conf"), version_base="1.3"):

@@ -13,13 +13,14 @@ import torch
 from hydra import compose, initialize_config_dir
 from scipy.stats import multivariate_normal
 
+from difffilter.evaluate import evaluate_filter
 from difffilter.filters import KalmanFilter
-from difffilter.learn import FilterLearner, MSELoss, StateNLLLoss, TrajectoryDataModule, evaluate_filter, learnable_values
-from difffilter.learn.experiment import run_experiment
+from difffilter.learn import FilterLearner, MSELoss, StateNLLLoss, TrajectoryDataModule, learnable_values
 from difffilter.models import tracking_model
 from difffilter.models.motion import ConstantVelocity
 from difffilter.sim.sampling import ModelSimulator
 from difffilter.smoothers import RTSSmoother, SmootherResult
+from experiments.runner.experiment import run_experiment
 from tests.smoke_helpers import read_rows
 
 f64 = torch.float64

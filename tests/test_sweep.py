@@ -1,4 +1,4 @@
-"""A multirun over seeds leaves one summary table (difffilter.learn.sweep): numbers checked
+"""A multirun over seeds leaves one summary table (experiments.runner.sweep): numbers checked
 against independent numpy/scipy computations on synthetic job directories, and end to end with
 `experiments/train.py -m seed=...` (the Hydra callback)."""
 
@@ -15,9 +15,9 @@ import pytest
 import torch
 from scipy import stats
 
-from difffilter.learn.evaluation import read_per_run, write_per_run
-from difffilter.learn.intervals import gap_closed
-from difffilter.learn.sweep import main, summarize_sweep
+from difffilter.evaluate.evaluation import read_per_run, write_per_run
+from difffilter.evaluate.intervals import gap_closed
+from experiments.runner.sweep import main, summarize_sweep
 
 ROOT = Path(__file__).resolve().parents[1]
 f64 = torch.float64

@@ -17,13 +17,13 @@ from hydra.utils import instantiate
 from omegaconf import OmegaConf, open_dict
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
+from difffilter.evaluate.evaluation import EXTRA_TESTS_DIR, PER_RUN_FILE, read_per_run
 from difffilter.filters import KalmanFilter
 from difffilter.learn import FilterLearner, TrajectoryDataModule
-from difffilter.learn.evaluation import EXTRA_TESTS_DIR, PER_RUN_FILE, read_per_run
-from difffilter.learn.experiment import _oracle, build_filter, run_experiment
 from difffilter.models import tracking_model
 from difffilter.models.motion import ConstantVelocity
 from difffilter.sim import ModelSimulator
+from experiments.runner.experiment import _oracle, build_filter, run_experiment
 from tests.smoke_helpers import read_rows
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -4,7 +4,6 @@ from .adaptive import RCUKF
 from .base import Belief, FilterResult, GaussianFilter, RecursiveFilter, StepInfo
 from .colored import ColoredNoiseUKF
 from .ekf import EKF
-from .fused import FusedFilter, fuse
 from .iterated import IteratedEKF
 from .kalman import KalmanFilter
 from .protocol import Filter
@@ -22,7 +21,6 @@ __all__ = [
     "Cubature",
     "Filter",
     "FilterResult",
-    "FusedFilter",
     "GaussianFilter",
     "IteratedEKF",
     "Julier",
@@ -34,5 +32,4 @@ __all__ = [
     "SimplifiedUKF",
     "SquareRootUKF",
     "StepInfo",
-    "fuse",
 ]

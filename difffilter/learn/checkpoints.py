@@ -5,7 +5,7 @@ A learner's checkpoint (Lightning's ``.ckpt``) holds, next to the parameters, op
 scheduler and loop states that Lightning writes:
 
 * ``hyper_parameters``: the learner's arguments, among them ``filter_config`` (how to rebuild the
-  filter's structure, :func:`~difffilter.learn.experiment.rebuild_filter`) and ``loss`` (a
+  filter's structure, :func:`~experiments.runner.experiment.rebuild_filter`) and ``loss`` (a
   name or a Hydra config), so that ``FilterLearner.load_from_checkpoint(path)`` works without
   any argument;
 * ``difffilter``: the resolved experiment config of the run (``run_config``; what
@@ -74,7 +74,7 @@ def best_checkpoint(run_dir: str | Path) -> Path:
 
 def run_config(path_or_checkpoint: str | Path | Mapping[str, Any]) -> dict[str, Any] | None:
     """The resolved experiment config stored in a learner checkpoint (``None`` when the learner
-    was not built by :func:`~difffilter.learn.experiment.run_experiment`)."""
+    was not built by :func:`~experiments.runner.experiment.run_experiment`)."""
     ckpt = path_or_checkpoint if isinstance(path_or_checkpoint, Mapping) else read_checkpoint(path_or_checkpoint)
     return (ckpt.get(CHECKPOINT_KEY) or {}).get("run_config")
 

@@ -9,9 +9,9 @@ from typing import Any
 
 import torch
 
+from ..evaluate.metrics import finalize_metrics, metric_sums
 from ..models.layout import model_defaults
 from ..smoothers import SmootherResult
-from .metrics import finalize_metrics, metric_sums
 from .plots import diagnostic_figures
 
 __all__ = ["EvaluationSteps"]

@@ -10,7 +10,7 @@ memory bounded by the window; each window is one optimiser step.
 Stability kit:
 
 * ``dtype`` converts the filter (float64 for learning, the default of the configs);
-* ``max_jitter`` bounds the Cholesky jitter (:func:`~difffilter.learn.stability.bounded_jitter`);
+* ``max_jitter`` bounds the Cholesky jitter (:func:`~difffilter.evaluate.stability.bounded_jitter`);
 * trajectories with a non-finite loss are left out of the batch mean and counted
   (``stability/nonfinite_trajectories``); a step whose loss or gradient is not finite is
   skipped (gradients cleared, so the optimiser leaves the parameters and its state alone) and
@@ -32,7 +32,7 @@ estimate, errors with their ±3 sigma envelope, and IMM mode probabilities when 
 after the model's :class:`~difffilter.models.layout.StateLayout`.
 
 Checkpoints load back without arguments: ``FilterLearner.load_from_checkpoint(path)`` rebuilds
-the filter from ``filter_config`` (which :func:`~difffilter.learn.experiment.run_experiment`
+the filter from ``filter_config`` (which :func:`~experiments.runner.experiment.run_experiment`
 sets) and loads its parameters; :func:`load_filter` returns the learned filter alone.  A
 checkpoint also carries what resuming needs (:mod:`difffilter.learn.checkpoints`).
 """
@@ -50,8 +50,9 @@ from torch import Tensor, nn
 
 from .. import linalg
 from .._util import as_dtype
+from ..engines import FusedFilter
+from ..evaluate.stability import OnceWarner, bounded_jitter
 from ..filters.base import detach_belief
-from ..filters.fused import FusedFilter
 from ..filters.protocol import Belief, Filter, FilterResult
 from ..selection import learnable_values, match_parameters, parameter_owners, select_parameters
 from ..smoothers import Smoother, SmootherResult, make_smoother, smoother_spec
@@ -60,7 +61,6 @@ from .eval_steps import EvaluationSteps
 from .losses import FilterLoss, Prior, make_loss
 from .replicates import perturb_initial_values
 from .reporting import parameter_scalars
-from .stability import OnceWarner, bounded_jitter
 
 __all__ = ["FilterLearner", "load_filter", "make_loss", "parameter_scalars"]
 
@@ -106,7 +106,7 @@ class FilterLearner(EvaluationSteps, pl.LightningModule):
         filter_config: a Hydra config that builds the filter's structure (its values come from
             the state dict), kept in the checkpoint so that ``load_from_checkpoint(path)`` needs
             no argument; builds ``filter`` when that is left out.  ``run_experiment`` sets it
-            (:func:`~difffilter.learn.experiment.rebuild_filter`).
+            (:func:`~experiments.runner.experiment.rebuild_filter`).
 
     Example::
 

@@ -38,9 +38,9 @@ import torch
 from hydra.utils import instantiate
 from torch import Tensor
 
+from ..evaluate.metrics import Index, component_error, nees, nll_per_step, select
 from ..filters.base import FilterResult
 from ..linalg import gaussian_log_density, safe_cholesky
-from .metrics import Index, component_error, nees, nll_per_step, select
 
 __all__ = [
     "CompositeLoss",

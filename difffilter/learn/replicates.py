@@ -119,7 +119,7 @@ def perturb_initial_values(module: nn.Module, names: Sequence[str], sigma: float
       multiplicative step unchanged;
     * row-stochastic matrices: element-wise ``exp(sigma z)``, then rows renormalised;
     * one ``Bounded``/``Interval`` value shared by several components (a constraint with an
-      ``inner`` one, e.g. :class:`~difffilter.papers.smartloc.SharedPsiColoredUKF`'s ``psi``): the
+      ``inner`` one, e.g. :class:`~experiments.papers.smartloc.SharedPsiColoredUKF`'s ``psi``): the
       step above with one draw for all of them;
     * when the parametrization cannot represent the perturbed value (a ``ScaledMatrix`` or
       grouped scale), one common factor ``exp(sigma z)`` for the whole value.

@@ -47,7 +47,7 @@ class Blend(RecursiveFilter):
       to the switch as the temperatures go to zero.
 
     ``(gamma, mu) = statistics(u_k)`` come from the step's controls, e.g. eqs. (1), (2) of p004
-    (:class:`difffilter.papers.p004.ImuSwitchingStatistics`: ``gamma`` compares the IMU motion
+    (:class:`experiments.papers.p004.ImuSwitchingStatistics`: ``gamma`` compares the IMU motion
     noise with the observation noise, ``mu`` the IMU's own accelerations and rates with gravity
     and pi).
 

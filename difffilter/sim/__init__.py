@@ -1,6 +1,6 @@
 """Generic simulation: draw trajectories from any model (:func:`simulate`) (in-family data, oracle comparisons) and
 the signal helpers the paper simulators share.  The papers' own scenario simulators live in
-:mod:`difffilter.papers`.
+:mod:`experiments.papers`.
 """
 
 from .sampling import ModelSimulator, SampledTrajectories, sample_trajectories, simulate

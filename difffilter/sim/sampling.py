@@ -21,7 +21,7 @@ float64 one rounded, and a seed gives the same trajectories on every machine.
 
 Such data is "in-family": the filter's model class contains the truth, which is what parameter
 recovery tests and oracle comparisons need.  Paper scenarios with scripted manoeuvres live in
-the per-paper simulators of :mod:`difffilter.papers`.
+the per-paper simulators of :mod:`experiments.papers`.
 """
 
 from __future__ import annotations

@@ -18,7 +18,7 @@ from .gnss_imu import GnssImuDynamics, GnssImuModel, GnssMeasurement, PlanarGnss
 from .gpsdr import GpsDrDynamics, GpsDrMeasurement, GpsDrModel
 from .pdr import PDRMeasurement, PDRModel, PDRStepDynamics
 from .pseudorange import GnssStateLayout, PseudorangeMeasurement
-from .ranging2d import OdometryDynamics2D, RangeMeasurement2D, make_ranging_model
+from .ranging2d import OdometryDynamics2D, RangeMeasurement2D, make_ranging_model, multilateration
 from .sins import SinsErrorDynamics
 from .sins_measurement import SinsPseudorangeMeasurement
 
@@ -43,4 +43,5 @@ __all__ = [
     "SinsPseudorangeMeasurement",
     "clock_process_noise",
     "make_ranging_model",
+    "multilateration",
 ]

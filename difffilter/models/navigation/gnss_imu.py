@@ -1,5 +1,5 @@
 """IMU-driven GNSS/IMU vehicle models of p004 (Li, Zhu, Wang & Lyu); its switching statistics are
-in :mod:`difffilter.papers.p004.switching`.
+in :mod:`experiments.papers.p004.switching`.
 
 Frames: navigation frame ENU (east, north, up), body frame FLU (forward, left, up); gravity
 ``g_n = [0, 0, -9.80665]`` m/s^2, flat non-rotating earth (a 400 s, 5 km drive).  Headings are

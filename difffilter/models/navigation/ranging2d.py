@@ -7,6 +7,8 @@ control, the measurement is one range per anchor slot.
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
@@ -16,7 +18,7 @@ from ...params import register_constrained
 from ..base import Controls, DynamicsModel, MeasurementModel, StateSpaceModel
 from ..heteroscedastic import RobustGate
 
-__all__ = ["OdometryDynamics2D", "RangeMeasurement2D", "make_ranging_model"]
+__all__ = ["OdometryDynamics2D", "RangeMeasurement2D", "make_ranging_model", "multilateration"]
 
 
 def _rot(theta: Tensor) -> tuple[Tensor, Tensor]:
@@ -166,3 +168,20 @@ def make_ranging_model(
     dyn = OdometryDynamics2D(odom_scale=odom_scale, process_psd=process_psd, dtype=dtype)
     meas = RangeMeasurement2D(num_anchors=num_anchors, bias=bias, noise=noise, gate=robust, dtype=dtype)
     return StateSpaceModel(dyn, meas)
+
+
+def multilateration(ranges: Tensor, var: Tensor, mask: Tensor, anchors: Tensor, *, iterations: int = 15) -> Tensor:
+    """Per-step weighted least-squares position ``[T, 2]`` from ranges ``[T, A]`` (Gauss-Newton
+    from the anchors' centroid, weights ``1 / var``); NaN where fewer than 3 ranges."""
+    w = mask.to(ranges.dtype) / var
+    p = (anchors * mask[..., None]).sum(-2) / mask.sum(-1, keepdim=True).clamp(min=1)
+    p = p + 1e-3  # off the centroid exactly, where a symmetric layout gives a zero gradient
+    for _ in range(iterations):
+        d = p[..., None, :] - anchors
+        r = d.norm(dim=-1).clamp(min=1e-9)
+        jac = d / r[..., None]
+        res = torch.where(mask, ranges - r, torch.zeros_like(r))
+        jtj = (jac[..., :, None] * jac[..., None, :] * w[..., None, None]).sum(-3) + 1e-9 * torch.eye(2, dtype=ranges.dtype)
+        jtr = (jac * (w * res)[..., None]).sum(-2)
+        p = p + torch.linalg.solve(jtj, jtr)
+    return torch.where((mask.sum(-1) >= 3)[..., None], p, torch.full_like(p, math.nan))

@@ -1,0 +1,154 @@
+"""A Kalman filter's covariance recursion computed once for a whole batch.
+
+For a plain :class:`~difffilter.filters.KalmanFilter` on a
+:class:`~difffilter.models.base.LinearModel` without controls, the covariances ``P-``, ``S``,
+the gain ``K`` and ``P+`` do not depend on the measurements: when every trajectory starts from
+the same covariance and has the same mask, they are the same for the whole batch.  Then the
+covariance recursion runs once (the generated kernel at batch one, so every detail of the
+filter's update - Joseph form, masking, the Cholesky repair - is the filter's own), and only
+the mean recursion runs per trajectory:
+
+``m+_t = (I - K_t D_t H) F m+_{t-1} + K_t D_t z_t`` (``D_t`` the mask), one small matrix
+product per step for the whole batch; the innovations, log-likelihoods and normalised
+innovations squared follow for all steps at once from the shared Cholesky factors of ``S_t``.
+The result equals the per-trajectory recursion up to rounding.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import torch
+from torch import Tensor
+
+from ..filters._common import StepInfo, mask_measurement_system
+from ..filters.base import Belief, FilterResult, RecursiveFilter
+from ..filters.kalman import KalmanFilter
+from ..filters.update import untrusted_steps
+from ..linalg import safe_cholesky
+from ..models.base import Controls, LinearModel
+
+__all__ = ["MIN_SHARED_BATCH", "SharedGainMean", "shares_covariance", "shared_covariance_run"]
+
+#: ``fields_of(z, mask, belief, controls) -> field``: a generated-kernel run, ``field(name)`` its output ``[B, T, ...]``
+FieldsOf = Callable[[Tensor, "Tensor | None", Belief, Controls], Callable[[str], Tensor]]
+
+#: below this batch size the per-trajectory run is as fast (process CPU time of a training step of
+#: the benchmark's 4-state KF, T = 500, float64, experiments/benchmark_kf_shared.py, per trajectory
+#: / shared: B = 16 0.51, 64 1.32, 256 1.81, 1024 3.09, 4096 2.01)
+MIN_SHARED_BATCH = 64
+_LOG_2PI = math.log(2.0 * math.pi)
+
+
+def _same_for_all(x: Tensor) -> bool:
+    if x.shape[0] == 1 or x.stride(0) == 0:
+        return True
+    return bool(torch.equal(x, x[:1].expand_as(x)))
+
+
+def shares_covariance(filt: RecursiveFilter, mask: Tensor | None, belief: Belief, controls: Controls) -> bool:
+    """Whether every trajectory of the batch has the same covariances (see the module docstring):
+    a plain ``KalmanFilter`` on a plain ``LinearModel`` without angular components, no
+    controls, a belief of mean and covariance only whose covariance is the same for every
+    trajectory (and is not a per-trajectory leaf that wants its own gradient), the same mask for
+    every trajectory, and a batch of at least :data:`MIN_SHARED_BATCH`."""
+    model = getattr(filt, "model", None)
+    if type(filt) is not KalmanFilter or type(model) is not LinearModel or controls is not None:
+        return False
+    if getattr(model.dynamics, "angular", ()) or getattr(model.measurement, "angular", ()):
+        return False
+    if not model.dynamics.additive_noise or not model.measurement.additive_noise:
+        return False
+    if set(belief) != {"mean", "cov"}:
+        return False
+    cov = belief["cov"]
+    if cov.shape[0] < MIN_SHARED_BATCH:
+        return False
+    if cov.requires_grad and cov.stride(0) != 0:
+        return False  # its gradient is per trajectory
+    return _same_for_all(cov) and (mask is None or _same_for_all(mask))
+
+
+class SharedGainMean(RecursiveFilter):
+    """The mean recursion of a Kalman filter whose gains are given: per-step controls ``gain``
+    ``[B, T, n m]`` (``K_t``, row-major), ``chol`` ``[B, T, m m]`` (the Cholesky factor of the
+    masked ``S_t``) and ``logdet`` ``[B, T, 1]`` (its log-determinant), expanded over the batch
+    so that the generated kernel reads them once per step (its ``shared`` input).  Its belief's ``cov`` is a
+    ``[B, 1, 1]`` placeholder, passed through."""
+
+    def predict(self, belief: Belief, u: Controls) -> Belief:
+        return {"mean": self.model.dynamics(belief["mean"], None), "cov": belief["cov"]}
+
+    def update(self, belief: Belief, z: Tensor, mask: Tensor | None, u: Controls) -> tuple[Belief, StepInfo]:
+        mean = belief["mean"]
+        n, m = mean.shape[-1], z.shape[-1]
+        e = self.model.measurement.residual(z, self.model.measurement(mean, None))
+        if mask is None:
+            num_obs = torch.full(e.shape[:-1], float(m), dtype=e.dtype)
+        else:
+            e = torch.where(mask, e, torch.zeros_like(e))
+            num_obs = mask.to(e.dtype).sum(-1)
+        gain = u["gain"].reshape(*e.shape[:-1], n, m)  # type: ignore[index]
+        chol = u["chol"].reshape(*e.shape[:-1], m, m)  # type: ignore[index]
+        v = torch.linalg.solve_triangular(chol, e[..., None], upper=False)[..., 0]
+        maha = (v * v).sum(-1)
+        loglik = -0.5 * (maha + u["logdet"][..., 0] + num_obs * _LOG_2PI)  # type: ignore[index]
+        new_mean = mean + (gain @ e[..., None])[..., 0]
+        return {"mean": new_mean, "cov": belief["cov"]}, StepInfo(loglik, maha, num_obs)
+
+
+def shared_covariance_run(
+    filt: KalmanFilter, z: Tensor, mask: Tensor | None, belief: Belief, fields_of: FieldsOf, mean_fields_of: FieldsOf
+) -> FilterResult:
+    """The filter's result with the covariance recursion run once.
+
+    ``fields_of(z, mask, belief, controls)`` runs ``filt``'s generated kernel and returns
+    ``field(name)``, the per-step output ``name`` ``[B, T, ...]``; it is called at batch one.
+    ``mean_fields_of`` does the same for :class:`SharedGainMean` on ``filt``'s model, on the
+    whole batch.
+    """
+    bsz, steps, mdim = z.shape
+    dtype = z.dtype
+    m1 = None if mask is None else mask[:1]
+    one = {"mean": belief["mean"][:1].detach(), "cov": belief["cov"][:1]}
+    field = fields_of(z[:1].detach(), m1, one, None)
+    prior_cov, post_cov = field("prior_cov")[0], field("cov")[0]  # [T, n, n]
+    step_flag = field("step_untrusted")[0] != 0  # [T]
+    h = filt.model.measurement.matrix(None).to(dtype)
+    r = filt.measurement_noise_cov(belief["mean"][:1], None)[0]
+    # the update's own gain and factor, for all steps at once (batch dimension = time)
+    pht = prior_cov @ h.mT  # [T, n, m]
+    s = h @ pht + r
+    mask_t = None if mask is None else mask[0]  # [T, m]
+    _, s_m, pht_m, _ = mask_measurement_system(torch.zeros(steps, mdim, dtype=dtype), s, pht, mask_t)
+    chol = safe_cholesky(s_m).factor
+    w = torch.linalg.solve_triangular(chol, pht_m.mT, upper=False)  # [T, m, n]
+    gain = torch.linalg.solve_triangular(chol.mT, w, upper=True).mT  # [T, n, m]
+    logdet = 2.0 * torch.log(torch.diagonal(chol, dim1=-2, dim2=-1)).sum(-1)  # [T]: once, not per trajectory
+    shared = {"chol": chol, "gain": gain, "logdet": logdet}
+    controls = {k: v.reshape(1, steps, -1).expand(bsz, -1, -1) for k, v in shared.items()}
+    mean_belief = {"mean": belief["mean"], "cov": belief["mean"].new_zeros(1, 1, 1).expand(bsz, 1, 1)}
+    mf = mean_fields_of(z, mask, mean_belief, controls)
+    post, prior, loglik = mf("mean"), mf("prior_mean"), mf("log_likelihood")
+    cov = post_cov.expand(bsz, *post_cov.shape)
+    pcov = prior_cov.expand(bsz, *prior_cov.shape)
+    # untrusted_steps' checks: the covariance ones once (batch one), the per-trajectory ones here
+    shared_bad = untrusted_steps(
+        post_cov.new_zeros(1, steps, 1), post_cov[None].detach(), prior_cov[None].detach(), post_cov.new_zeros(1, steps)
+    )
+    untrusted = (shared_bad | step_flag[None]) | ~torch.isfinite(loglik.detach())
+    finite = torch.isfinite(post.detach())
+    if not bool(finite.all()):
+        untrusted = untrusted | ~finite.all(-1)
+    return FilterResult(
+        mean=post,
+        cov=cov,
+        prior_mean=prior,
+        prior_cov=pcov,
+        log_likelihood=loglik,
+        nis=mf("nis"),
+        num_observed=mf("num_observed"),
+        final_belief={"mean": post[:, -1].clone(), "cov": post_cov[-1].expand(bsz, *post_cov.shape[1:])},
+        extras={"untrusted": untrusted},
+    )

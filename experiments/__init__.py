@@ -1,0 +1,1 @@
+"""The research tree: the papers' studies, the experiment runner and the benchmarks (not installed)."""

@@ -20,6 +20,7 @@ from matplotlib.figure import Figure
 from torch.utils.tensorboard import SummaryWriter
 
 from difffilter.datasets.ranging import RangingRecording, find_recordings, load_ranging
+
 from .protocol import ProtocolResult, fold_pieces, run_fold
 
 __all__ = ["extras", "fold_specs", "plot_extras", "run_ranging", "write_csv"]

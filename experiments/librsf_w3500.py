@@ -31,6 +31,18 @@ from experiments.ranging.report import run_ranging  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 
 
+def _write(report: str, parts: list[str], timing: list[tuple[str, float, float]]) -> None:
+    load = os.getloadavg()
+    tail = [
+        "\n## Time per data set (one process, one thread)\n\nCPU seconds are what the run needs; wall seconds depend on "
+        f"what else ran on the 2 cores (load average at the end: {load[0]:.1f} / {load[1]:.1f} / {load[2]:.1f}).\n\n"
+        "| data set | wall s | CPU s |\n|---|---|---|\n"
+    ]
+    tail += [f"| {n} | {w:.0f} | {c:.0f} |\n" for n, w, c in timing]
+    Path(report).parent.mkdir(parents=True, exist_ok=True)
+    Path(report).write_text("".join(parts + tail))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--out", default=str(ROOT / "outputs" / "realdata" / "w3500"))
@@ -73,15 +85,7 @@ def main() -> None:
         for fold, f in summary["folds"].items():
             ex = {k: [round(v, 3) for v in vals] for k, vals in f["extras"].items()}
             parts.append(f"\nLearned extras, {fold}: `{json.dumps(ex)}`\n")
-    load = os.getloadavg()
-    parts.append(
-        "\n## Time per data set (one process, one thread)\n\nCPU seconds are what the run needs; wall seconds depend on "
-        f"what else ran on the 2 cores (load average at the end: {load[0]:.1f} / {load[1]:.1f} / {load[2]:.1f}).\n\n"
-        "| data set | wall s | CPU s |\n|---|---|---|\n"
-    )
-    parts += [f"| {n} | {w:.0f} | {c:.0f} |\n" for n, w, c in timing]
-    Path(args.report).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.report).write_text("".join(parts))
+        _write(args.report, parts, timing)  # after every data set: a partial report survives an interrupted run
     print("".join(parts))
 
 

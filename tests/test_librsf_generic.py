@@ -134,3 +134,15 @@ def test_every_registered_kind_parses(tmp_path) -> None:
         ncol = rec.tables[kind].shape[1]
         assert rec.tables[kind][0].tolist() == (vals + [0.0] * ncol)[:ncol], kind
     assert rec.column("range3", "snr")[0] == 0.0 and rec.column("pseudorange3", "elevation")[0] == 45.0
+
+
+def test_leading_columns_only_and_unread_kinds_counted(tmp_path) -> None:
+    path = tmp_path / "c.txt"
+    path.write_text("odom3 0 1 0 0 0 0 0.1\npoint3 0 1 2 3\nodom3 1 2 0 0 0 0 0.2 9 9\n")
+    with pytest.warns(UserWarning, match="'unread kind point3': 1"):
+        rec = read_librsf(path, ["odom3"], columns={"odom3": 7})
+    assert rec.tables["odom3"].tolist() == [[0, 1, 0, 0, 0, 0, 0.1], [1, 2, 0, 0, 0, 0, 0.2]]
+    with pytest.raises(ValueError, match=r"c.txt:1: a odom3 line needs at least 14 fields, got 8"):
+        read_librsf(path, ["odom3"])
+    with pytest.raises(ValueError, match="columns .* out of range"):
+        read_librsf(path, ["odom3"], columns={"odom3": 20})

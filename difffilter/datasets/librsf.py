@@ -18,14 +18,15 @@ Bad input is reported, never mis-read: a missing file raises ``FileNotFoundError
 read kind with too few fields or a field that is not a finite number, and a time stamp that goes
 back within one kind, raise ``ValueError`` naming the file and the line (``on_error="skip"``
 skips the malformed line instead and counts it); a kind not in the table is skipped and counted
-(``strict=True`` raises), and the counts are issued as one warning per file.
+(``strict=True`` raises), known kinds not asked for are skipped and counted too, and the counts
+are issued as one warning per file.
 """
 
 from __future__ import annotations
 
 import math
 import warnings
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -78,9 +79,9 @@ class LibrsfFile:
         return f"{self.path}:{int(self.lines[kind][row])}"
 
 
-def _parse(tokens: list[str], kind: str, path: Path, lineno: int) -> list[float]:
-    cols = COLUMNS[kind]
-    need = len(cols) - OPTIONAL.get(kind, 0)
+def _parse(tokens: list[str], kind: str, path: Path, lineno: int, ncols: int | None = None) -> list[float]:
+    cols = COLUMNS[kind][:ncols] if ncols is not None else COLUMNS[kind]
+    need = len(cols) - (OPTIONAL.get(kind, 0) if ncols is None else 0)
     if len(tokens) - 1 < need:
         raise ValueError(f"{path}:{lineno}: a {kind} line needs at least {need + 1} fields, got {len(tokens)}")
     out = []
@@ -101,6 +102,7 @@ def read_librsf(
     *,
     strict: bool = False,
     on_error: str = "raise",
+    columns: Mapping[str, int] | None = None,
 ) -> LibrsfFile:
     """Read the records of ``kinds`` (default: every kind of :data:`COLUMNS`) from a libRSF file.
 
@@ -109,6 +111,8 @@ def read_librsf(
         kinds: the kinds to read; other known kinds are skipped silently.
         strict: raise on a kind not in :data:`COLUMNS` instead of skipping and counting it.
         on_error: ``"raise"`` (default) or ``"skip"`` (count malformed lines instead).
+        columns: ``{kind: n}`` reads only the first ``n`` columns of ``kind`` (and needs only
+            those); default: every column of :data:`COLUMNS`.
 
     Raises:
         FileNotFoundError: the file does not exist.
@@ -125,6 +129,10 @@ def read_librsf(
     unknown = wanted - set(COLUMNS)
     if unknown:
         raise ValueError(f"kinds {sorted(unknown)} are not libRSF kinds this reader knows: {sorted(COLUMNS)}")
+    ncols = dict(columns or {})
+    bad = {k: n for k, n in ncols.items() if k not in COLUMNS or not 1 <= int(n) <= len(COLUMNS[k])}
+    if bad:
+        raise ValueError(f"columns {bad} out of range (per kind: 1 .. number of COLUMNS)")
     rows: dict[str, list[list[float]]] = {k: [] for k in wanted}
     lines: dict[str, list[int]] = {k: [] for k in wanted}
     skipped: dict[str, int] = {}
@@ -141,9 +149,10 @@ def read_librsf(
                 skipped[f"unknown kind {kind}"] = skipped.get(f"unknown kind {kind}", 0) + 1
                 continue
             if kind not in wanted:
+                skipped[f"unread kind {kind}"] = skipped.get(f"unread kind {kind}", 0) + 1
                 continue
             try:
-                vals = _parse(tokens, kind, path, lineno)
+                vals = _parse(tokens, kind, path, lineno, ncols.get(kind))
             except ValueError:
                 if on_error == "raise":
                     raise
@@ -157,7 +166,7 @@ def read_librsf(
             lines[kind].append(lineno)
     if skipped:
         warnings.warn(f"{path}: skipped {dict(sorted(skipped.items()))}", stacklevel=2)
-    tables = {k: np.asarray(v, dtype=np.float64).reshape(-1, len(COLUMNS[k])) for k, v in rows.items()}
+    tables = {k: np.asarray(v, dtype=np.float64).reshape(-1, ncols.get(k, len(COLUMNS[k]))) for k, v in rows.items()}
     return LibrsfFile(path, tables, {k: np.asarray(v, dtype=np.int64) for k, v in lines.items()}, skipped)
 
 

@@ -34,7 +34,7 @@ from experiments.papers.p003.experiment import p003_imm, simulate  # noqa: E402
 
 log = logging.getLogger(__name__)
 
-#: p003's filter configuration (conf/filter/p003_imm_simplified.yaml)
+#: p003's filter configuration (experiments/papers/p003/conf/filter/p003_imm_simplified.yaml)
 P003_MODEL = {"num_satellites": 8, "linearized": False, "position_in_metres": True, "discretization": "expm"}
 
 

@@ -27,7 +27,8 @@ from difffilter.engines import trace as fused_trace  # noqa: E402
 from difffilter.engines.graph import UnsupportedOp  # noqa: E402
 from experiments.papers.p003.experiment import group_scale_q, p003_imm, simulate  # noqa: E402
 
-#: conf/filter/p003_imm_simplified.yaml and the learner of conf/experiment/p003_imm_sins.yaml
+#: experiments/papers/p003/conf/filter/p003_imm_simplified.yaml and the learner of
+#: experiments/papers/p003/conf/experiment/p003_imm_sins.yaml
 MODEL = {"num_satellites": 8, "linearized": False, "position_in_metres": True, "discretization": "expm"}
 TRANSITION = [[0.9952238805970149, 0.004776119402985075], [0.056, 0.944]]
 

@@ -4,6 +4,7 @@
     python experiments/reproduce.py                     # everything, 2 jobs at a time (2 cores)
     python experiments/reproduce.py --only p001 p004    # the jobs whose name starts with one of these
     python experiments/reproduce.py -j 1 --out outputs/reproduce
+    python experiments/reproduce.py --collect           # then the sweeps' summary.csv -> results/data, tables rendered
 
 A *job* is one seed sweep (``experiments/train.py -m ... seed=0,1,2,3,4``; two for p002, whose
 reports pair its UKF and RC-UKF sweeps) with the commands that read its output (learned values, the
@@ -12,9 +13,12 @@ profile), run in order in one shell; jobs are independent of each other and run 
 the longest first (every command already uses ``threads=1``).  Each command is written verbatim as
 it appears in its results file, up to a ``nice`` prefix and a ``mkdir -p`` of its target folder
 (``tests/test_reproduce.py`` checks that), so a job's output directory is the one the results file
-cites and its ``summary.md`` can be compared with the table there.  The results files and
-``results/REPORT.md`` are written by hand from those summaries (``python experiments/report.py``
-collects them), so this script recomputes the evidence; it does not edit the results.
+cites and its ``summary.md`` can be compared with the table there.  The tables of the results files,
+``results/REPORT.md`` and ``results/detail/`` are rendered from ``results/data/*.csv`` (one per
+family, the schema of a sweep's ``summary.csv``; ``python experiments/report.py --render``, checked
+by ``--check``).  This script recomputes the evidence and leaves ``results/`` alone unless given
+``--collect``: then, when every job succeeded, it copies each family's ``<sweep>/summary.csv`` into
+``results/data/``, renders every table again and runs the check (``git diff results/`` shows what changed).
 
 Every job's wall time and CPU time (user + system of the job's shell and everything it ran) are
 appended to ``<out>/times.tsv`` and summed at the end: the "full REPORT regenerates in <= 2 h on
@@ -33,6 +37,11 @@ from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
+
+# The research tree (experiments/) is not installed: make it importable from the repository root.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from experiments import results_report  # noqa: E402
 
 __all__ = ["JOBS", "Job", "main", "select_jobs"]
 
@@ -236,6 +245,7 @@ def main(argv: Sequence[str] | None = None, jobs: Sequence[Job] = JOBS) -> int:
     parser.add_argument("--only", nargs="+", default=None, help="job name prefixes (default: every job)")
     parser.add_argument("--out", type=Path, default=Path("outputs/reproduce"), help="logs and times.tsv (default outputs/reproduce)")
     parser.add_argument("--dry-run", action="store_true", help="print the jobs' commands and stop")
+    parser.add_argument("--collect", action="store_true", help="after every job succeeded: summary.csv -> results/data, render, check")
     args = parser.parse_args(argv)
     if args.jobs < 1:
         parser.error(f"-j/--jobs must be a positive integer, got {args.jobs}")
@@ -271,6 +281,14 @@ def main(argv: Sequence[str] | None = None, jobs: Sequence[Job] = JOBS) -> int:
     if failed:
         print(f"failed: {', '.join(failed)} (see {out}/<job>.log)", file=sys.stderr)
         return 1
+    if args.collect:
+        copied = results_report.collect(ROOT)
+        results_report.render(ROOT)
+        problems = results_report.check(ROOT)
+        print(f"collected {len(copied)} summary.csv into results/data; results check: {len(problems)} problem(s)")
+        for p in problems:
+            print(p, file=sys.stderr)
+        return 1 if problems else 0
     return 0
 
 

@@ -52,3 +52,10 @@ def plugin_installed(name: str) -> bool:
         return importlib.util.find_spec(f"hydra_plugins.{name}") is not None
     except ModuleNotFoundError:
         return False
+
+
+def config_files(group: str) -> list[Path]:
+    """Every option file of the config group ``group``: conf/<group>/ and each paper's
+    experiments/papers/<paper>/conf/<group>/ (on train.yaml's search path), sorted by name."""
+    dirs = [ROOT / "conf" / group, *sorted((ROOT / "experiments" / "papers").glob(f"*/conf/{group}"))]
+    return sorted((f for d in dirs for f in d.glob("*.yaml")), key=lambda f: f.name)

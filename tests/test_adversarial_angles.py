@@ -13,7 +13,8 @@ import math
 import pytest
 import torch
 
-from difffilter.filters import EKF, RCUKF, UKF, ColoredNoiseUKF, Cubature, Julier, SimplifiedUKF
+from difffilter.engines import FusedFilter
+from difffilter.filters import EKF, RCUKF, UKF, ColoredNoiseUKF, Cubature, Julier, SimplifiedUKF, SquareRootUKF
 from difffilter.models import FunctionalModel, LinearModel
 from difffilter.models.base import MeasurementModel, StateSpaceModel, wrap_angle
 from difffilter.params import register_covariance

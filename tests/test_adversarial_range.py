@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 import torch
 
-from difffilter.filters import EKF, RCUKF, UKF, ColoredNoiseUKF, KalmanFilter, SimplifiedUKF
+from difffilter.engines import FusedFilter
+from difffilter.filters import EKF, RCUKF, UKF, ColoredNoiseUKF, KalmanFilter, SimplifiedUKF, SquareRootUKF
 from difffilter.filters.diffuse import split_prior
 from difffilter.mixers import IMM, Blend
 from difffilter.models import LinearModel

@@ -21,7 +21,7 @@ from difffilter.learn.data import TrajectoryDataModule
 from difffilter.learn.learner import FilterLearner
 from difffilter.models.base import StateSpaceModel
 from experiments.runner.experiment import apply_model_defaults, build_filter, build_learner, run_experiment
-from tests.smoke_helpers import plugin_installed
+from tests.smoke_helpers import config_files, plugin_installed
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
 # Groups of train.yaml (hydra/ is Hydra's own; a directory named like another primary config,
@@ -29,12 +29,12 @@ CONF = Path(__file__).resolve().parents[1] / "conf"
 PRIMARIES = sorted(p.stem for p in CONF.glob("*.yaml"))
 TRAIN_GROUPS = sorted(d.name for d in CONF.iterdir() if d.is_dir() and d.name != "hydra" and d.name not in PRIMARIES)
 # hparams_search needs an optional Hydra plugin: composed by tests/test_cluster_configs.py
-OPTIONS = {g: sorted(p.stem for p in (CONF / g).glob("*.yaml")) for g in TRAIN_GROUPS if g not in ("experiment", "debug", "hparams_search")}
+OPTIONS = {g: [p.stem for p in config_files(g)] for g in TRAIN_GROUPS if g not in ("experiment", "debug", "hparams_search")}
 # Groups whose options work with any experiment are composed together, one option of each per
 # round (composition is the slow part); model and scenario options depend on the experiment.
 GENERIC = [g for g in OPTIONS if g not in ("model", "scenario")]
 ROUNDS = [{g: OPTIONS[g][i % len(OPTIONS[g])] for g in GENERIC} for i in range(max(len(OPTIONS[g]) for g in GENERIC))]
-EXPERIMENTS = sorted(p.stem for p in (CONF / "experiment").glob("*.yaml"))
+EXPERIMENTS = [p.stem for p in config_files("experiment")]
 
 
 def _compose(tmp_path: Path, overrides: list[str], name: str = "train", **kw) -> DictConfig:
@@ -92,7 +92,7 @@ def test_group_options_compose_and_instantiate(tmp_path, choice):
 
 
 def _owning_experiment(group: str, option: str) -> str | None:
-    for path in sorted((CONF / "experiment").glob("*.yaml")):
+    for path in config_files("experiment"):
         if re.search(rf"override /{group}: {re.escape(option)}\s*$", path.read_text(), re.M):
             return path.stem
     return None

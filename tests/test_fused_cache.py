@@ -19,9 +19,9 @@ import textwrap
 import pytest
 import torch
 
-from difffilter.engines import cache
+from difffilter.engines import FusedFilter, cache
 from difffilter.engines.trace import StepLayout
-from difffilter.filters import EKF, UKF
+from difffilter.filters import EKF, UKF, MerweScaled
 from difffilter.models.base import StateSpaceModel
 from tests.test_fused import FIELDS, _range_bearing_data
 

@@ -20,10 +20,10 @@ import torch
 from torch import Tensor
 from torch.fx.experimental.proxy_tensor import make_fx
 
-from difffilter.engines import build
+from difffilter.engines import FusedFilter, build
 from difffilter.engines.graph import ScalarGraph, UnsupportedOp, evaluate
 from difffilter.engines.lower import lower
-from difffilter.filters import EKF, RCUKF, UKF, Julier, KalmanFilter, MerweScaled, SimplifiedUKF
+from difffilter.filters import EKF, RCUKF, UKF, Julier, KalmanFilter, MerweScaled, SimplifiedUKF, SquareRootUKF
 from difffilter.filters.colored import ColoredNoiseUKF
 from difffilter.linalg import chol_rank1_update, tria
 from difffilter.mixers import IMM

@@ -23,9 +23,10 @@ import pytest
 import torch
 from torch.nn.utils import parametrize
 
+from difffilter.engines import FusedFilter
 from difffilter.engines.branchfree import branch_free
 from difffilter.engines.step import SmallLinalg, cholesky_lower, householder_qr, solve_triangular
-from difffilter.filters import EKF, UKF, KalmanFilter, MerweScaled, SimplifiedUKF
+from difffilter.filters import EKF, UKF, KalmanFilter, MerweScaled, SimplifiedUKF, SquareRootUKF
 from difffilter.mixers import IMM
 from difffilter.models import LinearModel
 from tests.filter_contract import FilterContract, cv_matrices, make_data

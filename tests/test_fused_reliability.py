@@ -19,7 +19,8 @@ import pytest
 import torch
 
 from difffilter import linalg
-from difffilter.filters import EKF, UKF, Julier, KalmanFilter, SimplifiedUKF
+from difffilter.engines import FusedFilter
+from difffilter.filters import EKF, UKF, Julier, KalmanFilter, SimplifiedUKF, SquareRootUKF
 from difffilter.filters import update as update_module
 from difffilter.models import LinearModel
 from difffilter.models.base import wrap_angle

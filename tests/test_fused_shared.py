@@ -11,8 +11,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from difffilter.engines import shared
-from difffilter.filters import UKF
+from difffilter.engines import FusedFilter, shared
+from difffilter.filters import UKF, KalmanFilter
 from difffilter.models.base import LinearModel
 from tests.test_fused import _range_bearing_data
 

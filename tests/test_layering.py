@@ -175,7 +175,7 @@ def test_the_checker_sees_violations(tmp_path):
 def test_entry_points_use_the_installed_package(script):
     text = script.read_text()
     tree = ast.parse(text)
-    edits = [n for n in ast.walk(tree) if isinstance(n, ast.Attribute) and n.attr == "path" and isinstance(n.value, ast.Name) and n.value.id == "sys"]
+    edits = [n for n in ast.walk(tree) if isinstance(n, ast.Attribute) and n.attr == "path" and getattr(n.value, "id", None) == "sys"]
     # The one allowed edit: the repository root first on sys.path, so that `experiments.*` (not
     # installed) imports; the library itself comes from the installed package.
     allowed = "sys.path.insert(0, str(Path(__file__).resolve().parents[1]))"

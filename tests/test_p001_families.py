@@ -35,7 +35,7 @@ ELEVATION_LAW = {
     "sigma_exponent": 1.0,
     "tau_zenith": 28.036732520571,
     "tau_exponent": 1.0,
-}  # conf/scenario/p001_elevation_*.yaml
+}  # experiments/papers/p001/conf/scenario/p001_elevation_*.yaml
 
 
 def _ar1_statistics(v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -17,7 +17,7 @@ from difffilter.models.navigation.gnss_imu import GNSS_IMU_PAPER, GnssImuModel, 
 from experiments.papers.p004 import p004_simulator, simulate_p004
 
 F64 = torch.float64
-# conf/scenario/p004_mems_*.yaml
+# experiments/papers/p004/conf/scenario/p004_mems_*.yaml
 MEMS = {
     "sigma_accel": 0.002,
     "sigma_gyro": math.radians(0.05),
@@ -25,7 +25,7 @@ MEMS = {
     "sigma_gyro_bias": math.radians(0.1),
 }
 WALK = (0.1e-3 * 9.80665 / 20.0, math.radians(20.0 / 3600.0) / 20.0)
-CANYON = [(90.0, 215.0), (290.0, 350.0)]  # conf/scenario/p004_urban_*.yaml
+CANYON = [(90.0, 215.0), (290.0, 350.0)]  # experiments/papers/p004/conf/scenario/p004_urban_*.yaml
 
 
 def test_mems_biases_walk_with_the_stated_statistics_and_stay_in_the_family() -> None:
@@ -114,7 +114,7 @@ def test_oracle_values_of_each_family() -> None:
 
 
 def test_cold_start_family_has_the_stated_outage_and_heading_spread() -> None:
-    """conf/scenario/p004_outage_*.yaml: no GNSS before t = 30 s, a fix every second after, and
+    """experiments/papers/p004/conf/scenario/p004_outage_*.yaml: no GNSS before t = 30 s, a fix every second after, and
     the belief's heading error drawn with the stated 30 deg std (its variance says so too)."""
     with initialize_config_dir(config_dir=str(Path(__file__).resolve().parents[1] / "conf"), version_base="1.3"):
         cfg = compose("train", overrides=["experiment=p004_outage"])

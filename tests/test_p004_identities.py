@@ -35,7 +35,7 @@ NOISE = ("sigma_accel", "sigma_gyro", "sigma_accel_bias_walk", "sigma_gyro_bias_
 
 
 def _sigma_points() -> MerweScaled:
-    return MerweScaled(alpha=1.0, beta=2.0, kappa=0.0)  # conf/filter/p004_blend.yaml
+    return MerweScaled(alpha=1.0, beta=2.0, kappa=0.0)  # experiments/papers/p004/conf/filter/p004_blend.yaml
 
 
 def _blend(model: StateSpaceModel, delta: float = 0.85, cls: type[Blend] = Blend) -> Blend:

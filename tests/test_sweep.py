@@ -98,7 +98,21 @@ def test_summary_of_synthetic_sweep_matches_independent_computation(tmp_path):
     assert ("experiment=y", "learned", "gap_closed") not in rows
     md = md_path.read_text()
     assert "## experiment=x (seeds 0, 1, 2, 3, 4; jobs 0, 1, 2, 3, 4)" in md and "## experiment=y" in md and "different test runs" in md
-    assert "| learned | all | 4 | " in md and "over-confident" in md
+    # the verdict: the ANEES interval against the 95 % chi-square band of the mean NEES over the N runs
+    n_runs = int(rows[("experiment=x", "learned", "rmse_pos")]["runs"])
+    band = stats.chi2.ppf([0.025, 0.975], 4 * n_runs) / n_runs
+    lo, hi = float(a["lo"]), float(a["hi"])
+    want = (
+        "consistent"
+        if band[0] <= lo and hi <= band[1]
+        else "over-confident"
+        if lo > band[1]
+        else "under-confident"
+        if hi < band[0]
+        else "undecided"
+    )
+    assert "| learned | all | 4 | " in md and f"] | {want} | 92 % |" in md
+    assert "| hand-tuned | all | 4 | 4 [4, 4] | consistent |" in md  # exactly d on every run: inside the band
     # the command line rebuilds the same summary
     assert main([str(tmp_path), "--draws", "1000"]).read_text() == md
 

@@ -1,6 +1,7 @@
 """Kalman-family filters: the :class:`Filter` contract and the recursive filters sharing one time loop."""
 
 from .adaptive import RCUKF
+from .adaptive_noise import AdaptiveNoiseFilter, CovarianceMatching, SageHusa, VBAdaptiveQR, VBAdaptiveR
 from .base import Belief, FilterResult, GaussianFilter, RecursiveFilter, StepInfo
 from .colored import ColoredNoiseUKF
 from .ekf import EKF
@@ -13,6 +14,11 @@ from .square_root import SquareRootUKF
 from .ukf import UKF, SimplifiedUKF
 
 __all__ = [
+    "AdaptiveNoiseFilter",
+    "CovarianceMatching",
+    "SageHusa",
+    "VBAdaptiveQR",
+    "VBAdaptiveR",
     "EKF",
     "RCUKF",
     "UKF",

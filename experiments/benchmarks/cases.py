@@ -21,7 +21,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from difffilter.filters import EKF, UKF, KalmanFilter
+from difffilter.engines import FusedFilter
+from difffilter.filters import EKF, UKF, KalmanFilter, MerweScaled
 from difffilter.filters.base import RecursiveFilter
 from difffilter.mixers import IMM
 

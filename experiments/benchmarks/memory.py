@@ -27,6 +27,7 @@ from typing import Any
 
 import torch
 
+from difffilter.engines import FusedFilter
 from difffilter.filters.base import detach_belief
 
 from .cases import builtin_case

@@ -47,6 +47,7 @@ from torch import Tensor
 
 from difffilter.evaluate.evaluation import EXTRA_TESTS_DIR, PER_RUN_FILE, read_per_run
 from difffilter.evaluate.intervals import GapClosed, Interval, crossed_interval, gap_closed, nested_interval
+from experiments.results_tables import anees_verdict
 
 __all__ = ["SUMMARY_CSV", "SUMMARY_MD", "SweepSummary", "load_jobs", "main", "summarize_sweep", "unfinished_jobs"]
 
@@ -211,6 +212,7 @@ def _summarize_group(group: _Group, *, metric: str, reference: str, learned: str
                     "dof": dof,
                     "anees": _interval(bm if varies else bm[:1], crossed, prob),
                     "band_frac": sum(frac_ok) / len(frac_ok) if frac_ok else math.nan,
+                    "runs": int(bm.shape[1]),
                 }
             )
 
@@ -227,7 +229,9 @@ def _markdown(groups: Sequence[_Group], *, metric: str, reference: str, learned:
         f" difference: paired per run and seed, filter - `{reference}`; G = (e_hand - e_learned) / (e_hand - e_oracle)"
         " with a bootstrap interval over runs and seeds (undefined when hand-tuned and oracle tie).",
         f"Consistency: ANEES run-level mean [{pct} interval] against the value of a consistent filter (d), and the mean"
-        f" over seeds of the fraction of steps inside the per-step {pct} chi-square band.",
+        f" over seeds of the fraction of steps inside the per-step {pct} chi-square band; verdict: the interval inside /"
+        " above / below the 95 % chi-square band of a consistent filter's mean NEES over the N runs, else undecided"
+        " (experiments.results_tables.anees_verdict).",
     ]
     for g in groups:
         seeds = sorted({j.replicate for j in g.jobs}, key=lambda s: (len(s), s))
@@ -253,14 +257,10 @@ def _markdown(groups: Sequence[_Group], *, metric: str, reference: str, learned:
             ]
             out.append("| " + " | ".join(cells) + " |")
         if g.blocks:
-            out += ["", "| filter | block | d | ANEES [interval] | verdict | steps in band |", "|---|---|---|---|---|---|"]
+            out += ["", "| filter | block | d | ANEES [interval] | verdict (band rule) | steps in band |", "|---|---|---|---|---|---|"]
             for b in g.blocks:
                 iv = b["anees"]
-                verdict = (
-                    ""
-                    if not math.isfinite(iv.lo)
-                    else ("consistent" if iv.contains(b["dof"]) else ("over-confident" if iv.lo > b["dof"] else "under-confident"))
-                )
+                verdict = anees_verdict(iv.lo, iv.hi, b["dof"], b["runs"])
                 frac = "" if not math.isfinite(b["band_frac"]) else f"{100 * b['band_frac']:.0f} %"
                 out.append(f"| {b['filter']} | {b['block']} | {_fmt(b['dof'])} | {_ci(iv)} | {verdict} | {frac} |")
     return "\n".join(out) + "\n"

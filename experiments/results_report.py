@@ -1,0 +1,381 @@
+"""``results/REPORT.md`` and ``results/detail/*.md``, generated from the committed CSVs of ``results/data/``.
+
+The report is a summary: one row per paper family, the realistic families (mis-specified, the
+paper's own conditions) first, the designed in-family ones after.  Each row shows every
+non-learned method the family's CSV has a row for (today only the paper's constants; the columns
+of the textbook rule, validation search, EM, Sage-Husa and VB-AKF say "not run" until their rows
+exist), the best of them, the learned filter(s), learned - best non-learned as a paired difference
+in % with its 95 % interval and the verdict of :func:`~experiments.results_tables.paired_verdict`,
+and the learned filter's ANEES with the verdict of :func:`~experiments.results_tables.anees_verdict`.
+The per-family detail (every test set, every filter, every state block) is in
+``results/detail/<family>.md``.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+# The research tree (experiments/) is not installed: make it importable from the repository root.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import argparse  # noqa: E402
+import shutil  # noqa: E402
+from collections.abc import Sequence  # noqa: E402
+from dataclasses import dataclass  # noqa: E402
+
+from experiments.results_tables import (  # noqa: E402
+    ROOT,
+    Row,
+    anees_band,
+    anees_verdict,
+    check_text,
+    fmt,
+    fmt_ci,
+    paired_verdict,
+    read_rows,
+    render_anees,
+    render_metric,
+    render_text,
+)
+
+__all__ = [
+    "FAMILIES",
+    "METHODS",
+    "Family",
+    "build_detail",
+    "build_report",
+    "check",
+    "collect",
+    "generated_files",
+    "main",
+    "render",
+    "results_files",
+    "summary_cells",
+]
+
+
+@dataclass(frozen=True)
+class Family:
+    """One paper family of the summary.
+
+    Attributes:
+        name: data file stem (``results/data/<name>.csv``) and detail page stem.
+        paper: ``p000`` ... ``p004``.
+        kind: ``mis-specified``, ``paper's own`` or ``in-family``.
+        label: what the family is, in a few words.
+        results: the hand-written results file that discusses it.
+        sweep: the sweep directory whose ``summary.csv`` the data file is (``experiments/reproduce.py``).
+        group: the test set the summary row shows ("" when the sweep has one).
+    """
+
+    name: str
+    paper: str
+    kind: str
+    label: str
+    results: str
+    sweep: str
+    group: str = ""
+
+
+_R = "outputs/rerun_logit"
+FAMILIES: tuple[Family, ...] = (
+    Family("p000_gyro", "p000", "mis-specified", "MEMS gyro bias", "p000_gpsdr.md", "outputs/final/p000_gyro", "test=scripted"),
+    Family("p000_gps", "p000", "mis-specified", "GPS multipath/NLOS/outages", "p000_gpsdr.md", "outputs/final/p000_gps", "test=scripted"),
+    Family(
+        "p000_odometer", "p000", "mis-specified", "odometer scale/slip", "p000_gpsdr.md", "outputs/final/p000_odometer", "test=scripted"
+    ),
+    Family("p001_elevation", "p001", "mis-specified", "elevation-dependent noise", "p001_elevation.md", f"{_R}/p001_elevation"),
+    Family(
+        "p002_disturbed_rcukf",
+        "p002",
+        "mis-specified",
+        "compass bursts + turn transients, RC-UKF",
+        "p002_pdr.md",
+        f"{_R}/p002_disturbed_rcukf",
+        "test=P=0.4",
+    ),
+    Family("p003_physical", "p003", "mis-specified", "vibration, C/N0 shading", "p003_imm_sins.md", "outputs/p003_final/p003_physical"),
+    Family("p004_urban", "p004", "mis-specified", "urban-canyon GNSS", "p004_urban.md", f"{_R}/p004_urban"),
+    Family(
+        "p000_nominal",
+        "p000",
+        "paper's own",
+        "paper's sensors, kinematic truth",
+        "p000_gpsdr.md",
+        "outputs/final/p000_nominal",
+        "test=scripted",
+    ),
+    Family("p001_colored", "p001", "paper's own", "coloured noise at the paper's values", "p001_colored.md", f"{_R}/p001_colored"),
+    Family("p002_pdr_rcukf", "p002", "paper's own", "paper conditions, RC-UKF", "p002_pdr.md", f"{_R}/p002_pdr_rcukf", "test=P=0.4"),
+    Family("p003_imm_sins", "p003", "paper's own", "paper-faithful IMM", "p003_imm_sins.md", "outputs/p003_final/p003_imm_sins"),
+    Family("p004_blend", "p004", "paper's own", "the paper's blend and values", "p004_blend.md", f"{_R}/p004_blend"),
+    Family("p004_outage", "p004", "paper's own", "cold start (no GNSS 0-30 s)", "p004_blend.md", f"{_R}/p004_outage"),
+    Family("p000_infamily", "p000", "in-family", "CA truth, q and R off", "p000_gpsdr.md", "outputs/final/p000_infamily"),
+    Family("p001_multipath", "p001", "in-family", "coloured multipath, per-channel Psi", "p001_multipath.md", f"{_R}/p001_multipath"),
+    Family(
+        "p001_multipath_shared",
+        "p001",
+        "in-family",
+        "coloured multipath, one shared Psi",
+        "p001_multipath.md",
+        f"{_R}/p001_multipath_shared",
+    ),
+    Family(
+        "p002_infamily_exactref", "p002", "in-family", "in-family walks (G vs exact UKF)", "p002_pdr.md", f"{_R}/p002_infamily_exactref"
+    ),
+    Family("p003_modes", "p003", "in-family", "two-level noise modes", "p003_imm_sins.md", "outputs/p003_final/p003_modes"),
+    Family("p004_mems", "p004", "in-family", "MEMS IMU noise", "p004_mems.md", f"{_R}/p004_mems"),
+)
+
+#: Summary columns of the non-learned methods (column title, filter name in the CSVs).
+METHODS: tuple[tuple[str, str], ...] = (
+    ("paper's constants", "hand-tuned"),
+    ("textbook rule", "textbook"),
+    ("validation search", "validation-search"),
+    ("EM", "em"),
+    ("Sage-Husa", "sage-husa"),
+    ("VB-AKF", "vb-akf"),
+)
+LEARNED: tuple[tuple[str, str], ...] = (("learned", "learned"), ("learned adaptive", "learned-adaptive"))
+REFERENCE = "hand-tuned"
+
+
+def _get(rows: Sequence[Row], group: str, name: str, quantity: str, reference: str = "") -> Row | None:
+    return next((r for r in rows if (r.group, r.filter, r.quantity, r.reference) == (group, name, quantity, reference)), None)
+
+
+def _paired(rows: Sequence[Row], group: str, name: str, best: str) -> Row | None:
+    """``name`` - ``best`` in %: the sweep's ``diff_pct`` when ``best`` is the sweep's reference,
+    else a ``diff_pct`` row whose ``reference`` names ``best``."""
+    return _get(rows, group, name, "diff_pct") if best == REFERENCE else _get(rows, group, name, "diff_pct", best)
+
+
+def summary_cells(fam: Family, rows: Sequence[Row], metric: str = "rmse_pos") -> list[str]:
+    """The summary row of one family (columns of :func:`build_report`'s table)."""
+    g = fam.group
+    value = {name: _get(rows, g, name, metric) for _, name in (*METHODS, *LEARNED)}
+    shown = [fmt_ci(r.estimate, r.lo, r.hi) if (r := value[name]) else "not run" for _, name in (*METHODS, *LEARNED)]
+    ran = [(title, name) for title, name in METHODS if value[name] is not None]
+    best_title, best = min(ran, key=lambda tn: value[tn[1]].estimate) if ran else ("-", "")
+    learned = value["learned"]
+    diff = _paired(rows, g, "learned", best) if learned and best else None
+    if diff is None:
+        diff_cell, verdict = "no paired interval", "-"
+    else:
+        diff_cell, verdict = fmt_ci(diff.estimate, diff.lo, diff.hi), paired_verdict(diff.lo, diff.hi)
+    anees = _get(rows, g, "learned", "anees_all", _get_dof(rows, g))
+    if anees is None:
+        anees_cell, anees_v = "not in the data", "-"
+    else:
+        dof, runs = float(anees.reference), _runs(learned)
+        band = f"; band {fmt(anees_band(dof, runs)[0])}-{fmt(anees_band(dof, runs)[1])}" if runs else ""
+        anees_cell, anees_v = (
+            f"{fmt_ci(anees.estimate, anees.lo, anees.hi)} (d {fmt(dof)}{band})",
+            anees_verdict(anees.lo, anees.hi, dof, runs),
+        )
+    test = g.split("=", 1)[-1] if g else "-"
+    link = f"[{fam.name}](detail/{fam.name}.md)"
+    return [
+        f"{fam.paper} {fam.label}",
+        fam.kind,
+        test,
+        *shown[: len(METHODS)],
+        best_title,
+        *shown[len(METHODS) :],
+        diff_cell,
+        verdict,
+        anees_cell,
+        anees_v,
+        link,
+    ]
+
+
+def _get_dof(rows: Sequence[Row], group: str) -> str:
+    """The ``reference`` (d) of the learned filter's all-state ANEES row in ``group`` ("" if none)."""
+    r = next((r for r in rows if r.group == group and r.filter == "learned" and r.quantity == "anees_all"), None)
+    return r.reference if r else ""
+
+
+def _runs(row: Row | None) -> int | None:
+    return int(row.runs) if row is not None and row.runs.strip().isdigit() else None
+
+
+_HEADER = [
+    "family",
+    "kind",
+    "test set",
+    *(t for t, _ in METHODS),
+    "best non-learned",
+    *(t for t, _ in LEARNED),
+    "learned - best non-learned, % [95 %]",
+    "verdict",
+    "learned ANEES [95 %] (d; band)",
+    "ANEES verdict",
+    "detail",
+]
+
+
+def _source(fam: Family, root: Path) -> Path:
+    return root / "results" / "data" / f"{fam.name}.csv"
+
+
+def build_report(families: Sequence[Family] = FAMILIES, root: Path = ROOT) -> str:
+    """The text of ``results/REPORT.md``."""
+    out = [
+        "# difffilter: the papers' experiments, summary",
+        "",
+        "<!-- generated by `python experiments/report.py --render` from results/data/*.csv; do not edit by hand -->",
+        "",
+        "One row per paper family, the realistic families first (mis-specified: the truth has something the paper's",
+        "model lacks; paper's own: the paper's conditions), the designed in-family families after (the truth is the",
+        "filter's own model at values placed away from the paper's, so a win there is expected by construction).",
+        "Position RMSE in m, mean over seeds x test runs [95 % interval over seeds x runs].  Verdicts, one rule for",
+        "every row (`experiments/results_tables.py`):",
+        "",
+        "- learned - best non-learned: the paired difference per test run and seed, in % of the reference; **win**",
+        "  when its 95 % interval lies below zero, **loss** when above, **tie** when it contains zero.  The best",
+        "  non-learned method is the lowest-RMSE row among the six non-learned columns that were run; a method",
+        "  without a row in the family's CSV says *not run*.  A paired interval exists only against the row the",
+        "  sweep pairs with (the paper's constants) or a `diff_pct` row whose `reference` names the best method.",
+        "- ANEES of the learned filter (all states, d of them) against the 95 % chi-square band of a consistent",
+        "  filter's mean NEES over the N test runs, `[chi2_0.025(N d) / N, chi2_0.975(N d) / N]`: **consistent** when",
+        "  the ANEES interval lies inside the band, **over-** / **under-confident** when entirely above / below it,",
+        "  **undecided** when it straddles a band edge or has no interval (too wide to decide).",
+        "",
+        "Each family shows one test set (named); every test set, filter and state block is in its detail page.",
+        "The numbers come from `results/data/<family>.csv` (the schema of a sweep's `summary.csv`); where they",
+        "were transcribed rather than copied from a sweep, `results/data/SOURCES.md` says so.",
+        "",
+        "| " + " | ".join(_HEADER) + " |",
+        "|" + "---|" * len(_HEADER),
+    ]
+    tally: dict[str, dict[str, int]] = {}
+    for fam in families:
+        cells = summary_cells(fam, read_rows(_source(fam, root)))
+        out.append("| " + " | ".join(cells) + " |")
+        kind = tally.setdefault(fam.kind, {})
+        kind[cells[_HEADER.index("verdict")]] = kind.get(cells[_HEADER.index("verdict")], 0) + 1
+    out += [""] + [
+        f"Verdicts of learned against the best non-learned method, {kind} families: "
+        + ", ".join(f"{n} {v}" for v, n in sorted(counts.items()))
+        + "."
+        for kind, counts in tally.items()
+    ]
+    out += [
+        "",
+        "Not in the table: the real drive (smartLoc Berlin, `results/smartloc_real.md`: median/RMS error per fold,",
+        "no committed CSV), p000's sigma_a sweep and smoothing run, p002's plain-UKF sweeps and p003's cross-family",
+        "switching test (their results files), and the engine benchmarks (`results/benchmark_engine.md`).",
+        "",
+        "## Detail and discussion",
+        "",
+        "| family | detail (generated) | discussion (results file) | sweep (`experiments/reproduce.py`) |",
+        "|---|---|---|---|",
+    ]
+    for fam in families:
+        out.append(f"| {fam.name} | [detail/{fam.name}.md](detail/{fam.name}.md) | [{fam.results}]({fam.results}) | `{fam.sweep}` |")
+    return "\n".join(out) + "\n"
+
+
+def build_detail(fam: Family, root: Path = ROOT) -> str:
+    """The text of ``results/detail/<family>.md``: every test set, filter and block of the family's CSV."""
+    rows = read_rows(_source(fam, root))
+    has_anees = any(r.quantity.startswith("anees_") for r in rows)
+    src = f"results/data/{fam.name}.csv"
+    out = [
+        f"# {fam.name}: {fam.paper}, {fam.label} ({fam.kind})",
+        "",
+        f"<!-- generated by `python experiments/report.py --render` from {src}; do not edit by hand -->",
+        "",
+        f"Sweep `{fam.sweep}` (`experiments/reproduce.py`); discussion in [{fam.results}](../{fam.results});"
+        " summary in [REPORT.md](../REPORT.md).  Paired differences: filter - hand-tuned (the paper's constants).",
+        "",
+        render_metric(rows, {}),
+    ]
+    if has_anees:
+        out += ["", "ANEES per state block (verdict rule in REPORT.md):", "", render_anees(rows, {})]
+    return "\n".join(out) + "\n"
+
+
+def generated_files(root: Path = ROOT) -> dict[Path, str]:
+    """Every wholly generated file (REPORT.md, the detail pages) and its text."""
+    files = {root / "results" / "REPORT.md": build_report(FAMILIES, root)}
+    files.update({root / "results" / "detail" / f"{fam.name}.md": build_detail(fam, root) for fam in FAMILIES})
+    return files
+
+
+def results_files(root: Path = ROOT) -> list[Path]:
+    """The hand-written results files whose marked tables are rendered (every ``results/*.md`` but REPORT.md)."""
+    return sorted(p for p in (root / "results").glob("*.md") if p.name != "REPORT.md")
+
+
+def check(root: Path = ROOT) -> list[str]:
+    """Every difference between the committed results and what the CSVs give ([] when none)."""
+    problems = []
+    for path, text in generated_files(root).items():
+        rel = path.relative_to(root)
+        if not path.exists():
+            problems.append(f"{rel}: missing (python experiments/report.py --render)")
+        elif path.read_text() != text:
+            problems.append(f"{rel}: differs from what results/data gives")
+    problems += [f"{p.relative_to(root)}: {msg}" for p in results_files(root) for msg in check_text(p.read_text(), root)]
+    return problems
+
+
+def render(root: Path = ROOT) -> list[Path]:
+    """Rewrite every generated table and file; returns the files that changed."""
+    changed = []
+    for path, text in generated_files(root).items():
+        if not path.exists() or path.read_text() != text:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_text(text)
+            changed.append(path)
+    for path in results_files(root):
+        old = path.read_text()
+        new = render_text(old, root)
+        if new != old:
+            path.write_text(new)
+            changed.append(path)
+    return changed
+
+
+def collect(root: Path = ROOT) -> list[Path]:
+    """Copy each family's ``<sweep>/summary.csv``, where a run of ``experiments/reproduce.py`` left
+    one, over its data file (the committed numbers then come from the run); returns those copied."""
+    copied = []
+    for fam in FAMILIES:
+        src = root / fam.sweep / "summary.csv"
+        if src.exists():
+            rows = read_rows(src)  # the schema is checked before anything is overwritten
+            if rows:
+                shutil.copyfile(src, _source(fam, root))
+                copied.append(src)
+    return copied
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``--render`` / ``--check`` / ``--collect`` (module docstring of :mod:`experiments.results_tables`); exit status."""
+    ap = argparse.ArgumentParser(description="Render or check the results tables from results/data/*.csv.")
+    mode = ap.add_mutually_exclusive_group(required=True)
+    mode.add_argument("--render", action="store_true", help="rewrite every generated table, REPORT.md and results/detail/")
+    mode.add_argument("--check", action="store_true", help="exit 1 when a table differs from its CSVs")
+    mode.add_argument("--collect", action="store_true", help="copy the sweeps' summary.csv into results/data, then render")
+    ap.add_argument("--root", type=Path, default=ROOT, help="project root (default: this checkout)")
+    args = ap.parse_args(argv)
+    if args.check:
+        problems = check(args.root)
+        for p in problems:
+            print(p, file=sys.stderr)
+        print(f"results check: {len(problems)} problem(s)" if problems else "results check: every table equals its CSVs")
+        return 1 if problems else 0
+    if args.collect:
+        for src in collect(args.root):
+            print(f"collected {src}")
+    for path in render(args.root):
+        print(f"rendered {path.relative_to(args.root)}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -69,7 +69,8 @@ def main() -> None:
         "`hand-tuned-hard-gate` = hand-tuned + 3-sigma reject gate (3 m floor); `snapshot-lsq` = per-step weighted "
         "least-squares multilateration. Δ = row - hand-tuned on the test block, 95 % paired moving-block bootstrap "
         "(50-step blocks). Training loss: mean + RMS position error against the reference on 60-step windows. "
-        "Adaptive filters and EM: not on main when this ran (hook: "
+        "`sage-husa` / `vb-adaptive-r` = the hand-tuned EKF inside the library's Sage-Husa / variational-Bayes "
+        "adaptive-R filters (default hyperparameters, not trained). EM: not on main when this ran (hook: "
         "`experiments.ranging.protocol.EXTRA_BASELINES`).\n",
     ]
     timing = []

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 import os
 import subprocess
 import sys
@@ -71,12 +72,16 @@ def test_selection_is_never_worse_than_its_start_or_hand_tuned_on_validation(mon
         "learned",
         "untrained-gate",
         "hand-tuned-hard-gate",
+        "sage-husa",
+        "vb-adaptive-r",
         "extra-hook",
         "snapshot-lsq",
     ]
     assert seen == ["W3500x_skewed"]
     hook = next(r for r in res.rows if r["filter"] == "extra-hook")
     assert hook["d_median"] == 0.0 and hook["d_rms"] == 0.0  # the hook returned the hand-tuned filter: identical errors
+    adaptive = next(r for r in res.rows if r["filter"] == "sage-husa")
+    assert adaptive["d_rms"] != 0.0 and all(math.isfinite(adaptive[k]) for k in ("pos_err_p50", "rmse_pos", "pos_err_p95"))
     assert len(res.history) == 2 and all(len(h["scores"]) == 3 for h in res.history)
     best = min(min(h["scores"]) for h in res.history)
     assert s["val_score"] == pytest.approx(min(best, s["val_untrained"], s["val_hand_tuned"]))

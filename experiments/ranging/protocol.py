@@ -20,7 +20,7 @@ For one fold (train / validation / test pieces, each a recording and a span of i
 4. test rows: ``hand-tuned`` (the file's variances, no bias, no gate), ``learned``,
    ``untrained-gate`` (the gated filter at its start), ``hand-tuned-hard-gate`` (a 3-sigma reject
    gate), ``snapshot-lsq`` (per-step weighted least-squares multilateration) and every factory of
-   :data:`EXTRA_BASELINES` (the hook for adaptive filters and EM), with paired block-bootstrap
+   :data:`EXTRA_BASELINES` (Sage-Husa and VB adaptive-R filters; the hook for EM), with paired block-bootstrap
    intervals of each row minus hand-tuned.
 """
 
@@ -39,7 +39,7 @@ from torch import Tensor
 
 from difffilter.datasets.ranging import RangingRecording
 from difffilter.evaluate.holdout import error_statistics, paired_error_table
-from difffilter.filters import EKF
+from difffilter.filters import EKF, SageHusa, VBAdaptiveR
 from difffilter.models.navigation.ranging2d import make_ranging_model, multilateration
 
 __all__ = [
@@ -53,9 +53,14 @@ __all__ = [
     "summary_statistics",
 ]
 
-#: ``{row name: factory(recording) -> filter}``: further baselines evaluated on every test piece
-#: (adaptive filters, EM-tuned filters).  Empty here; a caller registers them.
-EXTRA_BASELINES: dict[str, Callable[[RangingRecording], torch.nn.Module]] = {}
+#: ``{row name: factory(recording) -> filter}``: further baselines evaluated on every test piece.
+#: The adaptive filters estimate ``R`` on line from the innovations, started at the file's
+#: variances (untrained hyperparameters, the docs' defaults); an EM-tuned filter joins here when
+#: the library has one.
+EXTRA_BASELINES: dict[str, Callable[[RangingRecording], torch.nn.Module]] = {
+    "sage-husa": lambda rec: SageHusa(EKF(make_ranging_model(num_anchors=rec.num_anchors, bias=None, noise=None, gate=None))),
+    "vb-adaptive-r": lambda rec: VBAdaptiveR(EKF(make_ranging_model(num_anchors=rec.num_anchors, bias=None, noise=None, gate=None))),
+}
 
 
 @dataclass(frozen=True)

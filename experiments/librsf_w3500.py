@@ -142,7 +142,8 @@ def _write(report: str, out: Path, names: list[str], header: list[str]) -> None:
         parts.append(f"\nFigure and TensorBoard events: `{rel}/learned_extras.png`, `{rel}/tb` (not committed).\n")
     parts.append(READING)
     parts.append(
-        "\n## Time per data set (one process, one thread, 5 seeds x 2 folds)\n\nCPU seconds are what a run needs; wall "
+        "\n## Time per data set (one process, one thread, 5 seeds x 2 folds; leave_one_out: 5 seeds x 3 folds)\n\n"
+        "CPU seconds are what a run needs; wall "
         "seconds depend on what else ran on the 2 cores (1-minute load average when the data set finished).\n\n"
         "| data set | wall s | CPU s | load |\n|---|---|---|---|\n"
     )
@@ -157,6 +158,7 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=None)
     ap.add_argument("--report", default=str(ROOT / "results" / "librsf_w3500.md"))
     ap.add_argument("--report-only", action="store_true", help="rewrite the report from the runs in --out (no training)")
+    ap.add_argument("--by-dataset", action="store_true", help="run only the leave-one-data-set-out folds (all three sets), then report")
     args = ap.parse_args()
     torch.set_num_threads(1)
     cfg = yaml.safe_load((ROOT / "conf" / "realdata_ranging" / "default.yaml").read_text())
@@ -167,14 +169,17 @@ def main() -> None:
     out = Path(args.out)
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
     sets = [(key, ds.inputs[0].removesuffix("_Input.txt")) for key, ds in DATASETS.items() if ds.folder == folder.name]
-    names = [n for _k, n in sets]
-    if args.report_only:
-        commits = {json.loads((out / n / "timing.json").read_text())["commit"] for n in names if (out / n / "timing.json").is_file()}
-        commit = ", ".join(sorted(commits)) or commit
-    header = _header(commit, cfg)
-    for key, name in [] if args.report_only else sets:
+    names = [n for _k, n in sets] + ["leave_one_out"]
+    done = {json.loads((out / n / "timing.json").read_text())["commit"] for n in names if (out / n / "timing.json").is_file()}
+    runs_at = sorted(done | (set() if args.report_only else {commit}))
+    header = _header(", ".join(runs_at) or commit, cfg)
+    todo = [] if args.report_only else [("leave-one-data-set-out", "leave_one_out")] if args.by_dataset else sets
+    for key, name in todo:
         t0, c0 = time.time(), time.process_time()
-        run_ranging(folder, cfg, out / name, only=[name])
+        if name == "leave_one_out":  # train + validate on two sets, test on the third, for each
+            run_ranging(folder, {**cfg, "folds": {}, "by_dataset": True}, out / name)
+        else:
+            run_ranging(folder, cfg, out / name, only=[name])
         timing = {"key": key, "wall": time.time() - t0, "cpu": time.process_time() - c0, "load": os.getloadavg()[0], "commit": commit}
         (out / name / "timing.json").write_text(json.dumps(timing))
         _write(args.report, out, names, header)  # after every data set: a partial report survives an interruption

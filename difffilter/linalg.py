@@ -16,7 +16,11 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+#: ``log(2 pi)``, the Gaussian normaliser per observed component.
+LOG_2PI = math.log(2.0 * math.pi)
+
 __all__ = [
+    "LOG_2PI",
     "CholeskyResult",
     "any_set",
     "block_diag",
@@ -262,17 +266,37 @@ def chol_rank1_update(chol: Tensor, v: Tensor, sign: float | Tensor = 1.0) -> Te
     return torch.stack(cols, -1)
 
 
-def gaussian_log_density(residual: Tensor, chol: Tensor) -> tuple[Tensor, Tensor]:
-    """``log N(residual; 0, L L^T)`` and the Mahalanobis distance ``r^T (L L^T)^{-1} r``.
+def gaussian_log_density(
+    residual: Tensor,
+    chol: Tensor,
+    num_obs: Tensor | float | None = None,
+    *,
+    whitened: Tensor | None = None,
+    logdet: Tensor | None = None,
+) -> tuple[Tensor, Tensor]:
+    """``log N(residual; 0, L L^T)`` and the Mahalanobis distance ``r^T (L L^T)^{-1} r``: the one
+    Gaussian log-likelihood of the library (filters' innovations, losses, metrics).
 
-    ``residual [..., m]``, ``chol [..., m, m]`` lower.  Returns ``(log_density [...],
-    mahalanobis [...])``.
+    Args:
+        residual: ``[..., m]``.
+        chol: ``[..., m, m]`` lower Cholesky factor ``L``.
+        num_obs: the number of observed components ``[...]`` when a mask has reduced the system
+            (unobserved components carry a zero residual and a unit row/column of ``L``, so they
+            add nothing to the distance or the log-determinant, only ``log 2 pi`` per count);
+            ``None``: ``m``.
+        whitened: ``L^{-1} residual [..., m]`` when the caller has it already (not recomputed).
+        logdet: ``log det(L L^T) [...]`` when the caller has it already (e.g. one per time step
+            shared by a batch).
+
+    Returns:
+        ``(log_density [...], mahalanobis [...])``.
     """
-    m = residual.shape[-1]
-    w = torch.linalg.solve_triangular(chol, residual[..., None], upper=False)[..., 0]
+    w = torch.linalg.solve_triangular(chol, residual[..., None], upper=False)[..., 0] if whitened is None else whitened
     maha = (w * w).sum(-1)
-    logdet = 2.0 * torch.log(torch.diagonal(chol, dim1=-2, dim2=-1)).sum(-1)
-    return -0.5 * (maha + logdet + m * math.log(2.0 * math.pi)), maha
+    if logdet is None:
+        logdet = 2.0 * torch.log(torch.diagonal(chol, dim1=-2, dim2=-1)).sum(-1)
+    count = residual.shape[-1] if num_obs is None else num_obs
+    return -0.5 * (maha + logdet + count * LOG_2PI), maha
 
 
 def block_diag(*blocks: Tensor) -> Tensor:

@@ -57,6 +57,27 @@ def test_psd_solve_and_log_density_match_dense(vals, b):
     assert abs(float(ld) - ref) < 1e-8 * max(1.0, abs(ref))
 
 
+def test_log_density_of_a_masked_system_is_that_of_the_observed_components():
+    # Component 1 unobserved: the masked system has a zero residual and a unit row/column there;
+    # with num_obs = 2 the density is the 2-D one of components 0 and 2 (scipy, dense).
+    from scipy.stats import multivariate_normal
+
+    full = _spd(list(np.linspace(-0.9, 0.8, 9)), 3)
+    keep = [0, 2]
+    sub = full[keep][:, keep]
+    masked = torch.eye(3, dtype=torch.float64)
+    masked[np.ix_(keep, keep)] = sub
+    r = torch.tensor([0.7, 0.0, -1.3], dtype=torch.float64)
+    chol = torch.linalg.cholesky(masked)
+    ref = multivariate_normal(mean=np.zeros(2), cov=sub.numpy()).logpdf(r[keep].numpy())
+    ld, maha = gaussian_log_density(r, chol, torch.tensor(2.0, dtype=torch.float64))
+    assert abs(float(ld) - ref) < 1e-12 * max(1.0, abs(ref))
+    # the caller's whitened residual and log-determinant give the same numbers
+    w = torch.linalg.solve_triangular(chol, r[:, None], upper=False)[:, 0]
+    ld2, maha2 = gaussian_log_density(r, chol, 2.0, whitened=w, logdet=torch.logdet(masked))
+    assert abs(float(ld2) - ref) < 1e-12 * max(1.0, abs(ref)) and abs(float(maha2 - maha)) < 1e-12
+
+
 def test_safe_cholesky_repairs_only_failing_elements():
     good = _spd(list(np.linspace(-1, 1, 9)), 3)
     singular = torch.ones(3, 3, dtype=torch.float64)  # PSD, rank 1

@@ -16,7 +16,6 @@ The result equals the per-trajectory recursion up to rounding.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 
 import torch
@@ -26,7 +25,7 @@ from ..filters._common import StepInfo, mask_measurement_system
 from ..filters.base import Belief, FilterResult, RecursiveFilter
 from ..filters.kalman import KalmanFilter
 from ..filters.update import untrusted_steps
-from ..linalg import safe_cholesky
+from ..linalg import gaussian_log_density, safe_cholesky
 from ..models.base import Controls, LinearModel
 
 __all__ = ["MIN_SHARED_BATCH", "SharedGainMean", "shares_covariance", "shared_covariance_run"]
@@ -38,7 +37,6 @@ FieldsOf = Callable[[Tensor, "Tensor | None", Belief, Controls], Callable[[str],
 #: the benchmark's 4-state KF, T = 500, float64, experiments/benchmark_kf_shared.py, per trajectory
 #: / shared: B = 16 0.51, 64 1.32, 256 1.81, 1024 3.09, 4096 2.01)
 MIN_SHARED_BATCH = 64
-_LOG_2PI = math.log(2.0 * math.pi)
 
 
 def _same_for_all(x: Tensor) -> bool:
@@ -91,9 +89,7 @@ class SharedGainMean(RecursiveFilter):
             num_obs = mask.to(e.dtype).sum(-1)
         gain = u["gain"].reshape(*e.shape[:-1], n, m)  # type: ignore[index]
         chol = u["chol"].reshape(*e.shape[:-1], m, m)  # type: ignore[index]
-        v = torch.linalg.solve_triangular(chol, e[..., None], upper=False)[..., 0]
-        maha = (v * v).sum(-1)
-        loglik = -0.5 * (maha + u["logdet"][..., 0] + num_obs * _LOG_2PI)  # type: ignore[index]
+        loglik, maha = gaussian_log_density(e, chol, num_obs, logdet=u["logdet"][..., 0])  # type: ignore[index]
         new_mean = mean + (gain @ e[..., None])[..., 0]
         return {"mean": new_mean, "cov": belief["cov"]}, StepInfo(loglik, maha, num_obs)
 

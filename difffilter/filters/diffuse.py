@@ -46,12 +46,10 @@ half of the digits.  Directions no measurement reaches stay in ``P_fin``.
 
 from __future__ import annotations
 
-import math
-
 import torch
 from torch import Tensor
 
-from ..linalg import symmetrize
+from ..linalg import LOG_2PI, symmetrize
 from ..models.base import Controls, StateSpaceModel
 from .jacobians import measurement_matrix, measurement_noise_cov, transition_matrix
 
@@ -69,7 +67,7 @@ __all__ = [
 
 DIFFUSE_COV = "diffuse_cov"
 DIFFUSE_SCALE = "diffuse_scale"
-_LOG_2PI = math.log(2.0 * math.pi)
+_LOG_2PI = LOG_2PI
 
 
 def dangerous_ratio(dtype: torch.dtype) -> float:

@@ -9,13 +9,12 @@
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 
 import torch
 from torch import Tensor
 
-from ..linalg import any_set, joseph_update, psd_sqrt, safe_cholesky, symmetrize
+from ..linalg import any_set, gaussian_log_density, joseph_update, psd_sqrt, safe_cholesky, symmetrize
 from ._common import StepInfo, mask_measurement_system
 from .diffuse import DIFFUSE_COV, DIFFUSE_SCALE, diffuse_update
 from .protocol import Belief
@@ -26,8 +25,6 @@ __all__ = [
     "square_root_deviations",
     "untrusted_steps",
 ]
-
-_LOG_2PI = math.log(2.0 * math.pi)
 
 
 def _trust_limits(dtype: torch.dtype) -> tuple[float, float, float]:
@@ -112,9 +109,7 @@ def gaussian_update(
     else:
         gain = torch.linalg.solve_triangular(chol.mT, w, upper=True).mT  # K = W^T L^{-1}
         new_cov = joseph_update(cov, gain, *_masked_system(*joseph, mask))
-    maha = (v * v).sum(-1)
-    logdet = 2.0 * torch.log(torch.diagonal(chol, dim1=-2, dim2=-1)).sum(-1)
-    loglik = -0.5 * (maha + logdet + num_obs * _LOG_2PI)
+    loglik, maha = gaussian_log_density(innovation, chol, num_obs, whitened=v)
     info = StepInfo(loglik, maha, num_obs, innovation, innovation_cov, untrusted, jitter)
     return new_mean, new_cov, info
 

@@ -2,6 +2,7 @@
 fixed-lag and IMM smoothing, with the filters' conventions (masks, controls, belief carry-over)."""
 
 from .base import Smoother
+from .expectations import measurement_residual_moments, previous_smoothed, transition_residual_moments
 from .factory import make_smoother, smoother_spec
 from .fixed_lag import FixedLagSmoother
 from .imm import IMMSmoother
@@ -16,5 +17,8 @@ __all__ = [
     "SmootherResult",
     "UnscentedRTSSmoother",
     "make_smoother",
+    "measurement_residual_moments",
+    "previous_smoothed",
     "smoother_spec",
+    "transition_residual_moments",
 ]

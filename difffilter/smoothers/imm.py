@@ -43,7 +43,11 @@ class IMMSmoother(Smoother):
     mode's acceleration) have no dynamics to smooth.  Fixed-lag IMM smoothing is not provided.
 
     Outputs (``SmootherResult``): ``mean``, ``cov`` (combined), ``initial_mean``/``initial_cov``,
-    extras ``mode_probs [B, T, M]``, ``mode_means [B, T, M, n]``, ``mode_covs`` (smoothed);
+    extras ``mode_probs [B, T, M]``, ``mode_means [B, T, M, n]``, ``mode_covs`` (smoothed),
+    ``initial_mode_probs [B, M]`` (the mode before the first measurement, smoothed) and
+    ``mode_pair_probs [B, T, M, M]``, ``[:, t, j, i] = P(mode j at t - 1, mode i at t | all)``
+    in step 1's approximation (``U[j, i]``; at ``t = 0`` the mode before the first measurement):
+    the expected transition counts of EM (:func:`difffilter.learn.em.fit_em`).
     ``cross_cov`` is ``None`` (the mixture's lag-one covariance is not formed).
     """
 
@@ -86,11 +90,12 @@ class IMMSmoother(Smoother):
         # per-step views (unbound once: see rts_backward)
         m_t, c_t, l_t, g_t, pm_t, pc_t = (x.unbind(1) for x in (means, covs, log_mu, gains, pm, pc))
         s_mean, s_cov, s_log_mu = m_t[-1], c_t[-1], l_t[-1]
-        out_means, out_covs, out_log = [s_mean], [s_cov], [s_log_mu]
+        out_means, out_covs, out_log, out_pairs = [s_mean], [s_cov], [s_log_mu], []
         for t in range(result.mean.shape[1] - 1, -1, -1):
             log_joint = l_t[t][:, :, None] + log_pi  # [B, j, i]
             log_back = log_joint - torch.logsumexp(log_joint, 1, keepdim=True)  # P(j at t-1 | i at t)
             log_u = log_back + s_log_mu[:, None, :]
+            out_pairs.append(log_u)
             s_log_prev = torch.logsumexp(log_u, 2).clamp_min(tiny)  # [B, j]
             w = torch.exp(log_u - s_log_prev[..., None])  # W[i | j]
             x_ji, p_ji = rts_step(m_t[t][:, :, None], c_t[t][:, :, None], g_t[t], pm_t[t], pc_t[t], s_mean[:, None], s_cov[:, None])
@@ -104,7 +109,8 @@ class IMMSmoother(Smoother):
         mean, cov = combine_gaussians(log_probs.exp(), mode_means, mode_covs)
         return SmootherResult(
             mean=mean[:, 1:], cov=cov[:, 1:], filtered=result, initial_mean=mean[:, 0], initial_cov=cov[:, 0],
-            extras={"mode_probs": log_probs[:, 1:].exp(), "mode_means": mode_means[:, 1:], "mode_covs": mode_covs[:, 1:]},
+            extras={"mode_probs": log_probs[:, 1:].exp(), "mode_means": mode_means[:, 1:], "mode_covs": mode_covs[:, 1:],
+                    "initial_mode_probs": log_probs[:, 0].exp(), "mode_pair_probs": torch.stack(out_pairs[::-1], 1).exp()},
         )  # fmt: skip
 
 

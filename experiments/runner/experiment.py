@@ -63,6 +63,7 @@ import logging
 import math
 import time
 from collections.abc import Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -83,6 +84,7 @@ from difffilter.models.layout import model_defaults
 from difffilter.selection import assign_parameters, parameter_owners
 from difffilter.smoothers import make_smoother, smoother_spec
 
+from .baselines import tune_baseline
 from .runs import checkpoint_config, resume_checkpoint, run_status
 
 __all__ = [
@@ -301,6 +303,7 @@ def _run(cfg: DictConfig, train: bool) -> dict[str, Any]:
     learner.run_config = OmegaConf.to_container(cfg, resolve=True)  # type: ignore[assignment]
     trainer, loggers = _trainer(cfg)
     optimized = math.nan
+    fit_cpu = time.process_time()
     if train:
         trainer.fit(learner, datamodule=datamodule, ckpt_path=resume_checkpoint(cfg))
         if cfg.get("optimized_metric"):
@@ -309,10 +312,14 @@ def _run(cfg: DictConfig, train: bool) -> dict[str, Any]:
         trainer.test(learner, datamodule=datamodule, ckpt_path="best" if best else None)
     else:
         trainer.test(learner, datamodule=datamodule, ckpt_path=str(cfg.ckpt_path))
+    fit_cpu = time.process_time() - fit_cpu
     if not trainer.is_global_zero:
         return {}
     test = datamodule.dataset("test")
-    rows, note = evaluate_experiment(cfg, hand, learner, test)
+    baselines = build_baselines(cfg, hand, learner, datamodule)
+    if train:
+        baselines.learned_info["tuning_cpu_s"] = fit_cpu
+    rows, note = evaluate_experiment(cfg, hand, learner, test, baselines=baselines)
     title = f"difffilter results: {exp.get('name', '')}"
     output_dir = Path(cfg.paths.output_dir)
     write_results(rows, output_dir, title=title, note=note)
@@ -322,7 +329,7 @@ def _run(cfg: DictConfig, train: bool) -> dict[str, Any]:
         extra_dir = output_dir / EXTRA_TESTS_DIR / str(test_name)
         extra_dir.mkdir(parents=True, exist_ok=True)
         extra_rows, extra_note = evaluate_experiment(
-            cfg, hand, learner, extra, output_dir=extra_dir, label=str(test_name), oracle_source=test
+            cfg, hand, learner, extra, output_dir=extra_dir, label=str(test_name), oracle_source=test, baselines=baselines
         )
         write_results(extra_rows, extra_dir, title=title, note=extra_note)
     text = format_results(rows, title=f"results ({output_dir})", note=note)
@@ -347,6 +354,50 @@ def best_logged_value(trainer: pl.Trainer, name: str) -> float:
     return float(trainer.callback_metrics[name])
 
 
+@dataclass
+class Baselines:
+    """The baseline filters of an experiment, built once for every test set: ``filters`` by row
+    name, ``info`` their extra columns (``tuning_cpu_s``, ``tuning``), ``learned_info`` the
+    learned row's (its training's CPU seconds)."""
+
+    filters: dict[str, Filter] = field(default_factory=dict)
+    info: dict[str, dict[str, Any]] = field(default_factory=dict)
+    learned_info: dict[str, Any] = field(default_factory=dict)
+
+
+def build_baselines(cfg: DictConfig, hand: Filter, learner: FilterLearner, datamodule: Any) -> Baselines:
+    """Every entry of ``experiment.baselines``: built from its ``filter`` (default the
+    experiment's) with its ``params``; an entry with ``tune`` starts from the hand-tuned values
+    (then its ``params``) and is fitted on the training or validation data
+    (:mod:`experiments.runner.baselines`), which ``datamodule`` must then give."""
+    dtype = as_dtype(cfg.dtype)
+    exp = cfg.experiment
+    out = Baselines()
+    indices = {k: exp.get(k) for k in ("position_index", "truth_position_index")}
+    indices = {k: None if v is None else [int(i) for i in v] for k, v in indices.items()}
+    for name, spec in (_plain(exp.get("baselines")) or {}).items():
+        tune = spec.get("tune")
+        if not tune:
+            out.filters[name] = build_filter(spec.get("filter") or cfg.filter, dtype=dtype, params=spec.get("params"))
+            continue
+        if datamodule is None:
+            raise ValueError(f"experiment.baselines.{name} has tune: it needs the experiment's data module (build_baselines's datamodule)")
+        params = {**(_plain(exp.get("hand_tuned")) or {}), **(spec.get("params") or {})}
+        filt = build_filter(spec.get("filter") or cfg.filter, dtype=dtype, params=params or None)
+        out.info[name] = tune_baseline(
+            filt,
+            tune,
+            name=str(name),
+            train=datamodule.dataset("train"),
+            val=datamodule.dataset("val"),
+            initial_mean=learner.initial_mean,
+            initial_cov=learner.initial_cov,
+            **indices,
+        )
+        out.filters[name] = filt
+    return out
+
+
 def evaluate_experiment(
     cfg: DictConfig,
     hand: Filter,
@@ -356,19 +407,23 @@ def evaluate_experiment(
     output_dir: str | Path | None = None,
     label: str = "",
     oracle_source: TrajectorySet | None = None,
+    baselines: Baselines | None = None,
 ) -> tuple[list[dict[str, Any]], str]:
     """The results rows of the hand-tuned, learned, oracle and baseline filters on the test set
     (``per_run.csv`` written to ``output_dir``, default ``cfg.paths.output_dir``) and the table's
     note; ``label`` names an extra test set in the note, whose oracle keeps the true parameters of
-    ``oracle_source`` (the main test set)."""
+    ``oracle_source`` (the main test set).  ``baselines``: the baseline filters built (and tuned)
+    once by :func:`build_baselines` (built here, untuned entries only, when not given)."""
     dtype = as_dtype(cfg.dtype)
     exp = cfg.experiment
     filters: dict[str, Filter] = {"hand-tuned": hand, "learned": learner.filter}
     oracle = _oracle(cfg, hand, oracle_source if oracle_source is not None else test, dtype)
     if oracle is not None:
         filters["oracle"] = oracle
-    for name, spec in (_plain(exp.get("baselines")) or {}).items():
-        filters[name] = build_filter(spec.get("filter") or cfg.filter, dtype=dtype, params=spec.get("params"))
+    if baselines is None:
+        baselines = build_baselines(cfg, hand, learner, None)
+    filters.update(baselines.filters)
+    info = {"learned": baselines.learned_info, **baselines.info}
     indices = {k: exp.get(k) for k in ("position_index", "truth_position_index", "state_index", "truth_index")}
     indices = {k: None if v is None else [int(i) for i in v] for k, v in indices.items()}
     blocks = {str(k): [int(i) for i in v] for k, v in (_plain(exp.get("state_blocks")) or {}).items()} or None
@@ -392,7 +447,7 @@ def evaluate_experiment(
         log.info("evaluating %s (%d/%d) on %d test trajectories x %d steps", name, k, len(filters), len(test), test.num_steps)
         tic = time.perf_counter()
         filt = filt.to(dtype).eval()
-        row: dict[str, Any] = {"filter": name}
+        row: dict[str, Any] = {"filter": name, **info.get(name, {})}
         evaluation = evaluate_runs(filt, test, **kwargs)
         row.update(evaluation.summary)
         per_run[name] = evaluation.per_run

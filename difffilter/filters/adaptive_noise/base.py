@@ -29,13 +29,12 @@ Conventions shared by the subclasses:
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
-from ...linalg import safe_cholesky, symmetrize
+from ...linalg import gaussian_log_density, safe_cholesky, symmetrize
 from ...models.base import Controls
 from .._common import StepInfo, expand_controls, mask_measurement_system
 from ..base import Belief, RecursiveFilter, gaussian_update
@@ -45,7 +44,6 @@ from ..ukf import UKF, SimplifiedUKF, deviations, state_add, weighted_mean
 
 __all__ = ["AdaptiveNoiseFilter", "Moments", "blockdiag_sample", "is_positive_definite"]
 
-_LOG_2PI = math.log(2.0 * math.pi)
 _INNER_TYPES = (KalmanFilter, EKF, UKF, SimplifiedUKF)
 
 
@@ -176,10 +174,8 @@ class AdaptiveNoiseFilter(RecursiveFilter):
         """Log-density ``log N(e; 0, S)`` of the observed components, NIS and their number."""
         e, s, _, nobs = mask_measurement_system(innovation, innovation_cov, innovation[..., None, :], mask)
         chol, jitter = safe_cholesky(s)
-        v = torch.linalg.solve_triangular(chol, e[..., None], upper=False)[..., 0]
-        maha = (v * v).sum(-1)
-        logdet = 2.0 * torch.log(torch.diagonal(chol, dim1=-2, dim2=-1)).sum(-1)
-        return StepInfo(-0.5 * (maha + logdet + nobs * _LOG_2PI), maha, nobs, e, s, None, jitter)
+        loglik, maha = gaussian_log_density(e, chol, nobs)
+        return StepInfo(loglik, maha, nobs, e, s, None, jitter)
 
     @staticmethod
     def observed(z: Tensor, mask: Tensor | None) -> Tensor:

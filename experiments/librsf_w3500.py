@@ -49,8 +49,10 @@ def _header(commit: str, cfg: dict[str, Any]) -> list[str]:
         "start; `hand-tuned-hard-gate` = hand-tuned + 3-sigma reject gate (3 m floor); `sage-husa` / `vb-adaptive-r` = the "
         "hand-tuned EKF inside the library's Sage-Husa / variational-Bayes adaptive-R filters (default hyperparameters, "
         "not trained); `snapshot-lsq` = per-step weighted least-squares multilateration. Δ = row - hand-tuned on the test "
-        "block, 95 % paired moving-block bootstrap (50-step blocks). EM: not on main when this ran (hook: "
-        "`experiments.ranging.protocol.EXTRA_BASELINES`).\n",
+        "block, 95 % paired moving-block bootstrap (50-step blocks). No EM row: `difffilter.learn.fit_em` refuses "
+        "state- or control-dependent noise, and this model's `R` (the file's variance of each line) and `Q` (the odometry "
+        "covariance of each step) are control-dependent; a tuned baseline joins through "
+        "`experiments.ranging.protocol.EXTRA_BASELINES`.\n",
     ]
 
 

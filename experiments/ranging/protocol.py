@@ -55,8 +55,8 @@ __all__ = [
 
 #: ``{row name: factory(recording) -> filter}``: further baselines evaluated on every test piece.
 #: The adaptive filters estimate ``R`` on line from the innovations, started at the file's
-#: variances (untrained hyperparameters, the docs' defaults); an EM-tuned filter joins here when
-#: the library has one.
+#: variances (untrained hyperparameters, the docs' defaults).  No EM-tuned row: ``fit_em`` refuses
+#: control-dependent noise, which this model's ``R`` and ``Q`` are.
 EXTRA_BASELINES: dict[str, Callable[[RangingRecording], torch.nn.Module]] = {
     "sage-husa": lambda rec: SageHusa(EKF(make_ranging_model(num_anchors=rec.num_anchors, bias=None, noise=None, gate=None))),
     "vb-adaptive-r": lambda rec: VBAdaptiveR(EKF(make_ranging_model(num_anchors=rec.num_anchors, bias=None, noise=None, gate=None))),

@@ -44,8 +44,8 @@ def load(name: str, root: str | Path | None = None, *, download: bool = False) -
     """Data set ``name`` read from its folder (:func:`~.registry.locate`): a
     :class:`RangingRecording` for 2-D ranging sets; the raw :class:`LibrsfFile` of the input for
     pseudorange sets (the GNSS assembly needs a frame and clock model: the smartLoc loader)."""
-    ds = DATASETS[name] if name in DATASETS else locate(name)  # locate raises the KeyError listing names
-    folder = locate(name, root, download=download)
+    folder = locate(name, root, download=download)  # KeyError listing the names for an unknown one
+    ds = DATASETS[name]
     if ds.kind == "ranging2d":
         return load_ranging(folder / ds.inputs[0], folder / ds.truth)
     return read_librsf(folder / ds.inputs[0])

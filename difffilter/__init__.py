@@ -1,8 +1,20 @@
 """difffilter: batched, differentiable Kalman-family filters in PyTorch."""
 
-from . import filters, linalg, mixers, models, params, sim, smoothers
+from . import filters, func, linalg, mixers, models, params, sim, smoothers
 from ._util import as_dtype, document_init
-from .filters import EKF, RCUKF, UKF, ColoredNoiseUKF, Filter, GaussianFilter, KalmanFilter, RecursiveFilter, SimplifiedUKF, SquareRootUKF
+from .filters import (
+    EKF,
+    RCUKF,
+    UKF,
+    ColoredNoiseUKF,
+    Filter,
+    GaussianFilter,
+    KalmanFilter,
+    ParallelKalmanFilter,
+    RecursiveFilter,
+    SimplifiedUKF,
+    SquareRootUKF,
+)
 from .mixers import IMM, Blend
 from .models import FunctionalModel, LinearModel, StateSpaceModel
 
@@ -18,17 +30,19 @@ __all__ = [
     "GaussianFilter",
     "KalmanFilter",
     "LinearModel",
+    "ParallelKalmanFilter",
     "RecursiveFilter",
     "SimplifiedUKF",
     "SquareRootUKF",
     "StateSpaceModel",
     "as_dtype",
+    "func",
     "linalg",
     "mixers",
     "params",
     "smoothers",
 ]
-__version__ = "0.1.0"
+__version__ = "0.2.0.dev0"
 
 # help(UKF.__init__) shows UKF's arguments, not the text nn.Module.__init__ would pass on
 document_init(getattr(m, name) for m in (filters, mixers, models, params, sim, smoothers) for name in m.__all__)

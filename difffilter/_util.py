@@ -69,7 +69,8 @@ def control(u: Any, key: str, owner: str = "this model") -> Tensor:
     """``u[key]`` of a per-step inputs dict; ``KeyError`` naming ``owner`` and the key when absent."""
     if not isinstance(u, Mapping) or key not in u:
         raise KeyError(f"{owner} needs u[{key!r}] (per-step inputs dict)")
-    return u[key]
+    value: Tensor = u[key]
+    return value
 
 
 def document_init(classes: Iterable[Any]) -> None:

@@ -95,6 +95,15 @@ class Constraint(nn.Module):
         return value
 
 
+def _floor_hint(name: str, dtype: torch.dtype, tiny: float) -> str:
+    """Why a tiny variance is refused and what holds it instead."""
+    return (
+        f": {tiny:.3g} is the variance floor of a learnable covariance in {dtype} (sqrt of its smallest normal number, added "
+        f"so that every learned value factorises); pass {name}_structure='scalar' (a learnable multiple of the given matrix, "
+        f"what 'auto' picks) or 'fixed', or compute in float64"
+    )
+
+
 def _show(value: Tensor) -> str:
     return str(value.detach().cpu().tolist()) if value.numel() <= 16 else f"a tensor of shape {list(value.shape)}"
 
@@ -238,18 +247,24 @@ class PositiveDefinite(Constraint):
                 raise ValueError(f"{self.name} must be a diagonal matrix (its structure is diagonal)")
             a = diag - tiny
             if not bool((a > self.floor**2).all()):
-                raise ValueError(f"{self.name} must have diagonal entries above {max(self.floor**2, tiny):.3g}, got {_show(diag)}")
+                raise ValueError(
+                    f"{self.name} must have diagonal entries above {max(self.floor**2, tiny):.3g} for a learnable diagonal "
+                    f"covariance, got {_show(diag)}{_floor_hint(self.name, value.dtype, tiny)}"
+                )
             return softplus_inverse(torch.sqrt(a) - self.floor)
         scale = value.abs().amax((-2, -1), keepdim=True).clamp_min(torch.finfo(value.dtype).tiny)
         if not bool(((value - value.mT).abs() <= 1e-6 * scale).all()):
             raise ValueError(f"{self.name} must be symmetric")
         # V's off-diagonal entries are A's; its diagonal is (1 + delta) diag(A) + t
         a = 0.5 * (value + value.mT) + torch.diag_embed((diag - tiny) / (1.0 + delta) - diag)
+        if not bool((diag > tiny).all()):
+            raise ValueError(f"{self.name} has variances {_show(diag)} at or below {tiny:.3g}{_floor_hint(self.name, value.dtype, tiny)}")
         chol, info = torch.linalg.cholesky_ex(a)
         if bool((info != 0).any()) or not bool(torch.isfinite(chol).all()):
             raise ValueError(
-                f"{self.name} must be positive definite with correlations away from +-1 by more than the nugget 16 n eps; "
-                "a semi-definite covariance needs structure 'fixed' or 'factor'"
+                f"{self.name} must be positive definite for {self.name}_structure='full' (log-Cholesky), with correlations away "
+                f"from +-1 by more than the nugget 16 n eps; a semi-definite covariance (such as the white-noise-acceleration Q) "
+                f"needs {self.name}_structure='factor' (learnable L L^T of its rank, what 'auto' picks), 'scalar' or 'fixed'"
             )
         d = torch.diagonal(chol, dim1=-2, dim2=-1)
         if not bool((d > self.floor).all()):
@@ -291,7 +306,8 @@ class FactorCovariance(Constraint):
         if bool((lam[..., : n - self.rank] > tol).any()):
             raise ValueError(f"{self.name} must have rank <= {self.rank}, got eigenvalues {_show(lam)}")
         top = lam[..., n - self.rank :].clamp_min(0.0)
-        return vecs[..., :, n - self.rank :] * torch.sqrt(top)[..., None, :]
+        factor: Tensor = vecs[..., :, n - self.rank :] * torch.sqrt(top)[..., None, :]
+        return factor
 
 
 class RowStochastic(Constraint):

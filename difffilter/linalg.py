@@ -15,6 +15,7 @@ from typing import NamedTuple
 
 import torch
 from torch import Tensor
+from torch._C import _functorch
 
 #: ``log(2 pi)``, the Gaussian normaliser per observed component.
 LOG_2PI = math.log(2.0 * math.pi)
@@ -23,6 +24,8 @@ __all__ = [
     "LOG_2PI",
     "CholeskyResult",
     "any_set",
+    "inside_vmap",
+    "vmapped",
     "block_diag",
     "cholesky_failure_count",
     "jitter_bound",
@@ -85,15 +88,38 @@ def _chol_ok(chol: Tensor, info: Tensor) -> Tensor:
     return (info == 0) & finite
 
 
+def inside_vmap() -> bool:
+    """Whether the code runs inside a ``torch.func.vmap`` transform (at any level)."""
+    if torch.compiler.is_compiling():  # a traced graph never holds functorch wrappers
+        return False
+    stack = _functorch.get_interpreter_stack()
+    return bool(stack) and any(i.key() == _functorch.TransformType.Vmap for i in stack)
+
+
+def vmapped(*tensors: Tensor) -> bool:
+    """Whether any of ``tensors`` is batched by ``torch.func.vmap``: its per-sample values cannot
+    be read in Python (``bool()``, ``.item()``), so a data-dependent branch must take a path
+    that is right for every sample (``torch.where`` over both, or the conservative one)."""
+    if torch.compiler.is_compiling():  # a traced graph never holds functorch wrappers
+        return False
+    for t in tensors:
+        while _functorch.maybe_get_level(t) != -1:
+            if _functorch.is_batchedtensor(t):
+                return True
+            t = _functorch.get_unwrapped(t)
+    return False
+
+
 def any_set(flags: Tensor) -> bool:
     """Whether any element of the boolean ``flags`` is set.
 
     The guard of optional per-element work whose result is selected with ``torch.where`` (e.g. a
     Joseph-form recomputation where ``P - K S K^T`` cancels): skipping the work when no element
     needs it changes no value, so an engine that cannot branch on data (the generated kernels of
-    :class:`~difffilter.filters.FusedFilter`) takes the guard as always true.
+    :class:`~difffilter.filters.FusedFilter`) takes the guard as always true, and so does
+    ``torch.func.vmap`` (:func:`vmapped`).
     """
-    return bool(flags.any())
+    return vmapped(flags) or bool(flags.any())
 
 
 def safe_cholesky(a: Tensor, *, max_jitter: float | None = None) -> CholeskyResult:
@@ -115,6 +141,8 @@ def safe_cholesky(a: Tensor, *, max_jitter: float | None = None) -> CholeskyResu
     # path needs no symmetrisation; one reduction decides whether any element needs repair
     # (a NaN/inf anywhere reaches the diagonal; an overflowing sum only costs the slow path).
     chol, info = torch.linalg.cholesky_ex(a)
+    if vmapped(chol, info):
+        return _vmapped_cholesky(a, chol, info, max_jitter)
     if not bool(info.any()) and bool(torch.isfinite(torch.diagonal(chol, dim1=-2, dim2=-1).sum())):
         return CholeskyResult(chol, torch.zeros(info.shape, dtype=a.dtype, device=a.device))
     a = symmetrize(a)
@@ -140,6 +168,27 @@ def safe_cholesky(a: Tensor, *, max_jitter: float | None = None) -> CholeskyResu
     safe_a = torch.where(usable[..., None, None], a + jitter.where(usable, 0.0)[..., None, None] * eye, eye)
     chol = torch.linalg.cholesky_ex(safe_a)[0]
     return CholeskyResult(chol, jitter)
+
+
+def _jitter_scale(a: Tensor) -> Tensor:
+    diag_mean = torch.diagonal(a, dim1=-2, dim2=-1).abs().mean(-1)
+    return torch.where(torch.isfinite(diag_mean) & (diag_mean > 0), diag_mean, torch.ones_like(diag_mean))
+
+
+def _vmapped_cholesky(a: Tensor, chol: Tensor, info: Tensor, max_jitter: float) -> CholeskyResult:
+    """:func:`safe_cholesky` without reading values (inside ``vmap``): a failing element gets
+    the largest allowed jitter at once (or the identity and ``jitter = inf``), selected by
+    ``where``; one more factorisation of every element instead of the ladder of levels."""
+    ok = _chol_ok(chol, info)
+    eye = torch.eye(a.shape[-1], dtype=a.dtype, device=a.device)
+    a = symmetrize(a)
+    with torch.no_grad():
+        trial = max_jitter * _jitter_scale(a)
+    c2, i2 = torch.linalg.cholesky_ex(a + trial[..., None, None] * eye)
+    ok2 = _chol_ok(c2, i2)
+    factor = torch.where(ok[..., None, None], chol, torch.where(ok2[..., None, None], c2, eye))
+    jitter = torch.where(ok, torch.zeros_like(trial), torch.where(ok2, trial, torch.full_like(trial, math.inf)))
+    return CholeskyResult(factor, jitter)
 
 
 def _semidefinite_factor(a: Tensor) -> tuple[Tensor, Tensor]:
@@ -188,6 +237,13 @@ def psd_sqrt(a: Tensor) -> CholeskyResult:
     elements fall back to :func:`safe_cholesky`'s bounded jitter.
     """
     chol, info = torch.linalg.cholesky_ex(a)
+    if vmapped(chol, info):
+        # inside vmap: the exact semi-definite factor where the Cholesky factor fails (no jitter)
+        ok = _chol_ok(chol, info)
+        semi = _semidefinite_factor(
+            symmetrize(torch.where(ok[..., None, None], torch.eye(a.shape[-1], dtype=a.dtype, device=a.device), a))
+        )[0]
+        return CholeskyResult(torch.where(ok[..., None, None], chol, semi), torch.zeros(info.shape, dtype=a.dtype, device=a.device))
     if not bool(info.any()) and bool(torch.isfinite(torch.diagonal(chol, dim1=-2, dim2=-1).sum())):
         return CholeskyResult(chol, torch.zeros(info.shape, dtype=a.dtype, device=a.device))
     a = symmetrize(a)
@@ -236,7 +292,8 @@ def tria(a: Tensor) -> Tensor:
     s = r.mT
     sign = torch.sign(torch.diagonal(s, dim1=-2, dim2=-1))
     sign = torch.where(sign == 0, torch.ones_like(sign), sign)
-    return s * sign[..., None, :]
+    out: Tensor = s * sign[..., None, :]
+    return out
 
 
 def chol_rank1_update(chol: Tensor, v: Tensor, sign: float | Tensor = 1.0) -> Tensor:
@@ -301,7 +358,8 @@ def gaussian_log_density(
 
 def block_diag(*blocks: Tensor) -> Tensor:
     """Block-diagonal matrix of ``[..., d_i, d_i]`` blocks whose leading dims broadcast."""
-    shape = torch.broadcast_shapes(*(b.shape[:-2] for b in blocks))
+    # torch.broadcast_shapes is defined without annotations in torch's own source
+    shape = torch.broadcast_shapes(*(b.shape[:-2] for b in blocks))  # type: ignore[no-untyped-call]
     total = sum(b.shape[-1] for b in blocks)
     out = blocks[0].new_zeros(*shape, total, total)
     start = 0

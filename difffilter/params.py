@@ -34,6 +34,7 @@ from .constraints import (
     Positive,
     PositiveDefinite,
     RowStochastic,
+    pd_nugget,
     softplus,
     softplus_inverse,
 )
@@ -54,6 +55,7 @@ __all__ = [
     "GroupScaledCovariance",
     "check_covariance",
     "numerical_rank",
+    "auto_structure",
     "register_covariance",
     "constrained_values",
 ]
@@ -115,7 +117,7 @@ def constrained_values(module: nn.Module, prefix: str = "") -> dict[str, Tensor]
     out: dict[str, Tensor] = {}
     for mod_name, mod in module.named_modules(prefix=prefix):
         if parametrize.is_parametrized(mod):
-            for pname in mod.parametrizations.keys():  # type: ignore[union-attr]
+            for pname in mod.parametrizations.keys():
                 full = f"{mod_name}.{pname}" if mod_name else pname
                 out[full] = getattr(mod, pname).detach()
     return out
@@ -130,6 +132,8 @@ class ScaledMatrix(Constraint):
     """
 
     accepts_scalar = True
+    base: Tensor
+    _scale: Positive
 
     def __init__(self, base: Tensor, floor: float = 0.0) -> None:
         super().__init__()
@@ -138,7 +142,8 @@ class ScaledMatrix(Constraint):
         self.value_shape = tuple(base.shape)
 
     def forward(self, raw: Tensor) -> Tensor:
-        return self._scale(raw) * self.base
+        scale: Tensor = self._scale(raw)
+        return scale * self.base
 
     def right_inverse(self, value: Tensor) -> Tensor:
         value = self.check(value)
@@ -164,6 +169,8 @@ class GroupScaledCovariance(Constraint):
     """
 
     accepts_scalar = True
+    base: Tensor
+    groups: Tensor
 
     def __init__(self, base: Tensor, groups: Tensor) -> None:
         super().__init__()
@@ -242,6 +249,22 @@ def check_covariance(name: str, value: Tensor, n: int | None = None, *, batch_ok
     return value
 
 
+def auto_structure(value: Tensor, *, floor: float = 0.0) -> str:
+    """The structure ``"auto"`` gives a covariance ``value [n, n]``: ``"full"`` when the
+    log-Cholesky parametrisation holds it; else ``"scalar"`` when a variance lies at or below the
+    variance floor of the learnable structures (``sqrt(tiny)`` of the dtype, 1.1e-19 in float32,
+    1.5e-154 in float64), which a learnable multiple of the matrix still represents exactly; else
+    ``"factor"`` (a semi-definite matrix, held exactly as ``L L^T`` of its numerical rank)."""
+    try:
+        PositiveDefinite(floor=floor).right_inverse(value)
+        return "full"
+    except ValueError:
+        pass
+    tiny = pd_nugget(value.shape[-1], value.dtype)[1]
+    diag = torch.diagonal(value, dim1=-2, dim2=-1)
+    return "scalar" if bool(((diag > 0) & (diag <= 2 * tiny)).any()) else "factor"
+
+
 def register_covariance(
     module: nn.Module, name: str, value: Tensor, structure: str = "full", *, floor: float = 0.0, rank: int | None = None
 ) -> None:
@@ -251,8 +274,13 @@ def register_covariance(
     number), ``"diagonal"``, ``"scalar"`` (learnable positive multiple of the given matrix, which
     may be semi-definite), ``"factor"`` (:class:`FactorCovariance`, ``value = L L^T`` with a free
     ``L [n, rank]``, for semi-definite covariances; ``rank`` defaults to the value's numerical
-    rank) or ``"fixed"`` (buffer, semi-definite allowed).
+    rank), ``"fixed"`` (buffer, semi-definite allowed) or ``"auto"`` (:func:`auto_structure`:
+    ``"full"`` where it can hold the value, else ``"factor"`` for a semi-definite one, such as
+    the textbook white-noise-acceleration ``Q``, or ``"scalar"`` for variances below the
+    dtype's variance floor, such as ``R = 1e-20 I`` in float32).
     """
+    if structure == "auto":
+        structure = auto_structure(value, floor=floor)
     if structure == "full":
         constraint: nn.Module | None = PositiveDefinite(floor=floor)
     elif structure == "diagonal":
@@ -265,5 +293,5 @@ def register_covariance(
     elif structure == "fixed":
         constraint = None
     else:
-        raise ValueError(f"{name}_structure must be 'full', 'diagonal', 'scalar', 'factor' or 'fixed', got {structure!r}")
+        raise ValueError(f"{name}_structure must be 'auto', 'full', 'diagonal', 'scalar', 'factor' or 'fixed', got {structure!r}")
     register_constrained(module, name, value, constraint)

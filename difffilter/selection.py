@@ -43,7 +43,7 @@ def parameter_owners(module: nn.Module) -> dict[str, tuple[nn.Module, str, list[
     for mod_name, mod in module.named_modules():
         prefix = f"{mod_name}." if mod_name else ""
         if parametrize.is_parametrized(mod):
-            for pname, plist in mod.parametrizations.items():  # type: ignore[union-attr]
+            for pname, plist in mod.parametrizations.items():
                 out[prefix + pname] = (mod, pname, list(plist.parameters()))
         for pname, p in mod.named_parameters(recurse=False):
             out[prefix + pname] = (mod, pname, [p])
@@ -136,7 +136,9 @@ def assign_parameters(module: nn.Module, values: Mapping[str, Any]) -> list[str]
             current = getattr(mod, attr).detach()
             scaled = parametrize.is_parametrized(mod, attr) and any(
                 isinstance(c, ScaledMatrix)
-                for c in mod.parametrizations[attr]  # type: ignore[index,union-attr]
+                # mod.parametrizations is a ModuleDict once is_parametrized is True; nn.Module's
+                # __getattr__ types it as Tensor | Module
+                for c in mod.parametrizations[attr]  # type: ignore[index]
             )
             new = _coerce(values[pattern], current, scaled)
             try:

@@ -40,8 +40,9 @@ def test_rank_deficient_q_is_accepted_for_any_intensity(q):
     LinearModel(**m, Q_structure="factor")
     LinearModel(**m, Q_structure="scalar")
     FunctionalModel(f=lambda x: x @ m["F"].mT, h=lambda x: x @ m["H"].mT, Q=m["Q"], R=m["R"], Q_structure="fixed")
-    with pytest.raises(ValueError, match="Q.*semi-definite.*'fixed' or 'factor'"):
-        LinearModel(**m)  # the full log-Cholesky structure cannot hold it: the message says what can
+    LinearModel(**m)  # the default structure "auto" holds it as a factor (issue 27)
+    with pytest.raises(ValueError, match="Q.*semi-definite.*Q_structure='factor'.*'fixed'"):
+        LinearModel(**m, Q_structure="full")  # the full log-Cholesky structure cannot hold it: the message says what can
 
 
 def test_indefinite_q_is_still_refused():

@@ -60,6 +60,7 @@ class _RangeBearing(MeasurementModel):
     def __init__(self) -> None:
         super().__init__()
         self.measurement_dim = 2
+        self.angular = (1,)  # the bearing wraps (residual); undeclared, the unscented filters refuse it
         register_covariance(self, "R", torch.diag(torch.tensor([0.25, 0.01], dtype=F64)), "diagonal")
 
     def forward(self, x: Tensor, u: Tensor | None = None) -> Tensor:

@@ -28,7 +28,7 @@ FLOORS: list[set[str]] = [
     {"mixers"},
     {"smoothers"},
     {"sim"},
-    {"engines"},
+    {"engines", "func"},
     {"evaluate"},
     {"learn"},
 ]

@@ -38,7 +38,9 @@ F64 = torch.float64
 
 def _compose(tmp_path: Path, overrides: list[str]):
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        extra = [f"hydra.searchpath=[file://{ASSETS / 'conf'}]", f"paths.output_dir={tmp_path}", f"paths.log_dir={tmp_path}"]
+        # the papers' config folders (train.yaml's search path) and the test assets' model group
+        paths = [*OmegaConf.load(CONF / "train.yaml").hydra.searchpath, f"file://{ASSETS / 'conf'}"]
+        extra = [f"hydra.searchpath=[{','.join(paths)}]", f"paths.output_dir={tmp_path}", f"paths.log_dir={tmp_path}"]
         return compose("train", overrides=[*overrides, *extra])
 
 

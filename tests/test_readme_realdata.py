@@ -1,4 +1,4 @@
-"""The README snippet on side-information noise models and the learnable gate runs as written:
+"""The docs/models.md snippet on side-information noise models and the learnable gate runs as written:
 the noise follows the per-step side information, the gate keeps the outlier out, and training
 moves the per-group scales and the gate's parameters."""
 
@@ -10,13 +10,13 @@ import torch
 
 from difffilter.filters import EKF
 
-from .readme_snippets import readme_snippets, run_snippet
+from .readme_snippets import run_snippet, section_snippets
 
-HEADING = "### Noise from side information, learned gates, antenna states, real drives"
+HEADING = "## Noise from side information, learned gates"
 
 
 def test_side_information_snippet() -> None:
-    (code,) = readme_snippets(HEADING)
+    (code,) = section_snippets("docs/models.md", HEADING)
     torch.manual_seed(0)
     ns = run_snippet(code)
     gps, model, res = ns["gps"], ns["model"], ns["res"]

@@ -1,17 +1,21 @@
-"""Every snippet of the README section on smoothing, non-additive noise, multi-rate sensors and
-the iterated EKF runs as written and produces what the text says."""
+"""The documentation's snippets on smoothing (docs/smoothers/rts.md), non-additive noise and
+multi-rate sensors (docs/models.md) and the iterated EKF (docs/filters/iterated.md) run as written
+and produce what the text says."""
 
 from __future__ import annotations
 
 import torch
 
-from .readme_snippets import readme_snippets, run_snippet
-
-HEADING = "### Smoothing, non-additive noise, multi-rate sensors, iterated EKF"
+from .readme_snippets import run_snippet, section_snippets
 
 
 def _snippets() -> list[str]:
-    return readme_snippets(HEADING)
+    return [
+        *section_snippets("docs/smoothers/rts.md", "# RTS"),
+        *section_snippets("docs/models.md", "## Non-additive noise"),
+        *section_snippets("docs/models.md", "## Several sensors"),
+        *section_snippets("docs/filters/iterated.md", "# Iterated EKF"),
+    ]
 
 
 _run = run_snippet

@@ -4,6 +4,13 @@ The cache lives in ``$DIFFFILTER_CACHE_DIR`` (default ``~/.cache/difffilter/kern
 library is keyed by the source text, the compiler command and the machine's CPU flags, so a
 second process that builds the same kernel loads it without compiling.  Writes are atomic
 (a temporary file renamed into place), so concurrent processes may share the directory.
+
+Every library has a record beside it (``<name>.so.sha256``: its size and SHA-256) written
+before the library is moved into place.  A library is loaded only after its size and hash
+match the record: mapping a truncated shared object can kill the process with SIGBUS and a
+garbage one raises ``OSError``, so a damaged entry (or one without a record, from an older
+version) is deleted and compiled again instead, with one :class:`CacheIntegrityWarning`
+when the entry was damaged.
 """
 
 from __future__ import annotations
@@ -16,9 +23,19 @@ import shutil
 import subprocess
 import tempfile
 import threading
+import warnings
 from pathlib import Path
 
-__all__ = ["cache_dir", "compile_library", "compiler_available", "CompileError"]
+__all__ = [
+    "CacheIntegrityWarning",
+    "CompileError",
+    "atomic_write",
+    "cache_dir",
+    "compile_library",
+    "compiler_available",
+    "verify_record",
+    "write_record",
+]
 
 _GCC_FLAGS = ["-fira-region=one"]
 _FLAGS = ["-march=native", "-fno-math-errno", "-fno-trapping-math", "-shared", "-fPIC", "-std=c++17", "-w"]
@@ -28,6 +45,64 @@ _loaded: dict[str, ctypes.CDLL] = {}
 
 class CompileError(RuntimeError):
     """The C++ compiler failed or is missing."""
+
+
+class CacheIntegrityWarning(RuntimeWarning):
+    """A cached kernel or program was damaged (size or hash differs from its record) and is rebuilt."""
+
+
+def atomic_write(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` through a temporary file renamed into place (readers never see a part)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.NamedTemporaryFile(dir=path.parent, delete=False, suffix=".tmp") as fh:
+        fh.write(data)
+        tmp = fh.name
+    os.chmod(tmp, 0o644)
+    os.replace(tmp, path)
+
+
+def _record_path(path: Path) -> Path:
+    return path.with_name(path.name + ".sha256")
+
+
+def _digest(data: bytes) -> str:
+    return f"{len(data)} {hashlib.sha256(data).hexdigest()}\n"
+
+
+def write_record(path: Path, data: bytes) -> None:
+    """Store the size and SHA-256 of ``data``, the future content of ``path``, beside it."""
+    atomic_write(_record_path(path), _digest(data).encode())
+
+
+def verify_record(path: Path) -> str:
+    """``"ok"`` when ``path``'s size and hash equal its record, ``"missing"`` when the file or its
+    record is absent, ``"damaged"`` when they differ."""
+    try:
+        record = _record_path(path).read_text()
+    except (OSError, UnicodeDecodeError):
+        return "missing"
+    try:
+        with open(path, "rb") as fh:
+            data = fh.read()
+    except FileNotFoundError:
+        return "missing"
+    except OSError:
+        return "damaged"
+    return "ok" if _digest(data) == record else "damaged"
+
+
+def _discard(path: Path, why: str) -> None:
+    if why == "damaged":
+        warnings.warn(
+            f"cached kernel {path} does not match its recorded size and SHA-256 (truncated or overwritten); rebuilding it",
+            CacheIntegrityWarning,
+            stacklevel=3,
+        )
+    for p in (path, _record_path(path)):
+        try:
+            p.unlink()
+        except FileNotFoundError:
+            pass
 
 
 def cache_dir() -> Path:
@@ -82,15 +157,32 @@ def compile_library(source: str, *, tag: str = "kernel", opt: str = "-O2") -> ct
         root = cache_dir()
         root.mkdir(parents=True, exist_ok=True)
         target = root / f"{tag}_{key}.so"
-        if not target.exists():
-            with tempfile.TemporaryDirectory(dir=root) as tmp:
-                src = Path(tmp) / "kernel.cpp"
-                src.write_text(source)
-                out = Path(tmp) / "kernel.so"
-                proc = subprocess.run([cxx, *flags, str(src), "-o", str(out)], capture_output=True, text=True)
-                if proc.returncode != 0:
-                    raise CompileError(f"{cxx} failed ({proc.returncode}): {proc.stderr[-3000:]}")
-                os.replace(out, target)
-        lib = ctypes.CDLL(str(target))
+        # never map an unverified file: a truncated shared object can SIGBUS the process
+        state = verify_record(target) if target.exists() else "absent"
+        if state != "ok":
+            if state != "absent":
+                _discard(target, state)
+            _build(cxx, flags, source, root, target)
+        try:
+            lib = ctypes.CDLL(str(target))
+        except OSError as err:  # verified yet unloadable (e.g. replaced between check and load): once more
+            _discard(target, "damaged")
+            _build(cxx, flags, source, root, target)
+            try:
+                lib = ctypes.CDLL(str(target))
+            except OSError:
+                raise CompileError(f"the freshly built kernel {target} cannot be loaded: {err}") from err
         _loaded[key] = lib
         return lib
+
+
+def _build(cxx: str, flags: list[str], source: str, root: Path, target: Path) -> None:
+    with tempfile.TemporaryDirectory(dir=root) as tmp:
+        src = Path(tmp) / "kernel.cpp"
+        src.write_text(source)
+        out = Path(tmp) / "kernel.so"
+        proc = subprocess.run([cxx, *flags, str(src), "-o", str(out)], capture_output=True, text=True)
+        if proc.returncode != 0:
+            raise CompileError(f"{cxx} failed ({proc.returncode}): {proc.stderr[-3000:]}")
+        write_record(target, out.read_bytes())  # the record first: a reader that sees the library sees it
+        os.replace(out, target)

@@ -17,6 +17,11 @@ a function replaced at run time) is not in the key.  A stored step is therefore 
 before it is used: two steps of the filter's own code are run eagerly from the actual initial
 belief and compared with the compiled kernel; any difference discards the stored step and the
 filter is traced again.  ``DIFFFILTER_PROGRAM_CACHE=0`` turns the cache off.
+
+Each stored step has a size-and-SHA-256 record beside it (as the compiled kernels do, see
+:mod:`.build`); the bytes are unpickled only when they match it, so a truncated or overwritten
+entry is never unpickled: it is traced again, with one
+:class:`~.build.CacheIntegrityWarning`.
 """
 
 from __future__ import annotations
@@ -28,15 +33,15 @@ import math
 import os
 import pickle
 import sys
-import tempfile
 import threading
+import warnings
 from pathlib import Path
 
 import torch
 from torch import Tensor, nn
 
 from ..filters.base import RecursiveFilter
-from .build import cache_dir
+from .build import CacheIntegrityWarning, atomic_write, cache_dir, verify_record, write_record
 from .kernel import SequenceProgram
 from .trace import StepLayout, TracedStep, eager_steps, fingerprint, trace_step
 
@@ -117,20 +122,25 @@ def _save(path: Path, traced: TracedStep) -> None:
     state = dict(vars(traced))
     state["params"] = [(name, tuple(p.shape)) for name, p in traced.params]
     data = pickle.dumps(state, protocol=pickle.HIGHEST_PROTOCOL)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.NamedTemporaryFile(dir=path.parent, delete=False, suffix=".tmp") as fh:
-        fh.write(data)
-        tmp = fh.name
-    os.chmod(tmp, 0o644)  # as readable as the compiled kernels beside it
-    os.replace(tmp, path)
+    write_record(path, data)  # the record first: a reader that sees the step sees its record
+    atomic_write(path, data)
 
 
 def _load(path: Path, filt: RecursiveFilter) -> TracedStep | None:
+    check = verify_record(path)
+    if check != "ok":
+        if check == "damaged":
+            warnings.warn(
+                f"cached program {path} does not match its recorded size and SHA-256 (truncated or overwritten); tracing again",
+                CacheIntegrityWarning,
+                stacklevel=3,
+            )
+        return None
     try:
         state = pickle.loads(path.read_bytes())
     except FileNotFoundError:
         return None
-    except Exception:  # noqa: BLE001 - a truncated or foreign file is a cache miss
+    except Exception:  # noqa: BLE001 - a foreign file with a matching record is still only a cache miss
         return None
     named = dict(filt.named_parameters())
     params = []

@@ -8,8 +8,10 @@ from typing import Any
 from torch import Tensor, nn
 from torch.nn.utils import parametrize
 
+from ..filters._common import cast_controls
 from ..filters.base import Belief, FilterResult, RecursiveFilter, slice_controls, through_diffuse_phase
 from ..filters.diffuse import DIFFUSE_COV
+from ..filters.isolation import isolated_run
 from ..models.base import Controls
 from .build import CompileError
 from .generated import GeneratedEngine
@@ -162,8 +164,26 @@ class FusedFilter(nn.Module):
         *,
         belief: Belief | None = None,
     ) -> FilterResult:
-        """Same arguments and result as :meth:`RecursiveFilter.forward` of the wrapped filter."""
+        """Same arguments and result as :meth:`RecursiveFilter.forward` of the wrapped filter
+        (a non-finite trajectory passes no gradient to the others:
+        :func:`~difffilter.filters.isolation.isolated_run`)."""
+        return isolated_run(self._run, measurements, initial_mean, initial_cov, mask, controls, belief)
+
+    def _run_rest(self, measurements: Tensor, *, mask: Tensor | None, controls: Controls, belief: Belief) -> FilterResult:
+        return self._run(measurements, None, None, mask, controls, belief=belief)
+
+    def _run(
+        self,
+        measurements: Tensor,
+        initial_mean: Tensor | None,
+        initial_cov: Tensor | None,
+        mask: Tensor | None,
+        controls: Controls,
+        *,
+        belief: Belief | None = None,
+    ) -> FilterResult:
         filt = self.filter
+        controls = cast_controls(controls, measurements)
         z, mask3, mean0, cov0 = filt.check_inputs(measurements, initial_mean, initial_cov, mask, controls)
         controls = filt.precompute_controls(controls)
         if belief is None:
@@ -174,7 +194,7 @@ class FusedFilter(nn.Module):
         if DIFFUSE_COV in belief:
             # a diffuse prior's first steps run in the filter's exact two-part form (reference code)
             self.last_engine = "reference"
-            return through_diffuse_phase(filt, self.forward, z, mask3, controls, belief)
+            return through_diffuse_phase(filt, self._run_rest, z, mask3, controls, belief)
         bsz, n = z.shape[0], filt.state_dim
         if belief["mean"].shape != (bsz, n) or belief["cov"].shape != (bsz, n, n):
             raise ValueError(f"belief must hold mean [B, n] = [{bsz}, {n}] and cov [B, n, n], got {tuple(belief['mean'].shape)}")

@@ -7,6 +7,7 @@ from .colored import ColoredNoiseUKF
 from .ekf import EKF
 from .iterated import IteratedEKF
 from .kalman import KalmanFilter
+from .parallel import ParallelKalmanFilter
 from .protocol import Filter
 from .sequential import SequentialUpdate
 from .sigma_points import Cubature, Julier, MerweScaled, SigmaPoints
@@ -32,6 +33,7 @@ __all__ = [
     "Julier",
     "KalmanFilter",
     "MerweScaled",
+    "ParallelKalmanFilter",
     "SequentialUpdate",
     "RecursiveFilter",
     "SigmaPoints",

@@ -13,6 +13,7 @@ from ..models.base import Controls
 from .protocol import Belief
 
 __all__ = [
+    "cast_controls",
     "StepInfo",
     "detach_belief",
     "expand_controls",
@@ -54,6 +55,23 @@ def expand_controls(u: Controls, dim: int = 1) -> Controls:
     if isinstance(u, Tensor):
         return u.unsqueeze(dim)
     return {k: v.unsqueeze(dim) for k, v in u.items()}
+
+
+def cast_controls(controls: Controls, like: object) -> Controls:
+    """Floating-point controls in the dtype of the filter's measurements ``like`` (float64
+    inputs into a float32 filter are rounded as float32 measurements would be); other dtypes
+    (integer indices, masks) and non-tensors unchanged."""
+    if controls is None or not isinstance(like, Tensor) or not like.is_floating_point():
+        return controls
+
+    def cast(v: object) -> object:
+        return v.to(like.dtype) if isinstance(v, Tensor) and v.is_floating_point() and v.dtype != like.dtype else v
+
+    if isinstance(controls, Tensor):
+        return cast(controls)  # type: ignore[return-value]
+    if isinstance(controls, dict):
+        return {k: cast(v) for k, v in controls.items()}  # type: ignore[misc]
+    return controls
 
 
 def detach_belief(belief: Belief) -> Belief:

@@ -33,9 +33,11 @@ import torch
 from torch import Tensor
 from torch.nn.utils import parametrize
 
+from ..linalg import inside_vmap
 from ..models.base import Controls
-from ._common import StepInfo, detach_belief, mask_measurement_system, slice_controls
+from ._common import StepInfo, cast_controls, detach_belief, mask_measurement_system, slice_controls
 from .diffuse import DIFFUSE_COV, DIFFUSE_SCALE, drop_resolved, measurement_sensitivity, split_prior, total_cov
+from .isolation import isolated_run
 from .protocol import Belief, Filter, FilterResult
 from .update import diffuse_gaussian_update, gaussian_update, square_root_deviations, untrusted_steps
 
@@ -145,6 +147,7 @@ class RecursiveFilter(Filter):
             if controls is None
             else (controls[:, None] if isinstance(controls, Tensor) else {k: v[:, None] for k, v in controls.items()})
         )
+        u = cast_controls(u, z)
         z, mk, _, _ = self.check_inputs(z, None, None, mk, u)
         if u is not None:
             # the models' derived inputs, once for every mode of a mixer (precompute_controls)
@@ -161,8 +164,9 @@ class RecursiveFilter(Filter):
         (``[B, ...]``, the first step's inputs) for the diffuse-prior check of a model that needs
         them (:meth:`start_belief`)."""
         bsz = batch_size if batch_size is not None else (initial_mean.shape[0] if initial_mean.ndim == 2 else 1)
-        mean = self._check_mean(initial_mean, bsz, self.state_dim, initial_mean.dtype)
-        cov = self._check_cov(initial_cov, bsz, self.state_dim, initial_cov.dtype)
+        values = not inside_vmap()  # per-sample values cannot be read inside vmap
+        mean = self._check_mean(initial_mean, bsz, self.state_dim, initial_mean.dtype, values=values)
+        cov = self._check_cov(initial_cov, bsz, self.state_dim, initial_cov.dtype, values=values)
         return self.start_belief(mean, cov, controls)
 
     def forward(
@@ -186,7 +190,23 @@ class RecursiveFilter(Filter):
                 model's ``f`` and ``h`` at each step.
             belief: a full belief to continue from (e.g. ``result.final_belief`` of the previous
                 window in truncated back-propagation); replaces ``initial_mean``/``initial_cov``.
+
+        A trajectory whose result is non-finite passes no gradient to the others
+        (:func:`~difffilter.filters.isolation.isolated_run`).
         """
+        return isolated_run(self._run, measurements, initial_mean, initial_cov, mask, controls, belief)
+
+    def _run(
+        self,
+        measurements: Tensor,
+        initial_mean: Tensor | None,
+        initial_cov: Tensor | None,
+        mask: Tensor | None,
+        controls: Controls,
+        *,
+        belief: Belief | None = None,
+    ) -> FilterResult:
+        controls = cast_controls(controls, measurements)
         z, mask3, mean0, cov0 = self.check_inputs(measurements, initial_mean, initial_cov, mask, controls)
         if belief is None and (mean0 is None or cov0 is None):
             raise ValueError("initial_mean and initial_cov are required unless belief= is given")

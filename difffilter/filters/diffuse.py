@@ -49,7 +49,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ..linalg import LOG_2PI, symmetrize
+from ..linalg import LOG_2PI, symmetrize, vmapped
 from ..models.base import Controls, StateSpaceModel
 from .jacobians import measurement_matrix, measurement_noise_cov, transition_matrix
 
@@ -108,10 +108,11 @@ def split_prior(cov: Tensor, sensitivity: Tensor) -> tuple[Tensor, Tensor, Tenso
     with torch.no_grad():
         gain = (sensitivity * sensitivity).sum(-1).amax(-1)  # max_i |g_i|^2
         bound = torch.diagonal(cov, dim1=-2, dim2=-1).sum(-1).abs() * gain
-        if not bool((bound > limit).any()):
+        # inside vmap a split that depends on the vmapped values cannot be decided: none is made
+        if vmapped(bound) or not bool((bound > limit).any()):
             return None
     n = cov.shape[-1]
-    diagonal = bool((cov * (1.0 - torch.eye(n, dtype=cov.dtype, device=cov.device)) == 0).all())
+    diagonal = not vmapped(cov) and bool((cov * (1.0 - torch.eye(n, dtype=cov.dtype, device=cov.device)) == 0).all())
     if diagonal:
         lam = torch.diagonal(cov, dim1=-2, dim2=-1)
         vecs = torch.eye(n, dtype=cov.dtype, device=cov.device).expand_as(cov)
@@ -120,7 +121,7 @@ def split_prior(cov: Tensor, sensitivity: Tensor) -> tuple[Tensor, Tensor, Tenso
     with torch.no_grad():
         reach = ((sensitivity @ vecs) ** 2).amax(-2)  # [B, n] per eigen-direction
         diffuse = lam.clamp_min(0.0) * reach > limit
-        if not bool(diffuse.any()):
+        if vmapped(diffuse) or not bool(diffuse.any()):
             return None
     zero = torch.zeros_like(lam)
     kappa = torch.where(diffuse, lam, zero).amax(-1)
@@ -144,7 +145,7 @@ def total_cov(belief: dict[str, Tensor], key: str = "cov") -> Tensor:
 def drop_resolved(belief: dict[str, Tensor]) -> dict[str, Tensor]:
     """The belief without its diffuse entries once every ``*diffuse_cov*`` entry is zero."""
     keys = [k for k in belief if "diffuse" in k]
-    if not keys or any(bool(belief[k].any()) for k in keys if "diffuse_cov" in k):
+    if not keys or any(vmapped(belief[k]) or bool(belief[k].any()) for k in keys if "diffuse_cov" in k):
         return belief
     return {k: v for k, v in belief.items() if k not in keys}
 

@@ -27,7 +27,9 @@ from typing import ClassVar
 
 import torch
 from torch import Tensor, nn
+from torch.utils import _pytree
 
+from ..linalg import inside_vmap
 from ..models.base import Controls, DynamicsModel, MeasurementModel, StateSpaceModel
 from ..params import check_covariance
 
@@ -67,13 +69,25 @@ class FilterResult:
     def __getattr__(self, name: str) -> Tensor:
         extras = self.__dict__.get("extras", {})
         if name in extras:
-            return extras[name]
+            value: Tensor = extras[name]
+            return value
         raise AttributeError(name)
 
     @property
     def total_log_likelihood(self) -> Tensor:
         """``[B]`` sum of the per-step log-likelihoods."""
         return self.log_likelihood.sum(-1)
+
+
+_RESULT_FIELDS = ("mean", "cov", "prior_mean", "prior_cov", "log_likelihood", "nis", "num_observed", "final_belief", "extras")
+
+# A pytree node, so that torch.func transforms (vmap, grad) can return a FilterResult.
+_pytree.register_pytree_node(
+    FilterResult,
+    lambda r: ([getattr(r, k) for k in _RESULT_FIELDS], None),
+    lambda children, _: FilterResult(*children),
+    serialized_type_name="difffilter.FilterResult",
+)
 
 
 class Filter(nn.Module):
@@ -148,7 +162,8 @@ class Filter(nn.Module):
         # Checks of values (finite, symmetric, positive definite; finite parameters and controls)
         # read the data, which breaks a torch.compile graph: inside a compiled region only shapes
         # and dtypes are checked.
-        values = not torch.compiler.is_compiling()
+        # The same inside torch.func.vmap, whose per-sample values Python cannot read.
+        values = not torch.compiler.is_compiling() and not inside_vmap()
         n, m = self.state_dim, self.measurement_dim
         if not isinstance(measurements, Tensor):
             raise TypeError(f"measurements must be a torch.Tensor [B, T, {m}], got {type(measurements).__name__}")
@@ -251,8 +266,14 @@ class Filter(nn.Module):
                 raise TypeError(f"{name} must be a tensor [B, T, ...]")
             if v.ndim < 2 or v.shape[0] != bsz or v.shape[1] != steps:
                 raise ValueError(f"{name} must have shape [B, T, ...] = [{bsz}, {steps}, ...], got {tuple(v.shape)}")
+        parts = [mod for mod in self.modules() if isinstance(mod, (DynamicsModel, MeasurementModel))]
+        if parts and not any(part.uses_controls for part in parts):
+            raise ValueError(
+                "controls were given, but no part of the model uses them (e.g. a LinearModel without B, a "
+                "FunctionalModel(controls=False)), so they would be silently ignored: drop controls=, or give the model its "
+                "inputs (LinearModel(B=...), FunctionalModel(controls=True))"
+            )
         if not values:
             return
-        for module in self.modules():
-            if isinstance(module, (DynamicsModel, MeasurementModel)):
-                module.validate_controls(controls)
+        for module in parts:
+            module.validate_controls(controls)

@@ -12,7 +12,7 @@ from .base import Belief, StepInfo, diffuse_gaussian_update, mask_measurement_sy
 from .diffuse import DIFFUSE_COV, propagate_diffuse
 from .jacobians import measurement_matrix
 from .sigma_points import SigmaPoints
-from .ukf import UKF, deviations, state_add, weighted_mean
+from .ukf import UKF, centred_points, deviations, linear_image, linear_space, offset_untrusted, state_add, weighted_mean
 
 __all__ = ["SquareRootUKF"]
 
@@ -53,12 +53,17 @@ class SquareRootUKF(UKF):
         mean, s = belief["mean"], belief["scale_tril"]
         n = mean.shape[-1]
         wm, wc = self._weights(n, mean)
-        prop = self.model.dynamics(self.sigma_points.generate(mean, s), expand_controls(u))
         dyn = self.model.dynamics
-        xm = weighted_mean(prop, wm, dyn)
+        lin = linear_space(dyn, u)
+        if lin is not None:  # exact deviations, however large the mean (ukf.linear_image)
+            xm, dev = linear_image(dyn, mean, centred_points(self.sigma_points, s), u, lin)
+        else:
+            prop = dyn(self.sigma_points.generate(mean, s), expand_controls(u))
+            xm = weighted_mean(prop, wm, dyn)
+            dev = deviations(prop, xm, dyn)
         q = dyn.process_noise(mean, u)
         sq = psd_sqrt(q.expand(*mean.shape[:-1], n, n)).factor
-        s_new = self._compound(deviations(prop, xm, dyn), wc, sq)
+        s_new = self._compound(dev, wc, sq)
         out = {**belief, "mean": xm, "cov": s_new @ s_new.mT, "scale_tril": s_new}
         propagate_diffuse(belief, out, None, self.model, u)
         return out
@@ -68,12 +73,18 @@ class SquareRootUKF(UKF):
         n = mean.shape[-1]
         wm, wc = self._weights(n, mean)
         hm = self.model.measurement
-        chi = self.sigma_points.generate(mean, s)
-        zeta = hm(chi, expand_controls(u))
-        zhat = weighted_mean(zeta, wm, hm)
-        dz = hm.residual(zeta, zhat[..., None, :])
+        lin = linear_space(hm, u)
+        exact = lin is not None
+        if lin is not None:
+            dx = centred_points(self.sigma_points, s)
+            zhat, dz = linear_image(hm, mean, dx, u, lin)
+        else:
+            chi = self.sigma_points.generate(mean, s)
+            zeta = hm(chi, expand_controls(u))
+            zhat = weighted_mean(zeta, wm, hm)
+            dz = hm.residual(zeta, zhat[..., None, :])
+            dx = deviations(chi, mean, self.model.dynamics)
         add = state_add(self.model.dynamics)
-        dx = deviations(chi, mean, self.model.dynamics)
         r = hm.measurement_noise(mean, u)
         r = r.expand(*mean.shape[:-1], *r.shape[-2:])
         e = hm.residual(z, zhat)
@@ -95,6 +106,7 @@ class SquareRootUKF(UKF):
         loglik, maha = gaussian_log_density(e, szz)
         # Missing components contribute log N(0; 0, 1) each in the padded system: remove it.
         loglik = loglik + 0.5 * (m - num_obs) * torch.log(torch.tensor(2.0 * torch.pi, dtype=e.dtype))
-        info = StepInfo(loglik, maha, num_obs, e, szz @ szz.mT)
+        pzz = szz @ szz.mT
+        info = StepInfo(loglik, maha, num_obs, e, pzz, None if exact else offset_untrusted(mean, s @ s.mT, zhat, pzz, maha))
         out = {k: v for k, v in belief.items() if k not in ("mean", "cov", "scale_tril")}
         return {**out, "mean": new_mean, "cov": s_new @ s_new.mT, "scale_tril": s_new}, info

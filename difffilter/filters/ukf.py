@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import replace
 
 import torch
 from torch import Tensor
 
 from ..linalg import block_diag, psd_sqrt, symmetrize
+from ..models.angular import check_angular_declaration
 from ..models.base import Controls, DynamicsModel, MeasurementModel, StateSpaceModel, wrap_components
 from ._common import expand_controls
 from .base import Belief, RecursiveFilter, StepInfo, diffuse_gaussian_update, gaussian_update
@@ -15,7 +17,18 @@ from .diffuse import DIFFUSE_COV, propagate_diffuse
 from .jacobians import measurement_matrix
 from .sigma_points import MerweScaled, SigmaPoints
 
-__all__ = ["UKF", "SimplifiedUKF", "deviations", "state_add", "weighted_mean", "weighted_moments"]
+__all__ = [
+    "UKF",
+    "SimplifiedUKF",
+    "centred_points",
+    "deviations",
+    "linear_image",
+    "linear_space",
+    "offset_untrusted",
+    "state_add",
+    "weighted_mean",
+    "weighted_moments",
+]
 
 #: What the unscented helpers need to know of a state or measurement space: a model part
 #: (``DynamicsModel`` or ``MeasurementModel``) with ``angular`` indices and ``residual``.
@@ -51,6 +64,47 @@ def weighted_moments(points: Tensor, wm: Tensor, wc: Tensor, space: Space = None
     dev = deviations(points, mean, space)
     cov = (dev * wc[:, None]).mT @ dev
     return mean, dev, cov
+
+
+def linear_space(space: Space, u: Controls) -> Tensor | None:
+    """The matrix ``M`` of a model part that is linear at these inputs (``space.matrix(u)`` is
+    not None) and has plain differences (additive noise, no angular components, no overridden
+    ``residual``/``add``), else None."""
+    if space is None or space.angular or not space.additive_noise:
+        return None
+    base = DynamicsModel if isinstance(space, DynamicsModel) else MeasurementModel
+    diff = "add" if isinstance(space, DynamicsModel) else "residual"
+    if type(space).matrix is base.matrix or getattr(type(space), diff) is not getattr(base, diff):
+        return None
+    return space.matrix(u)
+
+
+def centred_points(sigma_points: SigmaPoints, sqrt_cov: Tensor) -> Tensor:
+    """Deviations ``chi_i - x`` ``[..., S, n]`` of the sigma points from their centre, formed
+    directly from the square root (``0, +-gamma L_i``): no digits lost to a large mean."""
+    return sigma_points.generate(sqrt_cov.new_zeros(sqrt_cov.shape[:-1]), sqrt_cov)
+
+
+def linear_image(space: DynamicsModel | MeasurementModel, mean: Tensor, dev: Tensor, u: Controls, matrix: Tensor) -> tuple[Tensor, Tensor]:
+    """``(f(x), dev M^T)`` for a part with :func:`linear_space` matrix ``M``: the unscented
+    transform of a linear map, exact (the images' weighted mean is ``f(x)`` because the
+    deviations of a symmetric point set cancel exactly), whatever the size of ``x`` against the
+    spread."""
+    return space(mean, u), dev @ matrix.mT
+
+
+def offset_untrusted(mean: Tensor, cov: Tensor, zhat: Tensor, pzz: Tensor, maha: Tensor) -> Tensor:
+    """``[B]`` steps whose sigma-point deviations lost too many digits to a large mean: points
+    ``x +- gamma L_i`` of a mean ``|x|`` carry absolute errors ``eps |x|``, so deviations of a
+    spread ``sigma`` keep a relative accuracy ``eps |x| / sigma`` (likewise the measurement
+    images), and the gain's error reaches the posterior mean multiplied by the innovation in
+    standard deviations ``sqrt(NIS)``.  Flagged where that product exceeds ``1e-2``."""
+    eps = torch.finfo(mean.dtype).eps
+    tiny = torch.finfo(mean.dtype).tiny
+    sx = torch.diagonal(cov, dim1=-2, dim2=-1).clamp_min(tiny).sqrt()
+    sz = torch.diagonal(pzz, dim1=-2, dim2=-1).clamp_min(tiny).sqrt()
+    loss = torch.maximum((mean.abs() / sx).amax(-1), (zhat.abs() / sz).amax(-1)) * eps
+    return ~(loss * maha.clamp_min(1.0).sqrt() <= 1e-2)
 
 
 def state_add(space: DynamicsModel) -> Callable[[Tensor, Tensor], Tensor] | None:
@@ -101,6 +155,8 @@ class UKF(RecursiveFilter):
             raise ValueError(f"noise must be 'additive' or 'augmented', got {noise!r}")
         if noise == "additive" and not (model.dynamics.additive_noise and model.measurement.additive_noise):
             raise ValueError("the model declares non-additive noise (f(x, w, u) or h(x, v, u)): use UKF(..., noise='augmented')")
+        check_angular_declaration(model.dynamics)
+        check_angular_declaration(model.measurement)
         self.sigma_points = sigma_points if sigma_points is not None else MerweScaled(alpha=1.0, beta=2.0, kappa=0.0)
         self.redraw_after_predict = bool(redraw_after_predict)
         self.noise = noise
@@ -125,7 +181,12 @@ class UKF(RecursiveFilter):
         f = self.model.dynamics
         q, r = self._noise_matrices(mean, u)
         out: Belief = dict(belief)
-        if self.noise == "additive":
+        lin = linear_space(f, u) if self.noise == "additive" and self.redraw_after_predict else None
+        if lin is not None:
+            wm, wc = self._weights(n, mean)
+            xm, dev = linear_image(f, mean, centred_points(self.sigma_points, psd_sqrt(cov).factor), u, lin)
+            new_cov = symmetrize((dev * wc[:, None]).mT @ dev + q)
+        elif self.noise == "additive":
             chi = self._points(mean, cov)
             wm, wc = self._weights(n, mean)
             prop = f(chi, u1)
@@ -178,13 +239,21 @@ class UKF(RecursiveFilter):
 
     def update(self, belief: Belief, z: Tensor, mask: Tensor | None, u: Controls) -> tuple[Belief, StepInfo]:
         mean, cov = belief["mean"], belief["cov"]
-        chi, vnoise, wm, wc, add_r = self._update_points(belief, u)
         hm = self.model.measurement
-        zeta = hm(chi, expand_controls(u)) if vnoise is None else hm.with_noise(chi, vnoise, expand_controls(u))
-        zhat = weighted_mean(zeta, wm, hm)
-        dz = hm.residual(zeta, zhat[..., None, :])
         dyn = self.model.dynamics
-        dx = deviations(chi, mean, dyn)
+        lin = linear_space(hm, u) if "sigma_points" not in belief and self.noise == "additive" else None
+        exact = lin is not None
+        if lin is not None:  # a linear measurement of redrawn points: deviations without a large mean
+            wm, wc = self._weights(mean.shape[-1], mean)
+            dx = centred_points(self.sigma_points, psd_sqrt(cov).factor)
+            zhat, dz = linear_image(hm, mean, dx, u, lin)
+            add_r = True
+        else:
+            chi, vnoise, wm, wc, add_r = self._update_points(belief, u)
+            zeta = hm(chi, expand_controls(u)) if vnoise is None else hm.with_noise(chi, vnoise, expand_controls(u))
+            zhat = weighted_mean(zeta, wm, hm)
+            dz = hm.residual(zeta, zhat[..., None, :])
+            dx = deviations(chi, mean, dyn)
         pzz = (dz * wc[:, None]).mT @ dz
         r = hm.measurement_noise(mean, u) if add_r else None
         if r is not None:
@@ -196,6 +265,9 @@ class UKF(RecursiveFilter):
             post, info = diffuse_gaussian_update(belief, e, (dx, dz, wc, r), mask, obs_matrix=h, add=state_add(dyn))
             return {**self._carry(belief), **post}, info
         new_mean, new_cov, info = gaussian_update(mean, cov, e, pzz, pxz, mask, sigma_fallback=(dx, dz, wc, r), add=state_add(dyn))
+        if not exact:
+            lossy = offset_untrusted(mean, cov, zhat, pzz, info.nis)
+            info = replace(info, untrusted=lossy if info.untrusted is None else info.untrusted | lossy)
         return {"mean": new_mean, "cov": new_cov, **self._carry(belief)}, info
 
     @staticmethod

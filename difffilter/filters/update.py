@@ -14,7 +14,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
-from ..linalg import any_set, gaussian_log_density, joseph_update, psd_sqrt, safe_cholesky, symmetrize
+from ..linalg import any_set, gaussian_log_density, joseph_update, psd_sqrt, safe_cholesky, symmetrize, vmapped
 from ._common import StepInfo, mask_measurement_system
 from .diffuse import DIFFUSE_COV, DIFFUSE_SCALE, diffuse_update
 from .protocol import Belief
@@ -127,10 +127,11 @@ def untrusted_steps(mean: Tensor, cov: Tensor, prior_cov: Tensor, log_likelihood
     # (one reduction each), per-step reductions only when one fails
     bad = ~torch.isfinite(log_likelihood)
     low = ~(post_var >= limit * prior_var)
-    if bool(low.any()):
+    # (inside vmap, where values cannot be read, the per-step reductions always run: same value)
+    if vmapped(low) or bool(low.any()):
         bad = bad | low.any(-1)
     finite = torch.isfinite(mean)
-    if not bool(finite.all()):
+    if vmapped(finite) or not bool(finite.all()):
         bad = bad | ~finite.all(-1)
     if exact is not None:
         bad = bad & ~exact

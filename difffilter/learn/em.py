@@ -112,7 +112,9 @@ class _Target:
 
 def _constraint(owner: nn.Module, attr: str) -> nn.Module:
     """The constraint module of the parametrized attribute ``owner.<attr>``."""
-    return cast(nn.Module, owner.parametrizations[attr][0])  # type: ignore[index,union-attr]
+    # parametrizations is a ModuleDict on a parametrized module; nn.Module's __getattr__ types it
+    # as Tensor | Module, which is not indexable by a name
+    return cast(nn.Module, owner.parametrizations[attr][0])  # type: ignore[index]
 
 
 def _as_filter(filter_or_model: RecursiveFilter | StateSpaceModel) -> RecursiveFilter:

@@ -188,6 +188,7 @@ class CompositeLoss:
         self.weights = {k: float((weights or {}).get(k, 1.0)) for k in self.terms}
 
     def __call__(self, result: FilterResult, batch: Mapping[str, Any]) -> Tensor:
+        # sum() starts from the int 0, which mypy keeps in the type; the terms are tensors, so is the sum
         return sum(self.weights[k] * fn(result, batch) for k, fn in self.terms.items())  # type: ignore[return-value]
 
 

@@ -53,7 +53,9 @@ OmegaConf.register_new_resolver("replicate_seed", replicate_seed, replace=True)
 def _constraint(module: nn.Module, attr: str) -> nn.Module | None:
     if not parametrize.is_parametrized(module, attr):
         return None
-    chain = list(module.parametrizations[attr])  # type: ignore[index,union-attr]
+    # parametrizations is a ModuleDict on a parametrized module; nn.Module's __getattr__ types it
+    # as Tensor | Module, which is not indexable by a name
+    chain = list(module.parametrizations[attr])  # type: ignore[index]
     return chain[0] if len(chain) == 1 else None
 
 

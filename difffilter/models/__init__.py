@@ -1,6 +1,7 @@
 """State-space models: interfaces, motion models, navigation models of the papers, factories for
 configs and the state layout every model carries."""
 
+from .affine import TimeVaryingLinearModel
 from .base import Controls, DynamicsModel, FunctionalModel, LinearModel, MeasurementModel, StateSpaceModel
 from .heteroscedastic import (
     CN0Variance,
@@ -47,6 +48,7 @@ __all__ = [
     "align_streams",
     "event_times",
     "TimeInvariantDynamics",
+    "TimeVaryingLinearModel",
     "describe",
     "linear_measurement",
     "model_defaults",

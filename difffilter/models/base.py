@@ -68,6 +68,10 @@ class DynamicsModel(nn.Module):
 
     state_dim: int
     angular: tuple[int, ...] = ()
+    #: False for dynamics that ignore the per-step inputs (a ``LinearModel`` without ``B``, a
+    #: ``FunctionalModel(controls=False)``): controls given to a model whose parts all ignore
+    #: them are refused instead of silently dropped.
+    uses_controls: bool = True
 
     def residual(self, x: Tensor, x_ref: Tensor) -> Tensor:
         """State difference ``x - x_ref`` ``[..., n]``, angular components wrapped."""
@@ -137,6 +141,8 @@ class MeasurementModel(nn.Module):
 
     measurement_dim: int
     angular: tuple[int, ...] = ()
+    #: As :attr:`DynamicsModel.uses_controls`.
+    uses_controls: bool = True
 
     def forward(self, x: Tensor, u: Controls = None) -> Tensor:  # pragma: no cover - abstract
         raise NotImplementedError
@@ -240,6 +246,7 @@ class _FunctionalDynamics(DynamicsModel):
         check_covariance("Q", Q, semidefinite=True)
         self.state_dim = Q.shape[-1]
         self._f, self._jac, self._takes_u = f, jacobian, takes_u
+        self.uses_controls = bool(takes_u)
         register_covariance(self, "Q", Q, structure)
 
     def forward(self, x: Tensor, u: Controls = None) -> Tensor:
@@ -257,6 +264,7 @@ class _FunctionalMeasurement(MeasurementModel):
         check_covariance("R", R, semidefinite=True)
         self.measurement_dim = R.shape[-1]
         self._h, self._jac, self._takes_u = h, jacobian, takes_u
+        self.uses_controls = bool(takes_u)
         register_covariance(self, "R", R, structure)
 
     def forward(self, x: Tensor, u: Controls = None) -> Tensor:
@@ -282,7 +290,10 @@ class FunctionalModel(StateSpaceModel):
         R: measurement-noise covariance ``[m, m]``; learnable with structure ``R_structure``.
         f_jacobian, h_jacobian: optional analytic Jacobians ``[..., n, n]`` / ``[..., m, n]``.
         controls: whether ``f``/``h`` take the per-step inputs ``u`` as second argument.
-        Q_structure, R_structure: ``"full"``, ``"diagonal"``, ``"scalar"``, ``"factor"`` (a free
+        Q_structure, R_structure: ``"auto"`` (default: ``"full"`` when the value is positive
+            definite, ``"factor"`` when it is semi-definite, e.g. the white-noise-acceleration
+            ``Q``, ``"scalar"`` when a variance is below the dtype's floor, e.g. float32
+            ``R = 1e-20 I``), ``"full"``, ``"diagonal"``, ``"scalar"``, ``"factor"`` (a free
             factor of the value's rank: learnable semi-definite covariances) or ``"fixed"``
             (:func:`~difffilter.params.register_covariance`).
         angular_states, angular_measurements: indices of angle components (radians).
@@ -298,8 +309,8 @@ class FunctionalModel(StateSpaceModel):
         f_jacobian: Callable[..., Tensor] | None = None,
         h_jacobian: Callable[..., Tensor] | None = None,
         controls: bool = False,
-        Q_structure: str = "full",  # noqa: N803
-        R_structure: str = "full",  # noqa: N803
+        Q_structure: str = "auto",  # noqa: N803
+        R_structure: str = "auto",  # noqa: N803
         angular_states: tuple[int, ...] = (),
         angular_measurements: tuple[int, ...] = (),
     ) -> None:
@@ -332,6 +343,7 @@ class _LinearDynamics(DynamicsModel):
         self.state_dim = n
         self.register_buffer("F", F.detach().clone())
         self.register_buffer("B", None if B is None else B.detach().clone())
+        self.uses_controls = B is not None
         register_covariance(self, "Q", Q, structure)
 
     def forward(self, x: Tensor, u: Controls = None) -> Tensor:
@@ -357,6 +369,7 @@ class _LinearMeasurement(MeasurementModel):
         check_covariance("R", R, H.shape[0], semidefinite=True)
         self.measurement_dim = H.shape[0]
         self.register_buffer("H", H.detach().clone())
+        self.uses_controls = False
         register_covariance(self, "R", R, structure)
 
     def forward(self, x: Tensor, u: Controls = None) -> Tensor:
@@ -385,8 +398,8 @@ class LinearModel(StateSpaceModel):
         Q: Tensor,  # noqa: N803
         R: Tensor,  # noqa: N803
         B: Tensor | None = None,  # noqa: N803
-        Q_structure: str = "full",  # noqa: N803
-        R_structure: str = "full",  # noqa: N803
+        Q_structure: str = "auto",  # noqa: N803
+        R_structure: str = "auto",  # noqa: N803
     ) -> None:
         _check_matrix("F", F, None)
         for name, value in (("H", H), ("Q", Q), ("R", R), ("B", B)):

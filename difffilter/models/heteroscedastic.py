@@ -403,6 +403,7 @@ class HeteroscedasticMeasurement(MeasurementModel):
         self.base, self.variance, self.gate = base, variance, gate
         self.observed_key = str(observed_key)
         self.measurement_dim = int(base.measurement_dim)
+        self.angular = tuple(base.angular)  # residual is base's
 
     def forward(self, x: Tensor, u: Controls = None) -> Tensor:
         return self.base(x, u)

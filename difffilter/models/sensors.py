@@ -65,6 +65,8 @@ class MultiSensorMeasurement(MeasurementModel):
             start += int(s.measurement_dim)
         self.measurement_dim = start
         self.additive_noise = all(s.additive_noise for s in sensors.values())
+        # the sensors' angles, at their places in the stacked measurement (residual wraps them)
+        self.angular = tuple(self.slices[name].start + int(i) for name, s in sensors.items() for i in s.angular)
 
     @property
     def names(self) -> list[str]:

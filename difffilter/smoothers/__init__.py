@@ -6,12 +6,16 @@ from .expectations import measurement_residual_moments, previous_smoothed, trans
 from .factory import make_smoother, smoother_spec
 from .fixed_lag import FixedLagSmoother
 from .imm import IMMSmoother
+from .iterated import IteratedSmoother, statistical_linearisation
+from .parallel import ParallelRTSSmoother
 from .result import SmootherResult
 from .rts import RTSSmoother, UnscentedRTSSmoother
 
 __all__ = [
     "FixedLagSmoother",
     "IMMSmoother",
+    "IteratedSmoother",
+    "ParallelRTSSmoother",
     "RTSSmoother",
     "Smoother",
     "SmootherResult",
@@ -20,5 +24,6 @@ __all__ = [
     "measurement_residual_moments",
     "previous_smoothed",
     "smoother_spec",
+    "statistical_linearisation",
     "transition_residual_moments",
 ]

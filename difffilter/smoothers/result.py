@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from torch import Tensor
+from torch.utils import _pytree
 
 from ..filters.base import Belief, FilterResult
 
@@ -82,3 +83,21 @@ class SmootherResult:
     @property
     def total_log_likelihood(self) -> Tensor:
         return self.filtered.total_log_likelihood
+
+
+_FIELDS = ("mean", "cov", "filtered", "cross_cov", "initial_mean", "initial_cov", "extras")
+
+
+def _flatten(r: SmootherResult) -> tuple[list, tuple]:
+    present = tuple(k for k in _FIELDS if getattr(r, k) is not None)
+    return [getattr(r, k) for k in present], (present, r.lag)
+
+
+def _unflatten(children: list, context: tuple) -> SmootherResult:
+    present, lag = context
+    return SmootherResult(**dict(zip(present, children, strict=True)), lag=lag)
+
+
+# A pytree node (absent fields and the lag are static context), so that torch.func.vmap can
+# return a SmootherResult.
+_pytree.register_pytree_node(SmootherResult, _flatten, _unflatten, serialized_type_name="difffilter.SmootherResult")

@@ -77,7 +77,9 @@ from difffilter._util import as_dtype
 from difffilter.evaluate.evaluation import EXTRA_TESTS_DIR, PER_RUN_FILE, consistency_table, evaluate_filter, evaluate_runs, write_per_run
 from difffilter.filters.protocol import Filter
 from difffilter.learn.callbacks import EpochSummary, GracefulInterrupt
+from difffilter.learn.config_check import check_config
 from difffilter.learn.data import TrajectorySet
+from difffilter.learn.divergence import DivergenceGuard
 from difffilter.learn.learner import FilterLearner
 from difffilter.learn.reporting import log_results, parameter_summary, parameter_values
 from difffilter.models.layout import model_defaults
@@ -260,6 +262,9 @@ def _trainer(cfg: DictConfig) -> tuple[pl.Trainer, list[Any]]:
     for kind in (EpochSummary, GracefulInterrupt):
         if not any(isinstance(c, kind) for c in callbacks):
             callbacks.append(kind())
+    # always on unless divergence.enabled=false: a run that walks off stops as `diverged`
+    if not any(isinstance(c, DivergenceGuard) for c in callbacks):
+        callbacks.append(DivergenceGuard(**(_plain(cfg.get("divergence")) or {})))
     # Lightning's tqdm bar, chosen here so that the console looks the same on every machine
     # (Lightning would pick its rich bar where the rich package happens to be installed); not in
     # the callbacks config, which trainer.enable_progress_bar=false would contradict.
@@ -280,6 +285,7 @@ def run_experiment(cfg: DictConfig) -> dict[str, Any]:
     with ``cfg.train: true``, ``cfg.ckpt_path`` or ``cfg.resume`` continue an interrupted training
     run (:func:`~experiments.runner.runs.resume_checkpoint`).  The run directory gets a
     ``status.json`` (:func:`~experiments.runner.runs.run_status`)."""
+    check_config(cfg)  # a number typed as text fails here, naming its key
     if cfg.get("threads"):
         torch.set_num_threads(int(cfg.threads))
     train = bool(cfg.get("train", True))

@@ -2,9 +2,13 @@
 config it was trained with.
 
 * :func:`run_status` - a context manager that writes ``status.json`` into the run directory:
-  ``running`` at the start, then ``completed``, ``interrupted`` (SIGTERM/SIGINT; with the
-  checkpoint and the command that resumes) or ``failed`` (with the error), so that a failed or
-  stopped run is marked as such instead of looking like an empty or unfinished folder;
+  ``running`` at the start (with the process id, host and a heartbeat renewed every 30 s), then
+  ``completed``, ``interrupted`` (SIGTERM/SIGINT; with the checkpoint and the command that
+  resumes), ``diverged`` (:mod:`difffilter.learn.divergence`; with the reason) or ``failed``
+  (with the error), so that a failed or stopped run is marked as such instead of looking like
+  an empty or unfinished folder; :func:`read_status` reports a ``running`` whose process was
+  killed (SIGKILL leaves no chance to write) as ``killed`` or ``stale``
+  (:mod:`difffilter.learn.liveness`);
 * :func:`resume_checkpoint` - the checkpoint a training run continues from (``ckpt_path=``, or
   ``resume=true``: ``last.ckpt`` of this run directory);
 * :func:`checkpoint_config` - the config an evaluation of a checkpoint runs under: the stored
@@ -19,6 +23,7 @@ import datetime as _dt
 import json
 import logging
 import signal
+import threading
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
@@ -30,6 +35,8 @@ from pytorch_lightning.utilities.rank_zero import rank_zero_only
 
 from difffilter.learn.callbacks import TrainingInterrupted
 from difffilter.learn.checkpoints import read_checkpoint, run_config
+from difffilter.learn.divergence import TrainingDivergedError
+from difffilter.learn.liveness import HEARTBEAT_INTERVAL_S, Heartbeat, assess, stamp
 
 __all__ = ["STATUS_FILE", "LightningTips", "checkpoint_config", "read_status", "resume_checkpoint", "run_status"]
 
@@ -54,30 +61,46 @@ def _command(checkpoint: str | None) -> str | None:
     return " ".join(["python", script, *keep, f"hydra.run.dir={hc.runtime.output_dir}", "resume=true"])
 
 
+_write_lock = threading.Lock()  # the heartbeat thread and the run write the same file
+
+
 def _write(path: Path, state: dict[str, Any]) -> None:
     if rank_zero_only.rank != 0:
         return
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(state, indent=2) + "\n")
-    tmp.replace(path)
+    with _write_lock:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(".tmp")
+        tmp.write_text(json.dumps(state, indent=2) + "\n")
+        tmp.replace(path)
 
 
-def read_status(run_dir: str | Path) -> dict[str, Any] | None:
-    """The ``status.json`` of a run directory (``None`` if it has none)."""
+def read_status(run_dir: str | Path, *, raw: bool = False) -> dict[str, Any] | None:
+    """The ``status.json`` of a run directory (``None`` if it has none); a recorded ``running``
+    whose process is gone reads as ``killed`` or ``stale`` (:func:`~difffilter.learn.liveness.assess`),
+    unless ``raw``."""
     p = Path(run_dir) / STATUS_FILE
-    return json.loads(p.read_text()) if p.is_file() else None
+    if not p.is_file():
+        return None
+    state = json.loads(p.read_text())
+    return state if raw else assess(state)
 
 
 @contextlib.contextmanager
-def run_status(run_dir: str | Path) -> Iterator[dict[str, Any]]:
-    """Mark ``run_dir`` as running, then completed / interrupted / failed (module docstring).
+def run_status(run_dir: str | Path, *, heartbeat_s: float = HEARTBEAT_INTERVAL_S) -> Iterator[dict[str, Any]]:
+    """Mark ``run_dir`` as running (heartbeat every ``heartbeat_s`` seconds), then completed /
+    interrupted / diverged / failed (module docstring).
 
     A SIGTERM that Lightning turned into its own stop (exit status 0) is re-raised as
     :class:`~difffilter.learn.callbacks.TrainingInterrupted` (exit status 143)."""
     path = Path(run_dir) / STATUS_FILE
-    state: dict[str, Any] = {"status": "running", "started": _now()}
+    state: dict[str, Any] = stamp({"status": "running", "started": _now()}, interval=heartbeat_s)
+
+    def beat() -> None:
+        if state.get("status") == "running":
+            _write(path, stamp(state, interval=heartbeat_s))
+
     _write(path, state)
+    heart = Heartbeat(beat, interval=heartbeat_s).start()
     try:
         yield state
     except (TrainingInterrupted, SIGTERMException, KeyboardInterrupt) as exc:
@@ -90,6 +113,11 @@ def run_status(run_dir: str | Path) -> Iterator[dict[str, Any]]:
         if isinstance(exc, TrainingInterrupted):
             raise
         raise TrainingInterrupted(signum, checkpoint) from exc
+    except TrainingDivergedError as exc:
+        state.update(status="diverged", ended=_now(), error=str(exc))
+        _write(path, state)
+        log.error("%s", exc)
+        raise
     except BaseException as exc:
         state.update(status="failed", ended=_now(), error=f"{type(exc).__name__}: {exc}")
         _write(path, state)
@@ -98,6 +126,8 @@ def run_status(run_dir: str | Path) -> Iterator[dict[str, Any]]:
     else:
         state.update(status="completed", ended=_now())
         _write(path, state)
+    finally:
+        heart.stop()
 
 
 def _existing(path: Path) -> str | None:

@@ -47,6 +47,7 @@ from torch import Tensor
 
 from difffilter.evaluate.evaluation import EXTRA_TESTS_DIR, PER_RUN_FILE, read_per_run
 from difffilter.evaluate.intervals import GapClosed, Interval, crossed_interval, gap_closed, nested_interval
+from difffilter.learn.liveness import assess
 from experiments.results_tables import anees_verdict
 
 __all__ = ["SUMMARY_CSV", "SUMMARY_MD", "SweepSummary", "load_jobs", "main", "summarize_sweep", "unfinished_jobs"]
@@ -119,9 +120,13 @@ def unfinished_jobs(sweep_dir: str | Path) -> list[tuple[Path, str]]:
     running (:func:`experiments.runner.runs.run_status`), with the reason."""
     out = []
     for status_file in sorted(Path(sweep_dir).rglob("status.json")):
-        state = json.loads(status_file.read_text())
+        state = assess(json.loads(status_file.read_text()))  # a killed run's "running" reads as killed
         if state.get("status") != "completed":
-            why = state.get("error") or (f"{state.get('signal')}; checkpoint {state.get('checkpoint')}" if state.get("signal") else "")
+            why = (
+                state.get("error")
+                or state.get("reason")
+                or (f"{state.get('signal')}; checkpoint {state.get('checkpoint')}" if state.get("signal") else "")
+            )
             out.append((status_file.parent, f"{state.get('status')}" + (f" ({why})" if why else "")))
     return out
 

@@ -300,6 +300,7 @@ class GnssMeasurement(MeasurementModel):
         self._lin = list(range(d)) + (list(range(d, 2 * d)) if velocity else [])
         sig = [sigma_gnss] * d + ([sigma_gnss_velocity] * d if velocity else []) + ([sigma_heading] if heading else [])
         self.measurement_dim = len(sig)
+        self.angular = (self.measurement_dim - 1,) if heading else ()  # the heading wraps (residual)
         s = torch.tensor(sig, dtype=dtype or torch.get_default_dtype())
         register_covariance(self, "R", torch.diag(s * s), R_structure)
         self.accuracy_reference = float(sigma_gnss)

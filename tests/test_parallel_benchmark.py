@@ -1,0 +1,21 @@
+"""The parallel benchmark script runs and its rows check the two filters against each other."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from experiments.benchmark_parallel import main  # noqa: E402
+
+
+def test_benchmark_parallel_smoke(tmp_path):
+    out = tmp_path / "bench.md"
+    text = main(["--steps", "8", "30", "--batches", "1", "2", "--repeats", "1", "--smoother", "--out", str(out)])
+    rows = [line for line in text.splitlines() if line.startswith("| ") and line[2].isdigit()]
+    assert len(rows) == 2 * 2 * 3  # (T, B) x (filter, fwd+bwd, smoother)
+    for row in rows:
+        diff = float(row.strip("| ").split("|")[-1])
+        assert diff < 1e-9
+    assert out.read_text().startswith("# Parallel-in-time")

@@ -22,6 +22,7 @@ PACKAGE = ROOT / "difffilter"
 #: floor a smoother package takes when it exists.
 FLOORS: list[set[str]] = [
     {"_util", "constraints", "geometry", "linalg", "params", "selection", "threads"},
+    {"datasets"},  # file formats and the data-set registry: numpy only, below every model
     {"models"},
     {"filters"},
     {"mixers"},

@@ -70,7 +70,7 @@ def main(argv: list[str] | None = None) -> str:
     print(text)
     if args.out is not None:
         args.out.parent.mkdir(parents=True, exist_ok=True)
-        command = " ".join(["python", "experiments/benchmark_parallel.py", *sys.argv[1:]])
+        command = " ".join(["python", "experiments/benchmark_parallel.py", *(argv if argv is not None else sys.argv[1:])])
         args.out.write_text(f"<!-- generated file: {command} -->\n# Parallel-in-time Kalman filter: benchmark\n\n" + text)
     return text
 

@@ -27,7 +27,10 @@ CONF = Path(__file__).resolve().parents[1] / "conf"
 # Groups of train.yaml (hydra/ is Hydra's own; a directory named like another primary config,
 # e.g. benchmark/ for benchmark.yaml, belongs to that config).
 PRIMARIES = sorted(p.stem for p in CONF.glob("*.yaml"))
-TRAIN_GROUPS = sorted(d.name for d in CONF.iterdir() if d.is_dir() and d.name != "hydra" and d.name not in PRIMARIES)
+# train.yaml's groups: those of its defaults list (conf/common.yaml), other than Hydra's own
+TRAIN_GROUPS = sorted(
+    next(iter(d)) for d in OmegaConf.load(CONF / "common.yaml").defaults if isinstance(d, DictConfig) and next(iter(d)) != "hydra"
+)
 # hparams_search needs an optional Hydra plugin: composed by tests/test_cluster_configs.py
 OPTIONS = {g: [p.stem for p in config_files(g)] for g in TRAIN_GROUPS if g not in ("experiment", "debug", "hparams_search")}
 # Groups whose options work with any experiment are composed together, one option of each per

@@ -18,4 +18,6 @@ def test_benchmark_parallel_smoke(tmp_path):
     for row in rows:
         diff = float(row.strip("| ").split("|")[-1])
         assert diff < 1e-9
-    assert out.read_text().startswith("# Parallel-in-time")
+    first, second = out.read_text().splitlines()[:2]
+    assert first == f"<!-- generated file: python experiments/benchmark_parallel.py --steps 8 30 --batches 1 2 --repeats 1 --smoother --out {out} -->"
+    assert second.startswith("# Parallel-in-time")

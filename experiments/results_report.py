@@ -14,7 +14,6 @@ The per-family detail (every test set, every filter, every state block) is in
 from __future__ import annotations
 
 import re
-
 import sys
 from pathlib import Path
 

@@ -19,5 +19,6 @@ def test_benchmark_parallel_smoke(tmp_path):
         diff = float(row.strip("| ").split("|")[-1])
         assert diff < 1e-9
     first, second = out.read_text().splitlines()[:2]
-    assert first == f"<!-- generated file: python experiments/benchmark_parallel.py --steps 8 30 --batches 1 2 --repeats 1 --smoother --out {out} -->"
+    args = f"--steps 8 30 --batches 1 2 --repeats 1 --smoother --out {out}"
+    assert first == f"<!-- generated file: python experiments/benchmark_parallel.py {args} -->"
     assert second.startswith("# Parallel-in-time")

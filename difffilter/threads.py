@@ -144,7 +144,7 @@ class _Enter(torch.autograd.Function):
     generate_vmap_rule = True  # usable under torch.func transforms
 
     @staticmethod
-    def forward(hold: _Hold, *xs: Tensor) -> tuple[Tensor, ...]:  # type: ignore[override]
+    def forward(hold: _Hold, *xs: Tensor) -> tuple[Tensor, ...]:
         return tuple(x.view_as(x) for x in xs)
 
     @staticmethod
@@ -153,7 +153,7 @@ class _Enter(torch.autograd.Function):
         ctx.set_materialize_grads(False)
 
     @staticmethod
-    def backward(ctx: Any, *grads: Tensor | None) -> tuple[Tensor | None, ...]:  # type: ignore[override]
+    def backward(ctx: Any, *grads: Tensor | None) -> tuple[Tensor | None, ...]:
         ctx.hold.acquire()
         return (None, *grads)
 
@@ -164,7 +164,7 @@ class _Exit(torch.autograd.Function):
     generate_vmap_rule = True
 
     @staticmethod
-    def forward(hold: _Hold, link: Tensor, like: Tensor) -> Tensor:  # type: ignore[override]
+    def forward(hold: _Hold, link: Tensor, like: Tensor) -> Tensor:
         return like.new_zeros(())
 
     @staticmethod
@@ -172,7 +172,7 @@ class _Exit(torch.autograd.Function):
         ctx.hold = inputs[0]
 
     @staticmethod
-    def backward(ctx: Any, grad: Tensor) -> tuple[Tensor | None, ...]:  # type: ignore[override]
+    def backward(ctx: Any, grad: Tensor) -> tuple[Tensor | None, ...]:
         ctx.hold.release()
         # zeros, not ``grad * 0``: a non-finite gradient must not reach what the link came from
         return None, torch.zeros((), dtype=grad.dtype, device=grad.device), None

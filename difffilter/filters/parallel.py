@@ -106,6 +106,7 @@ class ParallelKalmanFilter(KalmanFilter):
         with parametrize.cached():
             derived = self.precompute_controls(controls)
             if belief is None:
+                assert mean0 is not None and cov0 is not None  # checked above
                 belief = self.start_belief(mean0, cov0, slice_controls(derived, 0))
             parts, t = [], 0
             # a diffuse part is resolved by the exact sequential update, step by step

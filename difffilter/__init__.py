@@ -1,6 +1,7 @@
 """difffilter: batched, differentiable Kalman-family filters in PyTorch."""
 
-from . import filters, func, linalg, mixers, models, params, sim, smoothers
+# engines: registers the DIFFFILTER_ENGINE policy every plain filter call asks
+from . import engines, filters, func, linalg, mixers, models, params, sim, smoothers
 from ._util import as_dtype, document_init
 from .filters import (
     EKF,
@@ -36,6 +37,7 @@ __all__ = [
     "SquareRootUKF",
     "StateSpaceModel",
     "as_dtype",
+    "engines",
     "func",
     "linalg",
     "mixers",

@@ -70,7 +70,8 @@ def main(argv: list[str] | None = None) -> str:
     print(text)
     if args.out is not None:
         args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text("# Parallel-in-time Kalman filter: benchmark\n\n" + text)
+        command = " ".join(["python", "experiments/benchmark_parallel.py", *(argv if argv is not None else sys.argv[1:])])
+        args.out.write_text(f"<!-- generated file: {command} -->\n# Parallel-in-time Kalman filter: benchmark\n\n" + text)
     return text
 
 

@@ -3,12 +3,14 @@ a held-out validation block from several seeds, test with paired block-bootstrap
 
     python experiments/realdata.py                                   # smartLoc Berlin, folds A and B, 5 seeds
     python experiments/realdata.py folder=/data/drives               # every <name>_Input.txt + <name>_GT.txt of a folder
+    python experiments/realdata.py folder=../shared/data/real/librsf_ranging_w3500   # range2 data: the 2-D ranging protocol
     python experiments/realdata.py transfer_from=outputs/realdata/smartloc/<run> folder=/data/other
     python experiments/realdata.py realdata.horizons=[1,2,4]          # stability check (4x the epochs)
     python experiments/realdata.py evaluate_from=outputs/realdata/smartloc/<run>   # recompute a run's test tables (no training)
     python experiments/realdata.py evaluate_from=<run> compare_with=<other run>     # + paired differences against the other run's rows
 
-The logic is in experiments.papers.smartloc.protocol / .report; results.md, summary.json, the
+The logic is in experiments.papers.smartloc.protocol / .report (pseudoranges) and
+experiments.ranging.protocol / .report (2-D ranging, conf/realdata_ranging); results.md, summary.json, the
 noise-model figures and TensorBoard events go to the Hydra run directory.
 """
 
@@ -28,7 +30,9 @@ import torch  # noqa: E402
 from hydra.core.hydra_config import HydraConfig  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
 
+from difffilter.datasets import folder_kind  # noqa: E402
 from experiments.papers.smartloc.report import resolve_config, run_evaluation, run_protocol, run_transfer  # noqa: E402
+from experiments.ranging.report import run_ranging  # noqa: E402
 
 log = logging.getLogger(__name__)
 
@@ -39,6 +43,11 @@ def main(cfg: DictConfig) -> None:
     torch.set_num_threads(int(cfg.threads))
     warnings.filterwarnings("ignore", module="pytorch_lightning")
     out = HydraConfig.get().runtime.output_dir
+    if cfg.folder and folder_kind(cfg.folder) == "ranging2d":
+        run_ranging(cfg.folder, OmegaConf.to_container(cfg.realdata_ranging, resolve=True), out)  # type: ignore[arg-type]
+        print(open(f"{out}/results.md").read())
+        log.info("results written to %s", out)
+        return
     spec = resolve_config(OmegaConf.to_container(cfg.realdata, resolve=True), cfg.folder)  # type: ignore[arg-type]
     if cfg.evaluate_from:
         run_evaluation(cfg.evaluate_from, out, compare_with=cfg.get("compare_with"))

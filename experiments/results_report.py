@@ -13,6 +13,7 @@ The per-family detail (every test set, every filter, every state block) is in
 
 from __future__ import annotations
 
+import re
 import sys
 from pathlib import Path
 
@@ -384,8 +385,26 @@ def check(root: Path = ROOT) -> list[str]:
             problems.append(f"{rel}: missing (python experiments/report.py --render)")
         elif path.read_text() != text:
             problems.append(f"{rel}: differs from what results/data gives")
-    problems += [f"{p.relative_to(root)}: {msg}" for p in results_files(root) for msg in check_text(p.read_text(), root)]
+    for p in results_files(root):
+        text = p.read_text()
+        command = whole_file_generator(text)
+        if command is None:
+            problems += [f"{p.relative_to(root)}: {msg}" for msg in check_text(text, root)]
+        elif not any((base / command.split()[1]).is_file() for base in (root, ROOT)):
+            problems.append(f"{p.relative_to(root)}: its generator {command!r} names no committed script")
     return problems
+
+
+#: First line of a results file written whole by one committed command (a benchmark, a real-data
+#: protocol): its tables come from that command's own run, not from results/data, so the table
+#: check leaves them to the command (rerun it to regenerate the file).
+WHOLE_FILE = re.compile(r"^<!-- generated file: (python \S+\.py[^>]*?) -->$", re.M)
+
+
+def whole_file_generator(text: str) -> str | None:
+    """The command named by a results file's ``<!-- generated file: python ... -->`` line, or None."""
+    match = WHOLE_FILE.search(text.split("\n", 1)[0])
+    return match.group(1).strip() if match else None
 
 
 def render(root: Path = ROOT) -> list[Path]:

@@ -84,11 +84,12 @@ def page_namespace(relpath: str) -> dict:
     return it (cached: the generic test and a page's own test share one run).
 
     The library must not warn while its documented examples run (UserWarning is an error here);
-    torch's thread count is restored afterwards (examples may set it).
+    torch's thread count and default dtype are restored afterwards (examples may set them; a
+    leaked default dtype changes every later test's tensors).
     """
     path = ROOT / relpath
     namespace: dict = {}
-    threads = torch.get_num_threads()
+    threads, dtype = torch.get_num_threads(), torch.get_default_dtype()
     torch.manual_seed(0)
     try:
         with warnings.catch_warnings():
@@ -98,4 +99,5 @@ def page_namespace(relpath: str) -> dict:
                     run_snippet(b.code, namespace, filename=f"{relpath}:{b.line}")
     finally:
         torch.set_num_threads(threads)
+        torch.set_default_dtype(dtype)
     return namespace

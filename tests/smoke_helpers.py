@@ -15,6 +15,8 @@ from typing import Any
 import pytorch_lightning as pl
 
 ROOT = Path(__file__).resolve().parents[1]
+#: results.csv columns that are measured times (they differ between runs that agree in every number)
+TIMING_COLUMNS = ("time_per_step_ms", "tuning_cpu_s")
 
 
 def read_rows(path: Path) -> list[dict[str, str]]:

@@ -13,7 +13,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def test_docs_example_runs_and_learns_b():
     text = (ROOT / "docs" / "adaptive.md").read_text()
     block = re.findall(r"```python\n(.*?)```", text, re.S)[0]
-    assert len(block.strip().splitlines()) <= 20
+    assert len(block.strip().splitlines()) <= 25
     namespace: dict = {}
     default = torch.get_default_dtype()
     try:

@@ -18,4 +18,7 @@ def test_benchmark_parallel_smoke(tmp_path):
     for row in rows:
         diff = float(row.strip("| ").split("|")[-1])
         assert diff < 1e-9
-    assert out.read_text().startswith("# Parallel-in-time")
+    first, second = out.read_text().splitlines()[:2]
+    args = f"--steps 8 30 --batches 1 2 --repeats 1 --smoother --out {out}"
+    assert first == f"<!-- generated file: python experiments/benchmark_parallel.py {args} -->"
+    assert second.startswith("# Parallel-in-time")

@@ -195,3 +195,19 @@ def test_collect_takes_a_sweeps_summary_csv_and_the_check_passes_after_rendering
     with pytest.raises(ValueError, match="columns must be"):
         results_report.collect(root)
     assert "0.9611" in data.read_text()
+
+
+def test_a_whole_file_generator_must_be_a_committed_script(tmp_path):
+    root = _copy_results(tmp_path)
+    (root / "experiments").mkdir()
+    (root / "experiments" / "bench_x.py").write_text("")
+    table = "| a | b |\n|---|---|\n| 1 | 2 |\n"
+    (root / "results" / "x.md").write_text("<!-- generated file: python experiments/bench_x.py --out results/x.md -->\n# x\n\n" + table)
+    assert not [p for p in check(root) if "x.md" in p]
+    missing = "<!-- generated file: python experiments/nothing.py -->\n"
+    (root / "results" / "y.md").write_text(missing + "# y\n\n" + table)
+    assert [p for p in check(root) if "y.md" in p] == [
+        "results/y.md: its generator 'python experiments/nothing.py' names no committed script"
+    ]
+    (root / "results" / "z.md").write_text("# z\n\n<!-- generated file: python experiments/bench_x.py -->\n" + table)  # not the first line
+    assert any("z.md: line" in p and "outside" in p for p in check(root))

@@ -23,7 +23,7 @@ from difffilter.learn.data import TrajectorySet, WindowedTrajectories
 from difffilter.sim import ModelSimulator
 from experiments.runner.experiment import run_experiment
 from experiments.runner.runs import read_status
-from tests.smoke_helpers import ROOT, read_rows
+from tests.smoke_helpers import ROOT, TIMING_COLUMNS, read_rows
 from tests.test_learn import CV_PRIOR, cv_model
 
 f64 = torch.float64
@@ -46,7 +46,7 @@ def _cfg(run_dir: Path, extra: list[str] = ()):
 
 def _rows(run_dir: Path) -> list[dict[str, str]]:
     # everything but the wall time: every metric, consistency figure and learned value (full precision)
-    return [{k: v for k, v in r.items() if k != "time_per_step_ms"} for r in read_rows(run_dir / "results.csv")]
+    return [{k: v for k, v in r.items() if k not in TIMING_COLUMNS} for r in read_rows(run_dir / "results.csv")]
 
 
 def _killer(step: int, signum: int) -> list[str]:

@@ -22,7 +22,7 @@ from difffilter.learn import FilterLearner
 from difffilter.learn.checkpoints import read_checkpoint, run_config
 from difffilter.learn.learner import load_filter
 from experiments.runner.experiment import build_filter, run_experiment
-from tests.smoke_helpers import ROOT, read_rows
+from tests.smoke_helpers import ROOT, TIMING_COLUMNS, read_rows
 
 ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
 #: Warnings printed by third-party code that no change here can avoid: Lightning 2.6 builds a
@@ -34,7 +34,7 @@ WARNING_LINE = re.compile(r"^(?P<file>\S+\.py):(?P<line>\d+): ", re.M)
 
 
 def _table(run_dir: Path) -> list[dict[str, str]]:
-    return [{k: v for k, v in r.items() if k != "time_per_step_ms"} for r in read_rows(run_dir / "results.csv")]
+    return [{k: v for k, v in r.items() if k not in TIMING_COLUMNS} for r in read_rows(run_dir / "results.csv")]
 
 
 @pytest.fixture(scope="module")

@@ -7,10 +7,15 @@
   :mod:`.generated` (batch packing);
 * inductor engine: :mod:`.inductor` (the filter's own step under ``torch.compile``), :mod:`.step`
   (element-wise small linear algebra);
-* both: :mod:`.branchfree` (branch-free stand-ins for the helpers that decide on data).
+* both: :mod:`.branchfree` (branch-free stand-ins for the helpers that decide on data);
+* :mod:`.policy`: which engine a plain filter call runs on (``DIFFFILTER_ENGINE``).
 """
 
+from ..filters.base import ENGINE_HOOK
 from .build import cache_dir
 from .filter import ENGINES, FusedFilter, fuse
+from .policy import chosen_engine, run_compiled_if_chosen, set_engine
 
-__all__ = ["ENGINES", "FusedFilter", "cache_dir", "fuse"]
+ENGINE_HOOK[0] = run_compiled_if_chosen
+
+__all__ = ["ENGINES", "FusedFilter", "cache_dir", "chosen_engine", "fuse", "set_engine"]

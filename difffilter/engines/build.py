@@ -11,6 +11,11 @@ match the record: mapping a truncated shared object can kill the process with SI
 garbage one raises ``OSError``, so a damaged entry (or one without a record, from an older
 version) is deleted and compiled again instead, with one :class:`CacheIntegrityWarning`
 when the entry was damaged.
+
+Builds of different kernels never wait for each other; builds of one kernel happen once: threads
+of a process wait on a lock per cache key, processes (the jobs of a sweep sharing one cache) on
+an advisory file lock per cache key (``fcntl.flock``, where the platform has it), and whoever
+comes second loads what the first built.
 """
 
 from __future__ import annotations
@@ -24,7 +29,14 @@ import subprocess
 import tempfile
 import threading
 import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
+
+try:
+    import fcntl
+except ImportError:  # not POSIX: processes may then build one kernel twice (writes stay atomic)
+    fcntl = None  # type: ignore[assignment]
 
 __all__ = [
     "CacheIntegrityWarning",
@@ -39,8 +51,9 @@ __all__ = [
 
 _GCC_FLAGS = ["-fira-region=one"]
 _FLAGS = ["-march=native", "-fno-math-errno", "-fno-trapping-math", "-shared", "-fPIC", "-std=c++17", "-w"]
-_lock = threading.Lock()
+_lock = threading.Lock()  # guards the two dicts below, never held during a build
 _loaded: dict[str, ctypes.CDLL] = {}
+_key_locks: dict[str, threading.Lock] = {}
 
 
 class CompileError(RuntimeError):
@@ -140,6 +153,25 @@ def _is_gcc(cxx: str) -> bool:
     return "clang" not in out.lower() and ("gcc" in out.lower() or "g++" in out.lower() or "free software foundation" in out.lower())
 
 
+def _key_lock(key: str) -> threading.Lock:
+    with _lock:
+        return _key_locks.setdefault(key, threading.Lock())
+
+
+@contextmanager
+def _file_lock(path: Path) -> Iterator[None]:
+    """Exclusive advisory lock on ``path`` across processes (a no-op without ``fcntl``)."""
+    if fcntl is None:
+        yield
+        return
+    with open(path, "a") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
+
+
 def compile_library(source: str, *, tag: str = "kernel", opt: str = "-O2") -> ctypes.CDLL:
     """Compile ``source`` with optimisation level ``opt`` (or find it in the cache) and load it."""
     cxx = _compiler()
@@ -152,27 +184,36 @@ def compile_library(source: str, *, tag: str = "kernel", opt: str = "-O2") -> ct
     key = hashlib.sha256("\0".join([source, cxx, *flags, _cpu_flags()]).encode()).hexdigest()[:32]
     with _lock:
         lib = _loaded.get(key)
-        if lib is not None:
+    if lib is not None:
+        return lib
+    with _key_lock(key):
+        with _lock:
+            lib = _loaded.get(key)
+        if lib is not None:  # built by another thread meanwhile
             return lib
         root = cache_dir()
         root.mkdir(parents=True, exist_ok=True)
         target = root / f"{tag}_{key}.so"
         # never map an unverified file: a truncated shared object can SIGBUS the process
-        state = verify_record(target) if target.exists() else "absent"
-        if state != "ok":
-            if state != "absent":
-                _discard(target, state)
-            _build(cxx, flags, source, root, target)
+        if (verify_record(target) if target.exists() else "absent") != "ok":
+            with _file_lock(root / f"{tag}_{key}.lock"):
+                state = verify_record(target) if target.exists() else "absent"  # another process may have built it
+                if state != "ok":
+                    if state != "absent":
+                        _discard(target, state)
+                    _build(cxx, flags, source, root, target)
         try:
             lib = ctypes.CDLL(str(target))
         except OSError as err:  # verified yet unloadable (e.g. replaced between check and load): once more
-            _discard(target, "damaged")
-            _build(cxx, flags, source, root, target)
+            with _file_lock(root / f"{tag}_{key}.lock"):
+                _discard(target, "damaged")
+                _build(cxx, flags, source, root, target)
             try:
                 lib = ctypes.CDLL(str(target))
             except OSError:
                 raise CompileError(f"the freshly built kernel {target} cannot be loaded: {err}") from err
-        _loaded[key] = lib
+        with _lock:
+            _loaded[key] = lib
         return lib
 
 

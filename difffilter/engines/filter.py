@@ -13,6 +13,7 @@ from ..filters.base import Belief, FilterResult, RecursiveFilter, slice_controls
 from ..filters.diffuse import DIFFUSE_COV
 from ..filters.isolation import isolated_run
 from ..models.base import Controls
+from ..threads import scoped_forward
 from .build import CompileError
 from .generated import GeneratedEngine
 from .graph import UnsupportedOp
@@ -154,6 +155,7 @@ class FusedFilter(nn.Module):
         name = type(self.filter).__name__
         warnings.warn(f"FusedFilter: the generated engine cannot run {name} ({reason}); using the inductor engine", stacklevel=3)
 
+    @scoped_forward
     def forward(
         self,
         measurements: Tensor,

@@ -19,6 +19,7 @@ from torch import Tensor
 from ..filters.base import Belief, FilterResult, RecursiveFilter
 from ..filters.update import untrusted_steps
 from ..models.base import Controls
+from ..threads import caller_threads
 from .cache import load_or_trace
 from .kernel import SequenceProgram, lanes, run_sequence
 from .shared import SharedGainMean, shared_covariance_run, shares_covariance
@@ -138,7 +139,7 @@ class GeneratedEngine:
         trained = dict(self.filter.named_parameters())
         params = [trained[name].reshape(-1) for name, _ in prog.traced.params]
         flat_params = torch.cat(params) if params else z.new_zeros(1)
-        threads = self.threads if self.threads is not None else torch.get_num_threads()
+        threads = self.threads if self.threads is not None else caller_threads()
         outs = run_sequence(prog, state0, step_in, flat_params, shared=torch.cat(common, 1) if common else None, threads=threads)
 
         def field(name: str) -> Tensor:

@@ -9,6 +9,7 @@ stored beliefs instead of keeping the step's intermediates.
 from __future__ import annotations
 
 import ctypes
+import os
 import threading
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any
@@ -126,7 +127,9 @@ class SequenceProgram:
         runs), unless it exists or is being built."""
         with self._lock:
             if which not in self._backward:
-                self._backward[which] = _pool(1, "build").submit(self._build_backward, which)
+                # a pool per process, as wide as the machine: one program's reverse build never
+                # queues behind another's (the compiler runs outside the GIL)
+                self._backward[which] = _pool(os.cpu_count() or 2, "build").submit(self._build_backward, which)
 
     def backward_kernel(self, which: BackwardSpec) -> Any:
         self.prefetch_backward(which)

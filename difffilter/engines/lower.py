@@ -28,13 +28,13 @@ __all__ = ["lower"]
 
 
 def _op_name(target: Any) -> str:
-    if isinstance(target, torch._ops.OpOverload):
+    if isinstance(target, torch.library.OpOverload):
         return (
             target.overloadpacket.__name__.rstrip("_")
             if target.overloadpacket.__name__ not in ("__and__", "__or__")
             else target.overloadpacket.__name__
         )
-    if isinstance(target, torch._ops.OpOverloadPacket):
+    if callable(getattr(target, "overloads", None)) and isinstance(getattr(target, "__name__", None), str):  # an OpOverloadPacket
         return target.__name__
     raise UnsupportedOp(f"call to {target}")
 

@@ -83,6 +83,8 @@ def lower_pointwise(L: Lowering, name: str, args: tuple, kw: dict[str, Any], nod
             return g.const(towards.item())
 
         return np.asarray(np.frompyfunc(after, 2, 1)(a, b), dtype=object)
+    if name == "hypot":  # sqrt(a^2 + b^2): its reverse derivative comes from the scalar graph
+        return L.unary("sqrt", L.binary("add", L.binary("mul", a0, a0), L.binary("mul", args[1], args[1])))
     if name == "square":
         return L.binary("mul", a0, a0)
     if name == "reciprocal":

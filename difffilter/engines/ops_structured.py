@@ -6,12 +6,13 @@ import math
 from typing import Any
 
 import numpy as np
+import torch
 from torch import fx
 
 from .graph import ScalarGraph, UnsupportedOp
 from .ops import Lowering, dim_index
 
-__all__ = ["const_index", "lower_structured"]
+__all__ = ["const_index", "data_index", "lower_structured"]
 
 
 def lower_structured(L: Lowering, name: str, args: tuple, kw: dict[str, Any], node: fx.Node) -> Any:  # noqa: C901 - one table of cases
@@ -103,7 +104,10 @@ def lower_structured(L: Lowering, name: str, args: tuple, kw: dict[str, Any], no
         x[..., ~keep] = g.const(0.0)
         return x
     if name in ("index",):
-        return L.arr(a0)[const_index(g, args[1])]
+        try:
+            return L.arr(a0)[const_index(g, args[1])]
+        except UnsupportedOp:
+            return data_index(L, L.arr(a0), args[1], node)
     if name == "index_put":
         x = L.arr(a0).copy()
         accumulate = args[3] if len(args) > 3 else kw.get("accumulate", False)
@@ -236,3 +240,39 @@ def const_index(g: ScalarGraph, indices: Any) -> tuple[Any, ...]:
         arr = np.array([g.value[v] for v in i.reshape(-1)]).reshape(i.shape)
         idx.append(arr.astype(bool) if arr.dtype == bool else arr.astype(np.int64))
     return tuple(idx)
+
+
+def data_index(L: Lowering, x: Any, indices: Any, node: fx.Node) -> Any:
+    """``x[..., idx, ...]`` with one integer index ``idx`` whose values are data (e.g. a group
+    label among the controls picking one of a few learned scales): per element, a chain of
+    selections over the indexed dimension's ``size`` entries (negative indices as torch reads
+    them).  Boolean or several data-dependent indices are refused (their result's shape or
+    pairing depends on the data)."""
+    g = L.g
+    dims = [i for i, v in enumerate(indices) if v is not None]
+    if len(dims) != 1:
+        raise UnsupportedOp("indexing with several data-dependent indices")
+    d = dims[0]
+    meta = node.args[1][d].meta.get("val") if isinstance(node.args[1][d], fx.Node) else None
+    if meta is None or meta.dtype == torch.bool or meta.dtype.is_floating_point:
+        raise UnsupportedOp("indexing with a data-dependent boolean index")
+    idx = L.fl(indices[d])
+    size = x.shape[d]
+    if size == 0:
+        raise UnsupportedOp("indexing an empty dimension")
+    lead, rest = x.shape[:d], x.shape[d + 1 :]
+    hits = {}
+    for ii in np.ndindex(*idx.shape):
+        iv = idx[ii]
+        hits[ii] = [
+            g.logical("or", g.compare("eq", iv, g.const(float(k))), g.compare("eq", iv, g.const(float(k - size)))) for k in range(size)
+        ]
+    out = np.empty(lead + idx.shape + rest, dtype=object)
+    for li in np.ndindex(*lead):
+        for ii in np.ndindex(*idx.shape):
+            for ri in np.ndindex(*rest):
+                val = x[li + (size - 1,) + ri]
+                for k in range(size - 2, -1, -1):
+                    val = g.where(hits[ii][k], x[li + (k,) + ri], val)
+                out[li + ii + ri] = val
+    return out

@@ -23,8 +23,8 @@ from typing import Any
 import numpy as np
 import torch
 from torch import Tensor, nn
+from torch.func import functional_call
 from torch.fx.experimental.proxy_tensor import make_fx
-from torch.nn.utils.stateless import _reparametrize_module
 
 from ..filters.base import RecursiveFilter
 from .branchfree import branch_free as _traceable
@@ -127,12 +127,29 @@ def _unflatten_controls(layout: StepLayout, flat: list[Tensor]) -> Any:
     return {k: v for (k, _, _), v in zip(layout.controls, vals, strict=True)}
 
 
+class _StepBody(nn.Module):
+    """The loop body of ``RecursiveFilter.forward`` as a module, so that the traced step can
+    take the trained parameters as inputs through :func:`torch.func.functional_call`."""
+
+    def __init__(self, filt: RecursiveFilter) -> None:
+        super().__init__()
+        self.filter = filt
+
+    def forward(self, belief: dict[str, Tensor], z: Tensor, mask: Tensor | None, u: Any) -> tuple[Any, ...]:
+        filt = self.filter
+        prior = filt.predict(belief, u)
+        post, info = filt.update(prior, z, mask, u)
+        post = filt.finalize_belief(post)
+        return prior, post, info, filt.record(post)
+
+
 def _step_function(
     filt: RecursiveFilter, layout: StepLayout, keys: list[str], trained: list[tuple[str, Tensor]], seen: dict[str, Any]
 ) -> Any:
     """The loop body of ``RecursiveFilter.forward`` on flat inputs; records the keys it produces in ``seen``."""
     nb = len(keys)
     nc = len(layout.controls) if layout.controls else 0
+    body = _StepBody(filt)
 
     def step(*flat: Tensor) -> list[Tensor]:
         belief = dict(zip(keys, flat[:nb], strict=True))
@@ -144,11 +161,10 @@ def _step_function(
             i += 1
         u = _unflatten_controls(layout, list(flat[i : i + nc]))
         i += nc
-        with _reparametrize_module(filt, {n: v for (n, _), v in zip(trained, flat[i:], strict=True)}):
-            prior = filt.predict(belief, u)
-            post, info = filt.update(prior, z, mask, u)
-            post = filt.finalize_belief(post)
-            rec = filt.record(post)
+        values = {f"filter.{n}": v for (n, _), v in zip(trained, flat[i:], strict=True)}
+        # tie_weights=False: only the names given are replaced (a parameter shared by two members
+        # of a Blend stays one kernel input, as the kernel's parameter layout expects)
+        prior, post, info, rec = functional_call(body, values, (belief, z, mask, u), tie_weights=False)
         seen["post"] = {k: post[k] for k in sorted(post)}
         seen["records"] = list(rec)
         seen["record_values"] = dict(rec)

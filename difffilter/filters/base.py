@@ -35,6 +35,7 @@ from torch.nn.utils import parametrize
 
 from ..linalg import inside_vmap
 from ..models.base import Controls
+from ..threads import scoped_forward
 from ._common import StepInfo, cast_controls, detach_belief, mask_measurement_system, slice_controls
 from .diffuse import DIFFUSE_COV, DIFFUSE_SCALE, drop_resolved, measurement_sensitivity, split_prior, total_cov
 from .isolation import isolated_run
@@ -64,6 +65,10 @@ __all__ = [
 #: ``forward`` builds in one call: ``T`` steps at once up to ``B T = 8192`` (a ``[B, T, 20, 20]``
 #: float64 transition is then 26 MB), blocks of ``8192 // B`` steps beyond.
 PRECOMPUTE_BLOCK = 8192
+#: ``hook(filter, measurements, initial_mean, initial_cov, mask, controls, belief)`` asked first by
+#: every :meth:`RecursiveFilter.forward`: a result to return, or None to run the filter's own
+#: loop.  Set by :mod:`difffilter.engines` to its engine policy (``DIFFFILTER_ENGINE``).
+ENGINE_HOOK: list[Callable[..., FilterResult | None] | None] = [None]
 
 
 class RecursiveFilter(Filter):
@@ -169,6 +174,7 @@ class RecursiveFilter(Filter):
         cov = self._check_cov(initial_cov, bsz, self.state_dim, initial_cov.dtype, values=values)
         return self.start_belief(mean, cov, controls)
 
+    @scoped_forward
     def forward(
         self,
         measurements: Tensor,
@@ -206,6 +212,11 @@ class RecursiveFilter(Filter):
         *,
         belief: Belief | None = None,
     ) -> FilterResult:
+        hook = ENGINE_HOOK[0]
+        if hook is not None:
+            out = hook(self, measurements, initial_mean, initial_cov, mask, controls, belief)
+            if out is not None:
+                return out
         controls = cast_controls(controls, measurements)
         z, mask3, mean0, cov0 = self.check_inputs(measurements, initial_mean, initial_cov, mask, controls)
         if belief is None and (mean0 is None or cov0 is None):

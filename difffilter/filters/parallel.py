@@ -6,6 +6,7 @@ from torch import Tensor
 from torch.nn.utils import parametrize
 
 from ..models.base import Controls, StateSpaceModel
+from ..threads import scoped_forward
 from .base import Belief, FilterResult, RecursiveFilter, concat_results, slice_controls, slice_steps
 from .diffuse import DIFFUSE_COV
 from .kalman import KalmanFilter
@@ -86,6 +87,7 @@ class ParallelKalmanFilter(KalmanFilter):
         if model.dynamics.angular or model.measurement.angular:
             raise ValueError("ParallelKalmanFilter cannot wrap angular components; use KalmanFilter for a model with angular states")
 
+    @scoped_forward
     def forward(
         self,
         measurements: Tensor,
@@ -104,6 +106,7 @@ class ParallelKalmanFilter(KalmanFilter):
         with parametrize.cached():
             derived = self.precompute_controls(controls)
             if belief is None:
+                assert mean0 is not None and cov0 is not None  # checked above
                 belief = self.start_belief(mean0, cov0, slice_controls(derived, 0))
             parts, t = [], 0
             # a diffuse part is resolved by the exact sequential update, step by step

@@ -67,7 +67,7 @@ def scale_parameters(module: nn.Module) -> dict[str, Tensor]:
     for mod_name, mod in module.named_modules():
         if not parametrize.is_parametrized(mod):
             continue
-        for pname, plist in mod.parametrizations.items():  # type: ignore[union-attr]
+        for pname, plist in mod.parametrizations.items():
             if not plist.original.requires_grad:
                 continue
             constraint = plist[0]

@@ -22,7 +22,7 @@ class _AffineDynamics(DynamicsModel):
 
     def forward(self, x: Tensor, u: Controls = None) -> Tensor:
         out = _mv(control(u, "F", "TimeVaryingLinearModel"), x)
-        return out + u["c"] if "c" in u else out  # type: ignore[operator]
+        return out + u["c"] if "c" in u else out  # type: ignore[operator,index]  # control() above proved u a dict
 
     def jacobian(self, x: Tensor, u: Controls = None) -> Tensor:
         f = control(u, "F", "TimeVaryingLinearModel")
@@ -42,7 +42,7 @@ class _AffineMeasurement(MeasurementModel):
 
     def forward(self, x: Tensor, u: Controls = None) -> Tensor:
         out = _mv(control(u, "H", "TimeVaryingLinearModel"), x)
-        return out + u["d"] if "d" in u else out  # type: ignore[operator]
+        return out + u["d"] if "d" in u else out  # type: ignore[operator,index]  # control() above proved u a dict
 
     def jacobian(self, x: Tensor, u: Controls = None) -> Tensor:
         h = control(u, "H", "TimeVaryingLinearModel")

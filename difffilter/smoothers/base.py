@@ -32,6 +32,7 @@ from torch.nn.utils import parametrize
 from ..filters.base import Belief, FilterResult, RecursiveFilter
 from ..linalg import psd_solve, symmetrize
 from ..models.base import Controls, DynamicsModel
+from ..threads import scoped_forward
 from .result import SmootherResult
 
 #: Default bound on the states (batch x time steps) of one batched cross-covariance call.
@@ -165,6 +166,7 @@ class Smoother(nn.Module):
             raise ValueError("initial_mean and initial_cov are required unless belief= is given")
         return self.filter.initial_belief(initial_mean, initial_cov, batch_size=measurements.shape[0])
 
+    @scoped_forward
     def forward(
         self,
         measurements: Tensor,

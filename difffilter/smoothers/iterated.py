@@ -19,6 +19,7 @@ from ..filters.ukf import UKF, expand_controls
 from ..linalg import psd_solve, symmetrize
 from ..models.affine import TimeVaryingLinearModel
 from ..models.base import Controls, StateSpaceModel
+from ..threads import scoped_forward
 from .base import Smoother, flatten_steps
 from .parallel import ParallelRTSSmoother
 from .result import SmootherResult
@@ -138,6 +139,7 @@ class IteratedSmoother(Smoother):
         shape = lambda x, *tail: x.expand(bsz * steps, *tail).reshape(bsz, steps, *tail)  # noqa: E731
         return {"F": shape(f, n, n), "c": shape(c, n), "Q": shape(q, n, n), "H": shape(h, m, n), "d": shape(d, m), "R": shape(r, m, m)}
 
+    @scoped_forward
     def forward(
         self,
         measurements: Tensor,

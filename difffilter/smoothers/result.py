@@ -100,4 +100,5 @@ def _unflatten(children: list, context: tuple) -> SmootherResult:
 
 # A pytree node (absent fields and the lag are static context), so that torch.func.vmap can
 # return a SmootherResult.
-_pytree.register_pytree_node(SmootherResult, _flatten, _unflatten, serialized_type_name="difffilter.SmootherResult")
+# torch types unflatten's first argument as Iterable; _unflatten takes the list torch passes.
+_pytree.register_pytree_node(SmootherResult, _flatten, _unflatten, serialized_type_name="difffilter.SmootherResult")  # type: ignore[arg-type]

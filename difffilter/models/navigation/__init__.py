@@ -10,6 +10,7 @@ Each model lives in its own module (one concept per file); this package re-expor
 * :mod:`.pdr` - p002 pedestrian dead-reckoning step model with GPS and compass.
 * :mod:`.sins`, :mod:`.sins_measurement` - p003 20-state GPS/SINS ultra-tight error model.
 * :mod:`.gnss_imu` - p004 GNSS/IMU vehicle model.
+* :mod:`.ranging2d` - 2-D ranging to fixed anchors with odometry (range bias, noise scale, robust gate).
 """
 
 from .clock import ConstantVelocityClock, OdometryClockDynamics, clock_process_noise
@@ -17,6 +18,7 @@ from .gnss_imu import GnssImuDynamics, GnssImuModel, GnssMeasurement, PlanarGnss
 from .gpsdr import GpsDrDynamics, GpsDrMeasurement, GpsDrModel
 from .pdr import PDRMeasurement, PDRModel, PDRStepDynamics
 from .pseudorange import GnssStateLayout, PseudorangeMeasurement
+from .ranging2d import OdometryDynamics2D, RangeMeasurement2D, make_ranging_model, multilateration
 from .sins import SinsErrorDynamics
 from .sins_measurement import SinsPseudorangeMeasurement
 
@@ -30,12 +32,16 @@ __all__ = [
     "GpsDrMeasurement",
     "GpsDrModel",
     "OdometryClockDynamics",
+    "OdometryDynamics2D",
     "PDRMeasurement",
     "PDRModel",
     "PDRStepDynamics",
     "PlanarGnssImuDynamics",
     "PseudorangeMeasurement",
+    "RangeMeasurement2D",
     "SinsErrorDynamics",
     "SinsPseudorangeMeasurement",
     "clock_process_noise",
+    "make_ranging_model",
+    "multilateration",
 ]

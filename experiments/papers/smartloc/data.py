@@ -28,6 +28,7 @@ import torch
 from torch import Tensor
 
 from difffilter import geometry as geo
+from difffilter.datasets import DataSetMissingError, locate
 from difffilter.models.sensors import event_times
 
 from .librsf import Records, read_records
@@ -41,11 +42,17 @@ SYSTEMS = {1: "GPS", 4: "GLONASS", 8: "Galileo", 32: "BeiDou", 16: "QZSS", 2: "S
 
 
 def default_smartloc_path() -> Path:
-    """``$DIFFFILTER_SMARTLOC`` if set, else ``<repo>/../shared/data/real/smartloc_berlin_potsdamer``."""
+    """``$DIFFFILTER_SMARTLOC`` if set, else the folder :func:`difffilter.datasets.locate` finds for
+    ``smartloc_berlin_potsdamer`` (``$DIFFFILTER_DATA``, ``../shared/data/real`` next to the
+    repository or a folder holding it, the download cache), else
+    ``<repo>/../shared/data/real/smartloc_berlin_potsdamer`` (absent: callers skip or name it)."""
     env = os.environ.get("DIFFFILTER_SMARTLOC")
     if env:
         return Path(env)
-    return Path(__file__).resolve().parents[4] / "shared" / "data" / "real" / "smartloc_berlin_potsdamer"
+    try:
+        return locate("smartloc_berlin_potsdamer")
+    except DataSetMissingError:
+        return Path(__file__).resolve().parents[4] / "shared" / "data" / "real" / "smartloc_berlin_potsdamer"
 
 
 @dataclass

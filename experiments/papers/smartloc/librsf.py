@@ -19,12 +19,14 @@ Record types it does not read are skipped and counted.
 
 from __future__ import annotations
 
-import math
+import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
+from difffilter.datasets.librsf import read_librsf
 
 __all__ = ["FIELDS", "Records", "read_records"]
 
@@ -48,19 +50,10 @@ class Records:
         return f"{self.path}:{int(self.lines[kind][row])}"
 
 
-def _number(token: str, path: Path, lineno: int, kind: str, column: int) -> float:
-    try:
-        value = float(token)
-    except ValueError:
-        raise ValueError(f"{path}:{lineno}: field {column + 1} of a {kind} line is not a number: {token!r}") from None
-    if not math.isfinite(value):
-        raise ValueError(f"{path}:{lineno}: field {column + 1} of a {kind} line is not finite: {token!r}")
-    return value
-
-
 def read_records(path: str | Path, kinds: Mapping[str, int] | None = None, *, role: str = "libRSF") -> Records:
     """Read the records of ``kinds`` (``{type: fields used}``, default :data:`FIELDS`) from a
-    libRSF text file.
+    libRSF text file (the generic reader :func:`difffilter.datasets.read_librsf` does the work;
+    this keeps the smartLoc loader's ``{type: fields}`` interface and its messages).
 
     Raises:
         FileNotFoundError: the file does not exist (the message says which ``role`` it plays).
@@ -72,31 +65,8 @@ def read_records(path: str | Path, kinds: Mapping[str, int] | None = None, *, ro
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such file (the {role} file)")
-    rows: dict[str, list[list[float]]] = {k: [] for k in kinds}
-    lines: dict[str, list[int]] = {k: [] for k in kinds}
-    skipped: dict[str, int] = {}
-    last: dict[str, tuple[float, int]] = {}
-    with open(path) as fh:
-        for lineno, text in enumerate(fh, start=1):
-            tokens = text.split()
-            if not tokens or tokens[0].startswith("#"):
-                continue
-            kind = tokens[0]
-            if kind not in kinds:
-                skipped[kind] = skipped.get(kind, 0) + 1
-                continue
-            need = kinds[kind]
-            if len(tokens) < need:
-                raise ValueError(f"{path}:{lineno}: a {kind} line needs at least {need} fields, got {len(tokens)}")
-            vals = [_number(tok, path, lineno, kind, i) for i, tok in enumerate(tokens[1:need], start=1)]
-            t = vals[0]
-            if kind in last and t < last[kind][0]:
-                prev_t, prev_line = last[kind]
-                raise ValueError(
-                    f"{path}:{lineno}: {kind} time stamp {t} goes back (line {prev_line} has {prev_t}); time stamps must not decrease"
-                )
-            last[kind] = (t, lineno)
-            rows[kind].append(vals)
-            lines[kind].append(lineno)
-    values = {k: np.asarray(v, dtype=np.float64).reshape(-1, kinds[k] - 1) for k, v in rows.items()}
-    return Records(path=path, values=values, lines={k: np.asarray(v, dtype=np.int64) for k, v in lines.items()}, skipped=skipped)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the loader reports the counts itself (SmartLocData.issues)
+        rec = read_librsf(path, list(kinds), columns={k: n - 1 for k, n in kinds.items()})
+    skipped = {k.removeprefix("unknown kind ").removeprefix("unread kind "): v for k, v in rec.skipped.items()}
+    return Records(path=path, values=rec.tables, lines=rec.lines, skipped=skipped)

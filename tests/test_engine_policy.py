@@ -1,0 +1,117 @@
+"""The engine switch of plain filter calls (difffilter.engines.policy, DIFFFILTER_ENGINE)."""
+
+from __future__ import annotations
+
+import warnings
+
+import pytest
+import torch
+
+from difffilter.engines import build, policy
+from difffilter.filters import UKF
+from difffilter.models import FunctionalModel
+
+D = torch.float64
+
+
+@pytest.fixture(autouse=True)
+def fresh_policy(monkeypatch):
+    monkeypatch.delenv("DIFFFILTER_ENGINE", raising=False)
+    monkeypatch.delenv("DIFFFILTER_AUTO_MIN_WORK", raising=False)
+    policy.set_engine(None)
+    policy._runners.clear()
+    policy._failed.clear()
+    policy._warned.clear()
+    yield
+    policy.set_engine(None)
+    policy._runners.clear()
+
+
+def _ukf(f=None) -> UKF:  # type: ignore[no-untyped-def]
+    model = FunctionalModel(
+        f=f or (lambda x: 0.95 * x),
+        h=lambda x: torch.stack([torch.hypot(x[..., 0], x[..., 1] + 2.0), x[..., 1]], -1),
+        Q=0.1 * torch.eye(2, dtype=D),
+        R=0.2 * torch.eye(2, dtype=D),
+    )
+    return UKF(model)
+
+
+def _data(bsz: int = 4, steps: int = 6):
+    g = torch.Generator().manual_seed(0)
+    return torch.randn(bsz, steps, 2, dtype=D, generator=g) + 2.0, torch.zeros(2, dtype=D), torch.eye(2, dtype=D)
+
+
+def _run(ukf: UKF, z, m0, p0):  # type: ignore[no-untyped-def]
+    out = ukf(z, m0, p0)
+    grads = torch.autograd.grad(out.log_likelihood.sum(), [p for p in ukf.parameters() if p.requires_grad])
+    return out, grads
+
+
+def test_default_is_eager_and_builds_nothing():
+    assert policy.DEFAULT_ENGINE == "eager" and policy.chosen_engine() == "eager"
+    _run(_ukf(), *_data())
+    assert not policy._runners
+
+
+def test_auto_keeps_small_calls_eager(monkeypatch):
+    monkeypatch.setenv("DIFFFILTER_ENGINE", "auto")
+    _run(_ukf(), *_data(4, 6))  # B * T = 24 < 10_000
+    assert not policy._runners
+
+
+@pytest.mark.slow  # builds a small UKF's kernels when the cache is cold
+@pytest.mark.skipif(build.compiler_available() is not None, reason="needs a C++ compiler")
+def test_auto_runs_large_calls_compiled_with_the_same_values_and_gradients(monkeypatch):
+    ukf = _ukf()
+    data = _data(5, 8)
+    ref, g_ref = _run(ukf, *data)
+    monkeypatch.setenv("DIFFFILTER_ENGINE", "auto")
+    monkeypatch.setenv("DIFFFILTER_AUTO_MIN_WORK", "40")  # this call counts as large
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        out, g_out = _run(ukf, *data)
+    (runner,) = policy._runners.values()
+    assert runner.filter is ukf and runner.last_engine == "generated"
+    torch.testing.assert_close(out.mean, ref.mean, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(out.log_likelihood, ref.log_likelihood, rtol=1e-12, atol=1e-12)
+    for a, b in zip(g_out, g_ref, strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-11, atol=1e-12)
+
+
+def test_a_filter_the_engine_cannot_run_falls_back_once_with_the_reason(monkeypatch):
+    policy.set_engine("compiled")
+
+    def branching(x):  # a Python decision on data: the generated engine refuses it
+        return 0.9 * x if bool((x > 100).any()) else 0.95 * x
+
+    ukf = _ukf(branching)
+    with pytest.warns(UserWarning, match="cannot run UKF") as record:
+        out1, _ = _run(ukf, *_data())
+        out2, _ = _run(ukf, *_data())
+    assert len([w for w in record if "cannot run" in str(w.message)]) == 1
+    policy.set_engine("eager")
+    ref, _ = _run(ukf, *_data())
+    assert torch.equal(out1.mean, ref.mean) and torch.equal(out2.mean, ref.mean)
+
+
+def test_no_compiler_falls_back_once(monkeypatch):
+    monkeypatch.setattr(build, "_compiler", lambda: None)
+    policy.set_engine("compiled")
+    with pytest.warns(UserWarning, match="no C\\+\\+ compiler") as record:
+        _run(_ukf(), *_data())
+        _run(_ukf(), *_data())
+    assert len(record) == 1
+    assert not policy._runners
+
+
+def test_bad_settings_are_refused(monkeypatch):
+    with pytest.raises(ValueError, match="engine"):
+        policy.set_engine("fast")
+    monkeypatch.setenv("DIFFFILTER_ENGINE", "fast")
+    with pytest.raises(ValueError, match="DIFFFILTER_ENGINE"):
+        policy.chosen_engine()
+    monkeypatch.setenv("DIFFFILTER_ENGINE", "auto")
+    monkeypatch.setenv("DIFFFILTER_AUTO_MIN_WORK", "lots")
+    with pytest.raises(ValueError, match="DIFFFILTER_AUTO_MIN_WORK"):
+        _run(_ukf(), *_data())

@@ -1,0 +1,152 @@
+"""The 2-D ranging protocol (experiments.ranging.protocol / .report) on the excerpts
+shipped with the tests: folds by blocks and by data set, selection never worse than the untrained
+start or hand-tuned on validation, results.csv per fold with the expected rows and columns, the
+extras figure and TensorBoard events; and ``experiments/realdata.py folder=<ranging folder>``."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from difffilter.datasets import find_recordings, load_ranging
+from experiments.ranging.protocol import EXTRA_BASELINES, fold_pieces, run_fold
+from experiments.ranging.report import extras, fold_specs, run_ranging, write_csv
+
+ASSETS = Path(__file__).parent / "assets" / "librsf"
+ROOT = Path(__file__).resolve().parents[1]
+CFG = {
+    "folds": {"A": {"train": [0.0, 0.6], "val": [0.6, 0.8], "test": [0.8, 1.0]}},
+    "by_dataset": True,
+    "val_fraction": 0.3,
+    "windows": {"length": 12, "stride": 12},
+    "bias": "anchor",
+    "noise": "anchor",
+    "gate": {"threshold": 3.0, "floor": 3.0, "softness": 0.5},
+    "seeds": 2,
+    "epochs": 2,
+    "lr": 0.05,
+    "batches": 1,
+    "burn_in": 2,
+    "init_perturbation": 0.1,
+    "bootstrap": {"block": 5, "draws": 200, "seed": 0},
+}
+
+
+def _recordings():  # type: ignore[no-untyped-def]
+    return [load_ranging(i, g) for _n, i, g in find_recordings(ASSETS)]
+
+
+def test_folds_by_blocks_and_by_data_set() -> None:
+    recs = _recordings()
+    specs = fold_specs(recs, CFG)
+    assert list(specs) == ["W3500x_heavy-tailed/A", "W3500x_skewed/A", "leave_out_W3500x_heavy-tailed", "leave_out_W3500x_skewed"]
+    pieces = fold_pieces(*specs["leave_out_W3500x_skewed"])
+    assert [(p.recording.name, p.first, p.stop) for p in pieces["train"]] == [("W3500x_heavy-tailed", 0, 43)]
+    assert [(p.recording.name, p.first, p.stop) for p in pieces["val"]] == [("W3500x_heavy-tailed", 43, 61)]
+    assert [(p.recording.name, p.first, p.stop) for p in pieces["test"]] == [("W3500x_skewed", 0, 61)]
+    blocks = fold_pieces(*specs["W3500x_skewed/A"])
+    assert [(p.first, p.stop) for role in ("train", "val", "test") for p in blocks[role]] == [(0, 37), (37, 49), (49, 61)]
+
+
+def test_selection_is_never_worse_than_its_start_or_hand_tuned_on_validation(monkeypatch, tmp_path) -> None:
+    recs = _recordings()
+    seen = []
+    monkeypatch.setitem(
+        EXTRA_BASELINES,
+        "extra-hook",
+        lambda rec: seen.append(rec.name) or run_fold.__globals__["_filters"](rec.num_anchors, CFG)["hand-tuned"],
+    )
+    res = run_fold(fold_pieces([recs[1]], CFG["folds"]["A"]), CFG)
+    s = res.selected
+    assert s["val_score"] <= s["val_untrained"] and s["val_score"] <= s["val_hand_tuned"]
+    assert [r["filter"] for r in res.rows] == [
+        "hand-tuned",
+        "learned",
+        "untrained-gate",
+        "hand-tuned-hard-gate",
+        "sage-husa",
+        "vb-adaptive-r",
+        "extra-hook",
+        "snapshot-lsq",
+    ]
+    assert seen == ["W3500x_skewed"]
+    hook = next(r for r in res.rows if r["filter"] == "extra-hook")
+    assert hook["d_median"] == 0.0 and hook["d_rms"] == 0.0  # the hook returned the hand-tuned filter: identical errors
+    adaptive = next(r for r in res.rows if r["filter"] == "sage-husa")
+    assert adaptive["d_rms"] != 0.0 and all(math.isfinite(adaptive[k]) for k in ("pos_err_p50", "rmse_pos", "pos_err_p95"))
+    assert len(res.history) == 2 and all(len(h["scores"]) == 3 for h in res.history)
+    best = min(min(h["scores"]) for h in res.history)
+    assert s["val_score"] == pytest.approx(min(best, s["val_untrained"], s["val_hand_tuned"]))
+    ex = extras(res.start)
+    assert ex["range_bias"] == [0.0] * 8 and ex["noise_scale"] == pytest.approx([1.0] * 8) and ex["gate_floor"] == pytest.approx([3.0])
+    write_csv(tmp_path / "f" / "results.csv", res.rows)
+    with open(tmp_path / "f" / "results.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [r["filter"] for r in rows] == [r["filter"] for r in res.rows] and rows[0]["d_median"] == ""
+    assert float(rows[1]["rmse_pos"]) == pytest.approx(float(res.errors["learned"].pow(2).mean().sqrt()), rel=1e-5)
+
+
+@pytest.mark.slow
+def test_run_ranging_writes_csv_per_fold_figure_and_tensorboard(tmp_path) -> None:
+    cfg = {**CFG, "seeds": 1, "epochs": 1}
+    results = run_ranging(ASSETS, cfg, tmp_path, only=["W3500x_skewed"])
+    assert list(results) == ["W3500x_skewed/A"]
+    with open(tmp_path / "W3500x_skewed" / "A" / "results.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    assert {"filter", "pos_err_p50", "rmse_pos", "pos_err_p95", "d_median_lo", "d_rms_hi"} <= set(rows[0])
+    assert [r["filter"] for r in rows][:2] == ["hand-tuned", "learned"] and "snapshot-lsq" in [r["filter"] for r in rows]
+    e = results["W3500x_skewed/A"].errors["hand-tuned"]
+    assert float(rows[0]["pos_err_p50"]) == pytest.approx(float(e.median()), rel=1e-5)
+    assert float(rows[0]["rmse_pos"]) == pytest.approx(float(e.pow(2).mean().sqrt()), rel=1e-5)
+    assert (tmp_path / "learned_extras.png").stat().st_size > 10_000 and any((tmp_path / "tb").iterdir())
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    fold = summary["folds"]["W3500x_skewed/A"]
+    gated = fold["selected"]["candidate"] != "hand-tuned"  # hand-tuned may win validation: it has no gate
+    assert ({"gate_threshold", "gate_floor", "gate_softness", "range_bias", "noise_scale"} <= set(fold["extras"])) == gated
+    assert "| W3500x_skewed/A | learned |" in (tmp_path / "results.md").read_text()
+
+
+@pytest.mark.slow
+def test_the_command_runs_on_a_ranging_folder(tmp_path) -> None:
+    """``python experiments/realdata.py folder=<dir>`` with only a folder given (tiny settings)."""
+    over = [
+        f"realdata_ranging.{k}={v}"
+        for k, v in {
+            "seeds": 1,
+            "epochs": 1,
+            "windows.length": 12,
+            "windows.stride": 12,
+            "bootstrap.draws": 100,
+            "bootstrap.block": 5,
+            "burn_in": 2,
+        }.items()
+    ]
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
+    out = subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "experiments" / "realdata.py"),
+            f"folder={ASSETS}",
+            f"hydra.run.dir={tmp_path}",
+            "realdata_ranging.by_dataset=false",
+            *over,
+        ],
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=ROOT,
+        timeout=600,
+    )
+    assert out.returncode == 0, out.stderr[-3000:]
+    for name in ("W3500x_heavy-tailed", "W3500x_skewed"):
+        assert (tmp_path / name / "A" / "results.csv").is_file()
+    assert "| W3500x_skewed/A | learned |" in out.stdout
+    assert torch.isfinite(torch.tensor(json.loads((tmp_path / "summary.json").read_text())["seconds"]))

@@ -129,13 +129,15 @@ def _plain(node: Any) -> Any:
 
 def build_filter(filter_cfg: Any, *, dtype: torch.dtype, params: Mapping[str, Any] | None = None, **overrides: Any) -> Filter:
     """Instantiate a filter config (``overrides`` replace config entries, e.g. ``model=``), convert
-    it to ``dtype`` and set ``params`` (constrained values by name)."""
+    it to ``dtype`` and set ``params`` (constrained values by name; a null value sets nothing)."""
     filt = instantiate(filter_cfg, _convert_="all", **overrides)
     if not isinstance(filt, Filter):
         raise TypeError(f"the filter config must build a difffilter Filter, got {type(filt).__name__}")
     filt = filt.to(dtype)
-    if params:
-        assign_parameters(filt, dict(_plain(params)))
+    # a null value sets nothing: a baseline's params can drop a hand-tuned value its filter lacks
+    values = {k: v for k, v in dict(_plain(params) or {}).items() if v is not None}
+    if values:
+        assign_parameters(filt, values)
     return filt
 
 

@@ -20,7 +20,7 @@ from difffilter.engines import FusedFilter
 from difffilter.engines.adjoint import backprop
 from difffilter.engines.graph import LANE, ScalarGraph, UnsupportedOp, evaluate
 from difffilter.engines.lower import lower
-from difffilter.filters import UKF
+from difffilter.filters import UKF, MerweScaled
 from difffilter.models import FunctionalModel
 
 F64 = torch.float64
@@ -84,8 +84,10 @@ def test_boolean_data_index_is_refused() -> None:
         _lowered_with_grads(lambda s, v: s[v > 0], torch.ones(4, dtype=F64), torch.randn(4, dtype=F64))
 
 
-def _readme_block(marker: str) -> str:
-    blocks = re.findall(r"```python\n(.*?)```", README.read_text(), re.S)
+def _docs_block(marker: str) -> str:
+    """The first ```python block of README or a docs page that contains ``marker``."""
+    pages = [README, *sorted((README.parent / "docs").rglob("*.md"))]
+    blocks = [b for page in pages for b in re.findall(r"```python\n(.*?)```", page.read_text(), re.S)]
     return next(b for b in blocks if marker in b)
 
 
@@ -115,10 +117,10 @@ def _same_run(filt, args, kwargs) -> None:  # type: ignore[no-untyped-def]
 @pytest.mark.slow
 @pytest.mark.skipif(shutil.which("g++") is None and shutil.which("c++") is None, reason="needs a C++ compiler")
 def test_readme_first_example_runs_on_the_generated_engine() -> None:
-    """README's first model (``hypot`` and ``atan2``, a wrapped bearing, a mask), with NumPy
-    constants in ``f``."""
+    """The range-bearing model of docs/filters/ukf.md (``hypot`` and ``atan2``, a wrapped bearing),
+    with NumPy constants in ``f`` and a mask."""
     ns: dict = {}
-    exec(_readme_block("x[..., 0].hypot").split("res = ukf(")[0], ns)  # noqa: S102 - the README's own code
+    exec(_docs_block(".hypot(").split("for points in")[0], ns)  # noqa: S102 - the docs' own code
     dt = np.float64(1.0)
     model = FunctionalModel(
         f=lambda x: x @ ns["F"].mT * np.float64(1.0) + 0.0 * np.pi * dt * x,
@@ -127,10 +129,10 @@ def test_readme_first_example_runs_on_the_generated_engine() -> None:
         R=torch.diag(torch.tensor([0.25, 1e-4], dtype=F64)),
         angular_measurements=[1],
     )
-    ukf = UKF(model, sigma_points=ns["ukf"].sigma_points)
-    z = ns["z"][:5, :20]
-    args = (z, torch.tensor([10.0, 0, 0, 0], dtype=F64), torch.eye(4, dtype=F64))
-    _same_run(ukf, args, {"mask": ns["mask"][:5, :20]})
+    ukf = UKF(model, sigma_points=MerweScaled(alpha=1.0, beta=2.0, kappa=0.0))
+    z = ns["z"] + 0.1 * torch.randn(ns["z"].shape, dtype=F64, generator=torch.Generator().manual_seed(0))
+    mask = torch.rand(z.shape[:2], generator=torch.Generator().manual_seed(1)) > 0.1
+    _same_run(ukf, (z, ns["m0"], ns["P0"]), {"mask": mask})
 
 
 @pytest.mark.slow
@@ -138,5 +140,5 @@ def test_readme_first_example_runs_on_the_generated_engine() -> None:
 def test_readme_heteroscedastic_example_runs_on_the_generated_engine() -> None:
     """Per-fix-type scales of the reported variance picked by a label among the controls, a gate."""
     ns: dict = {}
-    exec(_readme_block("HeteroscedasticMeasurement(").split("opt = torch.optim")[0], ns)  # noqa: S102
+    exec(_docs_block("HeteroscedasticMeasurement(").split("opt = torch.optim")[0], ns)  # noqa: S102
     _same_run(ns["ekf"], (ns["z"], ns["m0"], ns["P0"]), {"controls": ns["controls"]})

@@ -23,7 +23,9 @@ The ``experiment`` config node (per-paper overlays set it)::
         make_model: false         # or build the filter on the test set's make_model()
         params: {}                # explicit values, applied last
         filter: null              # a filter config replacing ${filter} (different structure)
-      baselines:                  # extra filters, evaluated as configured (not trained)
+      baselines:                  # extra filters, evaluated as configured (not trained); with `tune`
+                                  # fitted first on the training (EM) or validation (search) data,
+                                  # from the hand-tuned values: experiments/runner/baselines.py
         ekf: {filter: {_target_: difffilter.filters.EKF, model: ${model}}, params: {}}
       position_index: [0, 3]      # position components of the state (rmse_pos, figures)
       truth_position_index: null  # the same in the truth (default: position_index)

@@ -12,7 +12,10 @@ import sys
 from pathlib import Path
 from typing import Any
 
+import pytest
 import pytorch_lightning as pl
+
+from experiments.papers.smartloc import default_smartloc_path
 
 ROOT = Path(__file__).resolve().parents[1]
 #: results.csv columns that are measured times (they differ between runs that agree in every number)
@@ -61,3 +64,10 @@ def config_files(group: str) -> list[Path]:
     experiments/papers/<paper>/conf/<group>/ (on train.yaml's search path), sorted by name."""
     dirs = [ROOT / "conf" / group, *sorted((ROOT / "experiments" / "papers").glob(f"*/conf/{group}"))]
     return sorted((f for d in dirs for f in d.glob("*.yaml")), key=lambda f: f.name)
+
+
+def needs_smartloc_drive() -> pytest.MarkDecorator:
+    """Skip (with the reason) where the smartLoc drive's files are absent: a fresh clone without
+    ../shared (its model and scenarios read them)."""
+    drive = default_smartloc_path() / "Berlin_Potsdamer_Platz_Input.txt"
+    return pytest.mark.skipif(not drive.exists(), reason=f"smartLoc data not found at {drive.parent}")

@@ -20,9 +20,8 @@ from difffilter.filters import Filter
 from difffilter.learn.data import TrajectoryDataModule
 from difffilter.learn.learner import FilterLearner
 from difffilter.models.base import StateSpaceModel
-from experiments.papers.smartloc import default_smartloc_path
 from experiments.runner.experiment import apply_model_defaults, build_filter, build_learner, run_experiment
-from tests.smoke_helpers import config_files, plugin_installed
+from tests.smoke_helpers import config_files, needs_smartloc_drive, plugin_installed
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
 # Groups of train.yaml (hydra/ is Hydra's own; a directory named like another primary config,
@@ -39,9 +38,7 @@ OPTIONS = {g: [p.stem for p in config_files(g)] for g in TRAIN_GROUPS if g not i
 GENERIC = [g for g in OPTIONS if g not in ("model", "scenario")]
 ROUNDS = [{g: OPTIONS[g][i % len(OPTIONS[g])] for g in GENERIC} for i in range(max(len(OPTIONS[g]) for g in GENERIC))]
 EXPERIMENTS = [p.stem for p in config_files("experiment")]
-# smartLoc's model and scenarios read the drive's files (absent on a fresh clone without ../shared)
-_DRIVE = default_smartloc_path() / "Berlin_Potsdamer_Platz_Input.txt"
-_NEEDS_DRIVE = pytest.mark.skipif(not _DRIVE.exists(), reason=f"smartLoc data not found at {_DRIVE.parent}")
+_NEEDS_DRIVE = needs_smartloc_drive()
 
 
 def _with_data(*values: str) -> object:

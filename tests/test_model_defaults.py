@@ -22,16 +22,14 @@ from difffilter.filters import UKF
 from difffilter.models import ModelDefaults, StateLayout, describe, model_defaults, tracking_model
 from difffilter.models.motion import Singer
 from difffilter.sim import ModelSimulator
-from experiments.papers.smartloc import default_smartloc_path
 from experiments.runner.experiment import run_experiment
 from tests.assets.ct_model import ct_model
-from tests.smoke_helpers import config_files, read_rows
+from tests.smoke_helpers import config_files, needs_smartloc_drive, read_rows
 
 ROOT = Path(__file__).resolve().parents[1]
 CONF = ROOT / "conf"
 ASSETS = Path(__file__).resolve().parent / "assets"
-_DRIVE = default_smartloc_path() / "Berlin_Potsdamer_Platz_Input.txt"
-_NEEDS_DRIVE = pytest.mark.skipif(not _DRIVE.exists(), reason=f"smartLoc data not found at {_DRIVE.parent}")
+_NEEDS_DRIVE = needs_smartloc_drive()
 MODELS = [pytest.param(p.stem, marks=_NEEDS_DRIVE) if p.stem.startswith("smartloc") else p.stem for p in config_files("model")]
 F64 = torch.float64
 

@@ -34,7 +34,6 @@ process CPU seconds its tuning took; the learned row reports its training's.
 from __future__ import annotations
 
 import logging
-import math
 import time
 from collections.abc import Mapping
 from typing import Any
@@ -44,7 +43,7 @@ import torch
 from difffilter.filters.protocol import Filter
 from difffilter.learn.data import TrajectorySet
 from difffilter.learn.em import fit_em
-from difffilter.learn.search import grid_search, random_search, validation_loss
+from difffilter.learn.search import grid_search, log_grid, random_search, validation_loss
 
 __all__ = ["TUNE_METHODS", "tune_baseline"]
 
@@ -88,7 +87,7 @@ def _grid(spec: Any, key: str) -> dict[str, list[float]]:
             low, high, num = float(values["low"]), float(values["high"]), int(values["num"])
             if not (0 < low < high and num >= 2):
                 raise ValueError(f"{key}.{name} must have 0 < low < high and num >= 2, got {dict(values)}")
-            values = [math.exp(math.log(low) + i * (math.log(high) - math.log(low)) / (num - 1)) for i in range(num)]
+            values = log_grid(low, high, num)
         out[str(name)] = [float(v) for v in values]
     return out
 

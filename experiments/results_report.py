@@ -3,7 +3,7 @@
 The report is a summary: one row per paper family, the realistic families (mis-specified, the
 paper's own conditions) first, the designed in-family ones after.  Each row shows every
 non-learned method the family's CSV has a row for (today only the paper's constants; the columns
-of the textbook rule, validation search, EM, Sage-Husa and VB-AKF say "not run" until their rows
+of the textbook rule, validation search, EM, Sage-Husa, VB-AKF and covariance matching say "not run" until their rows
 exist), the best of them, the learned filter(s), learned - best non-learned as a paired difference
 in % with its 95 % interval and the verdict of :func:`~experiments.results_tables.paired_verdict`,
 and the learned filter's ANEES with the verdict of :func:`~experiments.results_tables.anees_verdict`.
@@ -172,6 +172,7 @@ METHODS: tuple[tuple[str, str], ...] = (
     ("EM", "em"),
     ("Sage-Husa", "sage-husa"),
     ("VB-AKF", "vb-akf"),
+    ("covariance matching", "covariance-matching"),
 )
 LEARNED: tuple[tuple[str, str], ...] = (("learned", "learned"), ("learned adaptive", "learned-adaptive"))
 REFERENCE = "hand-tuned"
@@ -279,7 +280,7 @@ def build_report(families: Sequence[Family] = FAMILIES, root: Path = ROOT) -> st
         "",
         "- learned - best non-learned: the paired difference per test run and seed, in % of the reference; **win**",
         "  when its 95 % interval lies below zero, **loss** when above, **tie** when it contains zero.  The best",
-        "  non-learned method is the lowest-RMSE row among the six non-learned columns that were run; a method",
+        "  non-learned method is the lowest-RMSE row among the seven non-learned columns that were run; a method",
         "  without a row in the family's CSV says *not run*.  A paired interval exists only against the row the",
         "  sweep pairs with (the paper's constants) or a `diff_pct` row whose `reference` names the best method.",
         "- ANEES of the learned filter (all states, d of them) against the 95 % chi-square band of a consistent",

@@ -26,7 +26,13 @@ ROOT = Path(__file__).resolve().parents[1]
 OVERLAYS = sorted(p.stem for p in (ROOT / "experiments" / "papers").glob("*/conf/experiment/*_practitioners.yaml"))
 PRACTITIONER_ROWS = {"validation-search", "sage-husa", "vb-akf"}  # and `textbook` where a rule exists
 #: The family experiment (and overrides) each overlay extends, where its name is not ``<family>_practitioners``.
-FAMILY_OF = {"p002_disturbed_practitioners": ("p002_pdr", "scenario=p002_disturbed")}
+FAMILY_OF = {
+    "p002_disturbed_practitioners": ("p002_pdr", "scenario=p002_disturbed"),
+    "p000_gyro_practitioners": ("p000_gpsdr", "scenario=p000_gyro"),
+    "p000_gps_practitioners": ("p000_gpsdr", "scenario=p000_gps"),
+    "p000_odometer_practitioners": ("p000_gpsdr", "scenario=p000_odometer"),
+    "p000_nominal_practitioners": ("p000_gpsdr", "scenario=p000_random"),
+}
 
 
 def _compose(experiment: str, *overrides: str) -> dict:

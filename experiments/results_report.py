@@ -133,7 +133,15 @@ FAMILIES: tuple[Family, ...] = (
         "outputs/final/p000_nominal",
         "test=scripted",
     ),
-    Family("p001_colored", "p001", "paper's own", "coloured noise at the paper's values", "p001_colored.md", f"{_R}/p001_colored"),
+    Family(
+        "p001_colored",
+        "p001",
+        "paper's own",
+        "coloured noise at the paper's values",
+        "p001_colored.md",
+        f"{_R}/p001_colored",
+        practitioners=True,
+    ),
     Family(
         "p002_pdr_rcukf",
         "p002",

@@ -158,7 +158,15 @@ FAMILIES: tuple[Family, ...] = (
     Family(
         "p000_infamily", "p000", "in-family", "CA truth, q and R off", "p000_gpsdr.md", "outputs/final/p000_infamily", practitioners=True
     ),
-    Family("p001_multipath", "p001", "in-family", "coloured multipath, per-channel Psi", "p001_multipath.md", f"{_R}/p001_multipath"),
+    Family(
+        "p001_multipath",
+        "p001",
+        "in-family",
+        "coloured multipath, per-channel Psi",
+        "p001_multipath.md",
+        f"{_R}/p001_multipath",
+        practitioners=True,
+    ),
     Family(
         "p001_multipath_shared",
         "p001",

@@ -212,7 +212,15 @@ class ColoredNoiseUKF(UKF):
             post, info = self._diffuse_update(belief, innovation, (dx, dg, wc, r_full), coef, mask, u)
         else:
             new_mean, new_cov, info = gaussian_update(
-                mean, cov, innovation, pzz, pxz, mask, sigma_fallback=(dx, dg, wc, r_full), add=state_add(dyn)
+                mean,
+                cov,
+                innovation,
+                pzz,
+                pxz,
+                mask,
+                sigma_fallback=(dx, dg, wc, r_full),
+                add=state_add(dyn),
+                prediction=za_hat.abs() + (coef * zb_hat).abs(),
             )
             post = {"mean": new_mean, "cov": new_cov}
         # a joint that needed jitter (its points no longer have the belief's moments), or a

@@ -90,6 +90,15 @@ class EKF(RecursiveFilter):
             return {**belief, **post}, info
         joseph = (h, r) if self.joseph else None
         new_mean, new_cov, info = gaussian_update(
-            mean, cov, e, s, pht, mask, joseph=joseph, joseph_fallback=None if self.joseph else (h, r), add=state_add(self.model.dynamics)
+            mean,
+            cov,
+            e,
+            s,
+            pht,
+            mask,
+            joseph=joseph,
+            joseph_fallback=None if self.joseph else (h, r),
+            add=state_add(self.model.dynamics),
+            prediction=zhat,
         )
         return {**belief, "mean": new_mean, "cov": new_cov}, info

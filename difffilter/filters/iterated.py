@@ -55,10 +55,11 @@ class IteratedEKF(EKF):
             h = self.measurement_jacobian(x, u)
             r = self.measurement_noise_cov(x, u)
             pht = cov @ h.mT
-            e = hm.residual(z, hm(x, u)) + (h @ self.model.dynamics.residual(x, mean)[..., None])[..., 0]
+            zhat = hm(x, u)
+            e = hm.residual(z, zhat) + (h @ self.model.dynamics.residual(x, mean)[..., None])[..., 0]
             joseph = (h, r) if self.joseph else None
             x, new_cov, info = gaussian_update(
                 mean, cov, e, h @ pht + r, pht, mask, joseph=joseph, joseph_fallback=None if self.joseph else (h, r),
-                add=state_add(self.model.dynamics),
+                add=state_add(self.model.dynamics), prediction=zhat,
             )  # fmt: skip
         return {**belief, "mean": x, "cov": new_cov}, info

@@ -264,7 +264,9 @@ class UKF(RecursiveFilter):
             h = measurement_matrix(hm, mean, u)
             post, info = diffuse_gaussian_update(belief, e, (dx, dz, wc, r), mask, obs_matrix=h, add=state_add(dyn))
             return {**self._carry(belief), **post}, info
-        new_mean, new_cov, info = gaussian_update(mean, cov, e, pzz, pxz, mask, sigma_fallback=(dx, dz, wc, r), add=state_add(dyn))
+        new_mean, new_cov, info = gaussian_update(
+            mean, cov, e, pzz, pxz, mask, sigma_fallback=(dx, dz, wc, r), add=state_add(dyn), prediction=zhat
+        )
         if not exact:
             lossy = offset_untrusted(mean, cov, zhat, pzz, info.nis)
             info = replace(info, untrusted=lossy if info.untrusted is None else info.untrusted | lossy)

@@ -22,6 +22,7 @@ from .protocol import Belief
 __all__ = [
     "diffuse_gaussian_update",
     "gaussian_update",
+    "rounding_untrusted",
     "square_root_deviations",
     "untrusted_steps",
 ]
@@ -37,6 +38,42 @@ def _trust_limits(dtype: torch.dtype) -> tuple[float, float, float]:
     return 64.0 * eps**0.5, eps / 1e-2, eps * eps / 1e-2
 
 
+def rounding_untrusted(chol: Tensor, whitened: Tensor, innovation_cov: Tensor, prediction: Tensor | None, mask: Tensor | None) -> Tensor:
+    """``[B]`` steps whose log-likelihood or innovation the working precision cannot resolve.
+
+    * A nearly singular ``S``: forming ``S`` (and factorising it) perturbs it by ``dS`` with
+      ``||dS|| <~ m eps max_j S_jj``, which moves ``log det S`` by ``tr(S^-1 dS)`` and the
+      Mahalanobis term by ``e^T S^-1 dS S^-1 e``: to first order at most
+      ``0.5 m eps max_j S_jj (tr(S^-1) + |S^-1 e|^2)`` nats (``tr(S^-1) = |L^-1|_F^2``,
+      ``S^-1 e = L^-T v``).  Flagged where that exceeds ``1e-2 + 1e-4 d`` (``d`` the
+      Mahalanobis distance: a huge innovation is only resolved relatively).
+    * ``prediction`` ``z_hat [B, m]``: the innovation ``z - z_hat`` carries an absolute rounding
+      error ``eps |z_hat|`` (and so does ``z_hat`` itself, e.g. a range of 2e7 m in float32 keeps
+      ~2 m); the correction of the mean then moves by that error in units of ``sqrt(S_jj)``.
+      Flagged where ``eps |z_hat_j| / sqrt(S_jj) > 1e-2`` for an observed component.
+
+    The shapes are :func:`gaussian_update`'s (``chol``, ``whitened`` of the masked system).  Not
+    differentiated (a flag).
+    """
+    eps = torch.finfo(chol.dtype).eps
+    with torch.no_grad():
+        chol, v = chol.detach(), whitened.detach()
+        m = chol.shape[-1]
+        eye = torch.eye(m, dtype=chol.dtype, device=chol.device).expand(chol.shape)
+        linv = torch.linalg.solve_triangular(chol, eye, upper=False)
+        s_inv_e = (linv.mT @ v[..., None])[..., 0]
+        var = torch.diagonal(innovation_cov.detach(), dim1=-2, dim2=-1)
+        size = var.abs().amax(-1)
+        drift = 0.5 * m * eps * size * (linv.square().sum((-2, -1)) + s_inv_e.square().sum(-1))
+        bad = ~(drift <= 1e-2 + 1e-4 * v.square().sum(-1))
+        if prediction is not None:
+            lost = eps * prediction.detach().abs() / var.clamp_min(torch.finfo(chol.dtype).tiny).sqrt()
+            if mask is not None:
+                lost = torch.where(mask, lost, torch.zeros_like(lost))
+            bad = bad | ~(lost <= 1e-2).all(-1)
+    return bad
+
+
 def gaussian_update(
     mean: Tensor,
     cov: Tensor,
@@ -49,6 +86,7 @@ def gaussian_update(
     joseph_fallback: tuple[Tensor, Tensor] | None = None,
     sigma_fallback: tuple[Tensor, Tensor, Tensor, Tensor | None] | None = None,
     add: Callable[[Tensor, Tensor], Tensor] | None = None,
+    prediction: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, StepInfo]:
     """Linear-Gaussian measurement update shared by every Kalman-family filter.
 
@@ -68,6 +106,8 @@ def gaussian_update(
             the points already carry the measurement noise).
         add: ``add(x, dx)``, the state addition (e.g. ``DynamicsModel.add`` wrapping angular
             states) for the mean correction; None adds plainly.
+        prediction: the predicted measurement ``z_hat [B, m]``, whose size sets the rounding
+            of the innovation (:func:`rounding_untrusted`).
 
     Returns the posterior mean and covariance and the :class:`StepInfo`.  The gain is never
     formed through an inverse: with ``S = L L^T``, ``W = L^{-1} P_xz^T`` gives
@@ -80,7 +120,9 @@ def gaussian_update(
     and a fallback is given, those batch elements are recomputed in the fallback's Joseph form;
     ``StepInfo.jitter`` is ``S``'s repair (0 if none); without a Joseph form or a fallback,
     ``StepInfo.untrusted`` marks elements whose reduction ``P - K S K^T`` cannot resolve to
-    ``1e-2``.  The time loop flags the rest over the whole run at once
+    ``1e-2``; it also marks the steps :func:`rounding_untrusted` finds unresolved (a nearly
+    singular ``S``, an innovation below the rounding of ``z_hat``).  The time loop flags the rest
+    over the whole run at once
     (:func:`untrusted_steps`), so this function adds no per-step work for it.
     """
     innovation, innovation_cov, cross_cov, num_obs = mask_measurement_system(innovation, innovation_cov, cross_cov, mask)
@@ -110,6 +152,8 @@ def gaussian_update(
         gain = torch.linalg.solve_triangular(chol.mT, w, upper=True).mT  # K = W^T L^{-1}
         new_cov = joseph_update(cov, gain, *_masked_system(*joseph, mask))
     loglik, maha = gaussian_log_density(innovation, chol, num_obs, whitened=v)
+    rounding = rounding_untrusted(chol, v, innovation_cov, prediction, mask)
+    untrusted = rounding if untrusted is None else untrusted | rounding
     info = StepInfo(loglik, maha, num_obs, innovation, innovation_cov, untrusted, jitter)
     return new_mean, new_cov, info
 

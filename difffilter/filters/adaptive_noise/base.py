@@ -163,11 +163,12 @@ class AdaptiveNoiseFilter(RecursiveFilter):
         s = mo.spread + r
         add = state_add(self.model.dynamics)
         if self.unscented:
-            return gaussian_update(mean, cov, e, s, mo.pxz, mask, sigma_fallback=(mo.dx, mo.dz, mo.wc, r), add=add)
+            return gaussian_update(mean, cov, e, s, mo.pxz, mask, sigma_fallback=(mo.dx, mo.dz, mo.wc, r), add=add, prediction=mo.zhat)
         joseph = self.inner.joseph
         return gaussian_update(
-            mean, cov, e, s, mo.pxz, mask, joseph=(mo.h, r) if joseph else None, joseph_fallback=None if joseph else (mo.h, r), add=add
-        )
+            mean, cov, e, s, mo.pxz, mask, joseph=(mo.h, r) if joseph else None, joseph_fallback=None if joseph else (mo.h, r), add=add,
+            prediction=mo.zhat,
+        )  # fmt: skip
 
     @staticmethod
     def predictive_info(innovation: Tensor, innovation_cov: Tensor, mask: Tensor | None) -> StepInfo:

@@ -107,4 +107,3 @@ def test_compiled_isolation(kind: str, corruption: str) -> None:
     check_isolated(fused, F64, corruption)
     if corruption not in REFUSED:
         assert fused.last_engine == "generated"
-

@@ -52,8 +52,10 @@ def rounding_untrusted(chol: Tensor, whitened: Tensor, innovation_cov: Tensor, p
       ~2 m); the correction of the mean then moves by that error in units of ``sqrt(S_jj)``.
       Flagged where ``eps |z_hat_j| / sqrt(S_jj) > 1e-2`` for an observed component.
 
-    The shapes are :func:`gaussian_update`'s (``chol``, ``whitened`` of the masked system).  Not
-    differentiated (a flag).
+    The same bound covers the gain's error in ``S``'s weak directions (``P_xz`` and ``S`` are
+    rounded apart, so ``K e`` keeps about ``eps cond(S)``), which is why the square-root UKF,
+    whose ``S`` itself is accurate, uses it too.  The shapes are :func:`gaussian_update`'s
+    (``chol``, ``whitened`` of the masked system).  Not differentiated (a flag).
     """
     eps = torch.finfo(chol.dtype).eps
     with torch.no_grad():

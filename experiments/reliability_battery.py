@@ -53,6 +53,7 @@ from difffilter.filters import EKF, UKF, ColoredNoiseUKF, KalmanFilter, Simplifi
 from difffilter.mixers import IMM  # noqa: E402
 from difffilter.models import FunctionalModel, LinearModel  # noqa: E402
 from experiments.benchmarks.exact import exact_colored_posteriors, exact_imm, exact_kalman  # noqa: E402
+from tests.test_reliability_isolation_matrix import COMPILED, EAGER, check_isolated, make_filter  # noqa: E402  (the test's cases)
 
 F64 = torch.float64
 PI = np.array([[0.9, 0.1], [0.1, 0.9]])
@@ -249,8 +250,6 @@ def numerics(engines: list[str], dtypes: list[torch.dtype], log: Callable[[str],
 
 def isolation(engines: list[str], log: Callable[[str], None]) -> tuple[int, int, list[str]]:
     """Passed and total cases of the isolation matrix, and the failures."""
-    from tests.test_reliability_isolation_matrix import COMPILED, EAGER, check_isolated, make_filter
-
     cases = [(k, d, c, "eager") for k, d, c in EAGER] if "eager" in engines else []
     cases += [(k, F64, c, e) for k, c in COMPILED for e in engines if e != "eager"]
     failed = []

@@ -39,40 +39,39 @@ def _trust_limits(dtype: torch.dtype) -> tuple[float, float, float]:
 
 
 def rounding_untrusted(chol: Tensor, whitened: Tensor, innovation_cov: Tensor, prediction: Tensor | None, mask: Tensor | None) -> Tensor:
-    """``[B]`` steps whose log-likelihood or innovation the working precision cannot resolve.
+    """``[B]`` steps whose log-likelihood, gain or innovation the working precision cannot resolve.
 
     * A nearly singular ``S``: forming ``S`` (and factorising it) perturbs it by ``dS`` with
       ``||dS|| <~ m eps max_j S_jj``, which moves ``log det S`` by ``tr(S^-1 dS)`` and the
-      Mahalanobis term by ``e^T S^-1 dS S^-1 e``: to first order at most
-      ``0.5 m eps max_j S_jj (tr(S^-1) + |S^-1 e|^2)`` nats (``tr(S^-1) = |L^-1|_F^2``,
-      ``S^-1 e = L^-T v``).  Flagged where that exceeds ``1e-2 + 1e-4 d`` (``d`` the
-      Mahalanobis distance: a huge innovation is only resolved relatively).
+      Mahalanobis term ``d`` by ``e^T S^-1 dS S^-1 e``: to first order at most
+      ``0.5 m eps max_j S_jj (tr(S^-1) + |S^-1 e|^2)`` nats (``S^-1 e = L^-T v``), with
+      ``tr(S^-1)`` estimated by ``sum_i 1 / L_ii^2`` (the diagonal of ``L^-1``: a lower bound,
+      within a factor ``m`` where the factor reveals the small pivots, as it does for these small
+      systems).  Flagged where
+      that exceeds ``1e-2 + 1e-4 d`` (a huge innovation is only resolved relatively).  The same
+      bound covers the gain's error in ``S``'s weak directions (``P_xz`` and ``S`` are rounded
+      apart, so ``K e`` keeps about ``eps cond(S)``), which is why the square-root UKF, whose
+      ``S`` itself is accurate, uses it too.
     * ``prediction`` ``z_hat [B, m]``: the innovation ``z - z_hat`` carries an absolute rounding
       error ``eps |z_hat|`` (and so does ``z_hat`` itself, e.g. a range of 2e7 m in float32 keeps
       ~2 m); the correction of the mean then moves by that error in units of ``sqrt(S_jj)``.
-      Flagged where ``eps |z_hat_j| / sqrt(S_jj) > 1e-2`` for an observed component.
+      Flagged where ``eps |z_hat_j| > 1e-2 sqrt(S_jj)`` for an observed component.
 
-    The same bound covers the gain's error in ``S``'s weak directions (``P_xz`` and ``S`` are
-    rounded apart, so ``K e`` keeps about ``eps cond(S)``), which is why the square-root UKF,
-    whose ``S`` itself is accurate, uses it too.  The shapes are :func:`gaussian_update`'s
-    (``chol``, ``whitened`` of the masked system).  Not differentiated (a flag).
+    ``chol`` ``[B, m, m]``, ``whitened`` ``v = L^-1 e [B, m]`` and ``innovation_cov`` are those of the masked system
+    (:func:`gaussian_update`).  A handful of elementwise operations per step, not differentiated
+    (a flag).
     """
     eps = torch.finfo(chol.dtype).eps
     with torch.no_grad():
-        chol, v = chol.detach(), whitened.detach()
-        m = chol.shape[-1]
-        eye = torch.eye(m, dtype=chol.dtype, device=chol.device).expand(chol.shape)
-        linv = torch.linalg.solve_triangular(chol, eye, upper=False)
-        s_inv_e = (linv.mT @ v[..., None])[..., 0]
-        var = torch.diagonal(innovation_cov.detach(), dim1=-2, dim2=-1)
-        size = var.abs().amax(-1)
-        drift = 0.5 * m * eps * size * (linv.square().sum((-2, -1)) + s_inv_e.square().sum(-1))
-        bad = ~(drift <= 1e-2 + 1e-4 * v.square().sum(-1))
+        pivots = torch.diagonal(chol, dim1=-2, dim2=-1).detach().square()
+        var = torch.diagonal(innovation_cov, dim1=-2, dim2=-1).detach()
+        v = whitened.detach()
+        s_inv_e = torch.linalg.solve_triangular(chol.detach().mT, v[..., None], upper=True)[..., 0]
+        spread = pivots.reciprocal().sum(-1) + s_inv_e.square().sum(-1)
+        bad = ~((0.5 * chol.shape[-1] * eps) * var.amax(-1) * spread <= 1e-2 + 1e-4 * v.square().sum(-1))
         if prediction is not None:
-            lost = eps * prediction.detach().abs() / var.clamp_min(torch.finfo(chol.dtype).tiny).sqrt()
-            if mask is not None:
-                lost = torch.where(mask, lost, torch.zeros_like(lost))
-            bad = bad | ~(lost <= 1e-2).all(-1)
+            lost = ~((eps / 1e-2) ** 2 * prediction.detach().square() <= var)
+            bad = bad | (lost if mask is None else lost & mask).any(-1)
     return bad
 
 

@@ -168,7 +168,8 @@ def write_report(
     md += [
         "Throughput = trajectory-steps per second (B x T / best wall time). `forward`: the filter without gradient; "
         "`train`: the training step, the batch's total log-likelihood and its gradient w.r.t. the diagonal of R. "
-        "`difffilter_over_peer` = difffilter's "
+        "`difffilter_over_peer` = difffilter's (a plain call as a user writes it: the engine that "
+        "`DIFFFILTER_ENGINE`, default `auto`, picks, named in its row's note; its kernels built before timing) "
         "throughput / the peer's in the same configuration (> 1: difffilter faster); `fused_over_peer` the same for "
         "`difffilter-fused` (`FusedFilter`; its `compile_s` is the first call, which builds or loads its kernels). "
         "`fb_over_f` = training-step time / forward time of the same library. `cpu_seconds`: process CPU time "

@@ -64,7 +64,7 @@ class _Recording:
     def __init__(self, filt, engine):  # type: ignore[no-untyped-def]
         self.filter = filt
 
-    def __call__(self, z, m0, p0, mask, controls, belief=None):  # type: ignore[no-untyped-def]
+    def _run(self, z, m0, p0, mask, controls, belief=None):  # type: ignore[no-untyped-def]
         _Recording.calls.append(tuple(z.shape))
         return self.filter._run(z, m0, p0, mask, controls, belief=belief)
 
@@ -99,7 +99,7 @@ def test_an_engine_error_on_good_input_falls_back_with_the_reason(monkeypatch):
     def broken(self, *args, **kwargs):  # type: ignore[no-untyped-def]
         raise RuntimeError("engine defect")
 
-    monkeypatch.setattr(policy.FusedFilter, "forward", broken)
+    monkeypatch.setattr(policy.FusedFilter, "_run", broken)
     policy.set_engine("compiled")
     ukf = _ukf()
     with pytest.warns(UserWarning, match="cannot run UKF \\(RuntimeError: engine defect\\)") as record:

@@ -172,7 +172,9 @@ def _compiled_result(
     fused = _runner(filt)
     _local.inside = True
     try:
-        return fused(measurements, initial_mean, initial_cov, mask, controls, belief=belief), "generated"
+        # FusedFilter's own run, without its forward's thread scope and isolation of non-finite
+        # trajectories: the filter's forward, which asked this hook, already provides both
+        return fused._run(measurements, initial_mean, initial_cov, mask, controls, belief=belief), "generated"
     except (UnsupportedOp, CompileError) as exc:
         _give_up(filt, str(exc)[:300])
         return None, "eager"

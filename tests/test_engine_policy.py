@@ -73,13 +73,13 @@ def test_auto_compiles_large_calls_and_a_filter_whose_small_calls_add_up(monkeyp
     monkeypatch.setattr(policy, "FusedFilter", _Recording)
     _Recording.calls = []
     monkeypatch.setenv("DIFFFILTER_AUTO_MIN_WORK", "100")
-    monkeypatch.setenv("DIFFFILTER_AUTO_MIN_TOTAL", "60")
+    monkeypatch.setenv("DIFFFILTER_AUTO_MIN_TOTAL", "576")
     ukf, other = _ukf(), _ukf()
-    _run(ukf, *_data(4, 6))  # 24, total 24: eager
+    _run(ukf, *_data(4, 6))  # B * T = 24; counts max(B, 32) * T = 192 towards the total: eager
     _run(other, *_data(4, 6))  # another filter's work does not count
-    _run(ukf, *_data(4, 6))  # total 48: eager
+    _run(ukf, *_data(4, 6))  # total 384: eager
     assert _Recording.calls == [] and policy.last_engine(ukf) == "eager"
-    _run(ukf, *_data(2, 6))  # total 60: the repeated calls pay for a build
+    _run(ukf, *_data(2, 6))  # total 576: the repeated calls pay for a build
     _run(ukf, *_data(1, 2))
     assert _Recording.calls == [(2, 6, 2), (1, 2, 2)] and policy.last_engine(ukf) == "generated"
     _run(other, *_data(10, 10))  # one call of B * T = 100

@@ -7,9 +7,10 @@ smoothers' forward filters) asks :func:`run_compiled_if_chosen` first:
 * ``auto`` (the default, :data:`DEFAULT_ENGINE`): the compiled engine when a C++ compiler exists
   and the work pays for a kernel build: a large call, ``B * T >= DIFFFILTER_AUTO_MIN_WORK``
   (default ``10_000``), or repeated calls of the same filter object (a training loop over small
-  batches or windows) once their ``B * T`` add up to ``DIFFFILTER_AUTO_MIN_TOTAL`` (default
-  ``100_000``; the call that reaches it runs compiled).  A few small calls, and so the small
-  tests, stay eager and never build a kernel.  The choice depends only on the sequence of calls,
+  batches or windows) once their ``max(B, 32) * T`` add up to ``DIFFFILTER_AUTO_MIN_TOTAL``
+  (default ``100_000``; the call that reaches it runs compiled; below :data:`EAGER_FLAT_BATCH`
+  trajectories an eager call costs about the same, so it counts as that many).  A few small
+  calls, and so the small tests, stay eager and never build a kernel.  The choice depends only on the sequence of calls,
   so a rerun switches at the same call and repeats its results bit for bit;
 * ``compiled``: the generated C++ engine (:class:`~.filter.FusedFilter` with ``engine="generated"``)
   for every CPU call it can run;
@@ -50,7 +51,7 @@ _CACHE_SIZE = 8  # filters whose compiled runner is kept (each holds its filter 
 
 _override: list[str | None] = [None]
 _runners: OrderedDict[int, FusedFilter] = OrderedDict()
-_work: weakref.WeakKeyDictionary[RecursiveFilter, int] = weakref.WeakKeyDictionary()  # B * T so far, under auto
+_work: weakref.WeakKeyDictionary[RecursiveFilter, int] = weakref.WeakKeyDictionary()  # max(B, 32) * T so far
 _last: weakref.WeakKeyDictionary[RecursiveFilter, str] = weakref.WeakKeyDictionary()
 _failed: weakref.WeakKeyDictionary[RecursiveFilter, str] = weakref.WeakKeyDictionary()
 _warned: set[tuple[str, str]] = set()
@@ -84,12 +85,18 @@ def _env_int(name: str, default: int) -> int:
         raise ValueError(f"{name} must be an integer (B * T), got {raw!r}") from exc
 
 
-def _pays_for_a_build(filt: RecursiveFilter, work: int) -> bool:
+#: below this batch size an eager step costs about the same whatever the batch (Python and
+#: dispatch overhead per step: UKF training at B = 1 ~7 ms per step, at B = 256 ~35 ms), so a
+#: small-batch call counts as this many trajectories towards ``DIFFFILTER_AUTO_MIN_TOTAL``
+EAGER_FLAT_BATCH = 32
+
+
+def _pays_for_a_build(filt: RecursiveFilter, batch: int, steps: int) -> bool:
     """``auto``'s rule: this call is large, or this filter's calls add up to a lot of work."""
     min_work, min_total = _env_int("DIFFFILTER_AUTO_MIN_WORK", 10_000), _env_int("DIFFFILTER_AUTO_MIN_TOTAL", 100_000)
     with _lock:
-        total = _work[filt] = _work.get(filt, 0) + work
-    return work >= min_work or total >= min_total
+        total = _work[filt] = _work.get(filt, 0) + max(batch, EAGER_FLAT_BATCH) * steps
+    return batch * steps >= min_work or total >= min_total
 
 
 def _announce(filt: RecursiveFilter, reason: str) -> None:
@@ -160,7 +167,7 @@ def _compiled_result(
         return None, "eager"
     if torch.compiler.is_compiling():
         return None, "eager"
-    if policy == "auto" and not _pays_for_a_build(filt, measurements.shape[0] * measurements.shape[1]):
+    if policy == "auto" and not _pays_for_a_build(filt, measurements.shape[0], measurements.shape[1]):
         return None, "eager"
     reason = compiler_available()
     if reason is None:

@@ -35,6 +35,7 @@ CFG = {
     "lr": 0.05,
     "batches": 1,
     "burn_in": 2,
+    "eval_burn_in": 2,
     "init_perturbation": 0.1,
     "bootstrap": {"block": 5, "draws": 200, "seed": 0},
 }
@@ -127,6 +128,7 @@ def test_the_command_runs_on_a_ranging_folder(tmp_path) -> None:
             "bootstrap.draws": 100,
             "bootstrap.block": 5,
             "burn_in": 2,
+            "eval_burn_in": 2,
         }.items()
     ]
     env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}

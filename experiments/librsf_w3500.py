@@ -116,14 +116,14 @@ def _findings(name: str, summary: dict[str, Any], folder: Path | None = None, cf
         )
         if "gate_threshold" in ex and cfg is not None:
             line += (
-                f". The learned gate halves a range's weight at a normalised innovation of {_half_weight(ex):.2f} "
+                f". The selected gate halves a range's weight at a normalised innovation of {_half_weight(ex):.2f} "
                 f"(untrained: {_half_weight(_untrained(cfg)):.2f})"
             )
             if sel["candidate"] != "untrained-gate":
                 biases.append(ex["range_bias"])
         elif "gate_threshold" not in ex:
             line += ". Validation chose hand-tuned"
-        line += "."
+        line += "." + _training(f)
         short = fold.split("/")[-1]
         if folder is not None and cfg is not None and short in cfg["folds"]:
             line += _transient(folder, name, cfg, short, float(sel["start_pos_var"]))
@@ -138,9 +138,24 @@ def _findings(name: str, summary: dict[str, Any], folder: Path | None = None, cf
     return "".join(out)
 
 
+def _training(f: dict[str, Any]) -> str:
+    """What training did on validation: the best trained (seed, epoch) against the start, and
+    how many seeds ended (last epoch) worse than they were after their first epoch."""
+    hist, start = f["history"], f["selected"]["val_untrained"]
+    if not hist:
+        return ""
+    best = min((s, h["seed"], e) for h in hist for e, s in enumerate(h["scores"]) if e > 0)
+    worse = sum(h["scores"][-1] > h["scores"][1] for h in hist if len(h["scores"]) > 2)
+    return (
+        f" Best trained candidate on validation: {best[0]:.3f} (seed{best[1]} epoch {best[2]}) vs the start's {start:.3f}; "
+        f"{worse} of {len(hist)} seeds scored worse after their last epoch than after their first."
+    )
+
+
 def _tally(out: Path, names: list[str]) -> str:
     """Verdict counts of learned vs hand-tuned and vs the untrained gate over every fold run."""
     counts: dict[str, dict[str, int]] = {}
+    kept = {"untrained-gate": 0, "hand-tuned": 0}
     folds = 0
     for name in names:
         path = out / name / "summary.json"
@@ -149,12 +164,18 @@ def _tally(out: Path, names: list[str]) -> str:
         for f in json.loads(path.read_text())["folds"].values():
             le = next(r for r in f["rows"] if r["filter"] == "learned")
             folds += 1
+            if f["selected"]["candidate"] in kept:
+                kept[f["selected"]["candidate"]] += 1
             for ref, prefix in (("hand-tuned", "d"), ("untrained gate", "u")):
                 for stat in ("median", "rms"):
                     key = f"vs {ref}, {'median' if stat == 'median' else 'RMS'}"
                     v = _verdict(le, stat, prefix)
                     counts.setdefault(key, {"better": 0, "tie": 0, "worse": 0})[v] += 1
     lines = [f"\n## Verdicts over the {folds} folds (learned vs reference, paired 95 % intervals)\n\n"]
+    lines.append(
+        f"Validation selected the untrained gated start in {kept['untrained-gate']} of {folds} folds, hand-tuned in "
+        f"{kept['hand-tuned']}, a trained (seed, epoch) in {folds - kept['untrained-gate'] - kept['hand-tuned']}.\n\n"
+    )
     lines.append("| comparison | better | tie | worse |\n|---|---|---|---|\n")
     lines += [f"| {k} | {c['better']} | {c['tie']} | {c['worse']} |\n" for k, c in counts.items()]
     return "".join(lines)
@@ -178,6 +199,33 @@ READING = """
   for every row; the training loss leaves out the same number of steps of each window.
 - **Selection** among every (seed, epoch), the untrained start (listed first: ties keep it) and
   hand-tuned, as before.
+
+## Reading (written after the run; the numbers are in the generated tables above)
+
+- **Against hand-tuned** the selected filter is better in median and RMS wherever the verdict
+  table says so. The gain is the gate's: the untrained gated filter and the textbook hard gate on
+  the normalised innovation (`hand-tuned-hard-gate`) reach nearly the same median; the smooth gate
+  avoids the hard gate's occasional lock-outs, which show in its RMS and p95 on some folds.
+- **Against its own untrained start** learning ties: validation kept the untrained start in most
+  folds (count above), and where a trained (seed, epoch) won validation its test difference to the
+  start is a tie. The issue's acceptance (never significantly worse than hand-tuned or the
+  untrained gate) holds on every fold where both verdicts read better or tie; **a win over the
+  untrained start is not shown on these data sets.**
+- **Why learning does not beat the start here.** Once the start heading is right and the gate
+  sees `H P H^T + R`, the untrained filter with the file's variances is already at the accuracy of
+  the hard-gated filter, and the training windows give the extras (per-anchor bias and noise
+  scale, odometry scale, process noise, gate) little to fit: each seed's perturbed start scores
+  worse on validation than the unperturbed start (epoch-0 scores in `summary.json`), and further
+  epochs mostly drift (the "seeds scored worse after their last epoch" counts above).
+- **Where the previous report's start transient came from** (`python -m
+  experiments.ranging.start_diagnostic`: error by steps since a start on fold A's training block,
+  untrained filters): with the previous start heading (direction of motion, 180 degrees off for this
+  backwards-driving robot) the previous `R`-only gate is metres off for tens of steps before it
+  recovers, and the innovation gate never recovers (a confident wrong heading makes every range an
+  outlier); with the angle record both start within the ranges' accuracy, and the innovation gate
+  settles tighter than the `R`-only gate with its 3 m floor on the multimodal and skewed sets. The
+  heading fix is what removed the transient; the innovation statistic is what makes the untrained
+  start this strong.
 """
 
 

@@ -30,7 +30,7 @@ import yaml  # noqa: E402
 
 from difffilter.datasets import DATASETS, find_recordings, load_ranging, locate  # noqa: E402
 from experiments.ranging.protocol import _errors, _filters, fold_pieces, piece_tensors  # noqa: E402
-from experiments.ranging.report import run_ranging  # noqa: E402
+from experiments.ranging.report import fold_specs, run_ranging  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -87,18 +87,29 @@ def _interval(row: dict[str, Any], stat: str, prefix: str) -> str:
     return f"{row[f'{prefix}_{stat}']:+.3f} [{row[f'{prefix}_{stat}_lo']:+.3f}, {row[f'{prefix}_{stat}_hi']:+.3f}] m"
 
 
-def _transient(folder: Path, name: str, cfg: dict[str, Any], fold: str, pos_var: float) -> str:
-    """The untrained gated filter on a block fold's validation block: how its scored errors are spread."""
-    rec = load_ranging(folder / f"{name}_Input.txt", next(g for n, _i, g in find_recordings(folder) if n == name))
-    val = fold_pieces([rec], cfg["folds"][fold])["val"][0]
+def _transient(folder: Path, cfg: dict[str, Any], fold: str, pos_var: float) -> str:
+    """The untrained gated filter on each validation piece of a fold: how its scored errors are spread."""
+    recs = [load_ranging(i, g) for _n, i, g in find_recordings(folder)]
+    if "/" in fold:  # a block fold of one data set
+        name, short = fold.split("/")
+        pieces = fold_pieces([r for r in recs if r.name == name], cfg["folds"][short])["val"]
+    else:  # a leave-one-data-set-out fold
+        specs = fold_specs(recs, {**cfg, "folds": {}, "by_dataset": True})
+        if fold not in specs:
+            return ""
+        pieces = fold_pieces(*specs[fold])["val"]
     burn = int(cfg.get("eval_burn_in", 0))
-    e = _errors(_filters(rec.num_anchors, cfg)["untrained-gate"], piece_tensors(val, pos_var=pos_var), burn)
-    big = torch.nonzero(e > 2.0).reshape(-1) + burn
-    where = f", scored steps {int(big[0])} to {int(big[-1])} of the block" if len(big) else ""
-    return (
-        f" The untrained gate on this validation block (steps after {burn}): median {float(e.median()):.3f} m, RMS "
-        f"{float(e.pow(2).mean().sqrt()):.3f} m, max {float(e.max()):.1f} m, {len(big)} of {len(e)} steps above 2 m{where}."
-    )
+    out = []
+    for p in pieces:
+        e = _errors(_filters(p.recording.num_anchors, cfg)["untrained-gate"], piece_tensors(p, pos_var=pos_var), burn)
+        big = torch.nonzero(e > 2.0).reshape(-1) + burn
+        where = f", steps {int(big[0])} to {int(big[-1])} of the piece" if len(big) else ""
+        out.append(
+            f" The untrained gate on the validation piece {p.recording.name} [{p.first}, {p.stop}) (steps after {burn}): "
+            f"median {float(e.median()):.3f} m, RMS {float(e.pow(2).mean().sqrt()):.3f} m, max {float(e.max()):.1f} m, "
+            f"{len(big)} of {len(e)} steps above 2 m{where}."
+        )
+    return "".join(out)
 
 
 def _findings(name: str, summary: dict[str, Any], folder: Path | None = None, cfg: dict[str, Any] | None = None) -> str:
@@ -124,9 +135,8 @@ def _findings(name: str, summary: dict[str, Any], folder: Path | None = None, cf
         elif "gate_threshold" not in ex:
             line += ". Validation chose hand-tuned"
         line += "." + _training(f)
-        short = fold.split("/")[-1]
-        if folder is not None and cfg is not None and short in cfg["folds"]:
-            line += _transient(folder, name, cfg, short, float(sel["start_pos_var"]))
+        if folder is not None and cfg is not None:
+            line += _transient(folder, cfg, fold, float(sel["start_pos_var"]))
         out.append(line + "\n")
     if len(biases) == 2:
         a, b = (torch.tensor(x) for x in biases)
@@ -156,6 +166,7 @@ def _tally(out: Path, names: list[str]) -> str:
     """Verdict counts of learned vs hand-tuned and vs the untrained gate over every fold run."""
     counts: dict[str, dict[str, int]] = {}
     kept = {"untrained-gate": 0, "hand-tuned": 0}
+    seeds = {"all": 0, "perturbed": 0, "drift": 0}
     folds = 0
     for name in names:
         path = out / name / "summary.json"
@@ -166,6 +177,10 @@ def _tally(out: Path, names: list[str]) -> str:
             folds += 1
             if f["selected"]["candidate"] in kept:
                 kept[f["selected"]["candidate"]] += 1
+            for h in f["history"]:
+                seeds["all"] += 1
+                seeds["perturbed"] += h["scores"][0] > f["selected"]["val_untrained"]
+                seeds["drift"] += len(h["scores"]) > 2 and h["scores"][-1] > h["scores"][1]
             for ref, prefix in (("hand-tuned", "d"), ("untrained gate", "u")):
                 for stat in ("median", "rms"):
                     key = f"vs {ref}, {'median' if stat == 'median' else 'RMS'}"
@@ -174,7 +189,10 @@ def _tally(out: Path, names: list[str]) -> str:
     lines = [f"\n## Verdicts over the {folds} folds (learned vs reference, paired 95 % intervals)\n\n"]
     lines.append(
         f"Validation selected the untrained gated start in {kept['untrained-gate']} of {folds} folds, hand-tuned in "
-        f"{kept['hand-tuned']}, a trained (seed, epoch) in {folds - kept['untrained-gate'] - kept['hand-tuned']}.\n\n"
+        f"{kept['hand-tuned']}, a trained (seed, epoch) in {folds - kept['untrained-gate'] - kept['hand-tuned']}. Of the "
+        f"{seeds['all']} seed runs, {seeds['perturbed']} started (their seeded perturbation of the untrained values, "
+        f"before any training) with a worse validation score than the untrained start, and {seeds['drift']} scored worse "
+        "after their last epoch than after their first.\n\n"
     )
     lines.append("| comparison | better | tie | worse |\n|---|---|---|---|\n")
     lines += [f"| {k} | {c['better']} | {c['tie']} | {c['worse']} |\n" for k, c in counts.items()]
@@ -206,17 +224,30 @@ READING = """
   table says so. The gain is the gate's: the untrained gated filter and the textbook hard gate on
   the normalised innovation (`hand-tuned-hard-gate`) reach nearly the same median; the smooth gate
   avoids the hard gate's occasional lock-outs, which show in its RMS and p95 on some folds.
-- **Against its own untrained start** learning ties: validation kept the untrained start in most
-  folds (count above), and where a trained (seed, epoch) won validation its test difference to the
-  start is a tie. The issue's acceptance (never significantly worse than hand-tuned or the
-  untrained gate) holds on every fold where both verdicts read better or tie; **a win over the
-  untrained start is not shown on these data sets.**
+- **Against its own untrained start** learning ties on every fold but one (the verdict table;
+  the loss is discussed below): validation kept the untrained start in most folds (count above),
+  which makes learned and untrained identical there. The issue's acceptance (learned never
+  significantly worse than hand-tuned or the untrained gate, in median and RMS) is therefore met on
+  every fold except `leave_out_W3500_heavy-tailed`; **a win over the untrained start is not shown
+  on any of these data sets.**
 - **Why learning does not beat the start here.** Once the start heading is right and the gate
   sees `H P H^T + R`, the untrained filter with the file's variances is already at the accuracy of
   the hard-gated filter, and the training windows give the extras (per-anchor bias and noise
-  scale, odometry scale, process noise, gate) little to fit: each seed's perturbed start scores
-  worse on validation than the unperturbed start (epoch-0 scores in `summary.json`), and further
-  epochs mostly drift (the "seeds scored worse after their last epoch" counts above).
+  scale, odometry scale, process noise, gate) little to fit: almost every seed's perturbed start
+  scores worse on validation than the untrained start, and training rarely brings a seed below it
+  (the seed counts under the verdict table; per fold, the best trained candidate against the start
+  in "what the numbers say").
+- **The one loss: `leave_out_W3500_heavy-tailed`** (trained on multimodal + skewed, tested on
+  heavy-tailed): learned is worse than its untrained start in median and RMS. Its validation score
+  is again dominated by a start transient, now one longer than the declared 20-step burn-in: the
+  untrained gate on the skewed validation piece is metres off for its first scored steps (the
+  line for that fold above), so the pooled score prefers a (seed, epoch) that avoids that
+  transient although it is less accurate on both validation pieces once converged - and its
+  per-anchor biases and noise scales, learned on the multimodal and skewed error distributions, do
+  not carry over to the heavy-tailed one. The burn-in was declared before the run and is not
+  changed after it. What would remove this failure in a next, declared run: a score that no single
+  start transient can dominate (e.g. the median over pieces of each piece's score, or warm starts
+  from the filter's own state at the end of the preceding block).
 - **Where the previous report's start transient came from** (`python -m
   experiments.ranging.start_diagnostic`: error by steps since a start on fold A's training block,
   untrained filters): with the previous start heading (direction of motion, 180 degrees off for this

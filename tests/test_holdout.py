@@ -90,7 +90,7 @@ def test_epoch_snapshots_record_and_restore_every_epoch() -> None:
         return float(error_statistics(e)["rms"]), {"median": float(e.median())}
 
     snaps = EpochSnapshots(score, ["model.dynamics.q"])
-    learner = FilterLearner(filt, "nll", learn=["q"], optimizer=lambda p: torch.optim.Adam(p, lr=0.2), figure_every_n_epochs=0)
+    learner = FilterLearner(filt, "nll", learn=["q"], optimizer=lambda p: torch.optim.Adam(p, lr=0.2))
     trainer = pl.Trainer(
         max_epochs=4, logger=False, callbacks=[snaps], enable_checkpointing=False, enable_progress_bar=False, limit_val_batches=0
     )

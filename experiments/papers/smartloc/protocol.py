@@ -47,7 +47,9 @@ from difffilter.evaluate.holdout import EpochSnapshots, LogDistancePrior, bound_
 from difffilter.filters import EKF
 from difffilter.filters.protocol import Filter
 from difffilter.learn.data import TrajectorySet, WindowedTrajectories
-from difffilter.learn.learner import FilterLearner
+from difffilter.learn.learner import FilterLearner, LearnerOptions
+from difffilter.learn.losses import LogPrior
+from difffilter.learn.replicates import perturb_initial_values
 from difffilter.selection import assign_parameters, match_parameters, parameter_owners
 
 from .data import SmartLocData, find_drives, load_drive
@@ -264,18 +266,14 @@ def _train_job(job: Mapping[str, Any]) -> dict[str, Any]:
     priors = {n: LogDistancePrior(reference=getattr(owners[n][0], owners[n][1]).detach(), scale=float(prior["scale"])) for n in names}
     snaps = EpochSnapshots(lambda f: validation_score(f, sets["val"]), names)
     learner = FilterLearner(
-        filt,
+        filt.double(),
         "nll",
         learn=names,
         optimizer=functools.partial(torch.optim.Adam, lr=float(cfg["lr"])),
-        log_prior=priors,
-        prior_weight=float(prior["weight"]),
-        dtype="float64",
-        init_perturbation=float(cfg["init_perturbation"]),
-        init_seed=int(job["seed"]),
-        position_index=[0, 1],
-        figure_every_n_epochs=0,
+        prior=LogPrior(priors, weight=float(prior["weight"])),
+        options=LearnerOptions(position_index=[0, 1]),
     )
+    perturb_initial_values(learner.filter, learner.learned_names, float(cfg["init_perturbation"]), seed=int(job["seed"]))
     pl.seed_everything(int(job["seed"]), workers=False, verbose=False)
     logger = TensorBoardLogger(
         job["log_dir"], name=f"{job['fold']}_{job['variant']}", version=f"seed{job['seed']}", default_hp_metric=False

@@ -9,16 +9,6 @@ import pytest
 import pytorch_lightning as pl
 import torch
 
-from difffilter.evaluate.holdout import (
-    EpochSnapshots,
-    LogDistancePrior,
-    bound_parameters,
-    clone_with_snapshot,
-    contiguous_blocks,
-    error_statistics,
-    paired_error_table,
-    select_candidate,
-)
 from difffilter.evaluate.intervals import block_bootstrap_difference
 from difffilter.filters import KalmanFilter
 from difffilter.learn.data import TrajectorySet, WindowedTrajectories
@@ -28,6 +18,16 @@ from difffilter.models.motion import ConstantVelocity
 from difffilter.models.tracking import linear_measurement
 from difffilter.params import Interval
 from difffilter.selection import named_raw_parameters
+from experiments.holdout import (
+    EpochSnapshots,
+    LogDistancePrior,
+    bound_parameters,
+    clone_with_snapshot,
+    contiguous_blocks,
+    error_statistics,
+    paired_error_table,
+    select_candidate,
+)
 
 F64 = torch.float64
 

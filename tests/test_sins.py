@@ -11,9 +11,10 @@ import torch
 from torch.func import jacfwd, vmap
 
 from difffilter.filters import EKF, SimplifiedUKF
-from difffilter.geometry import CircularOrbitConstellation, normal_gravity
+from difffilter.geometry import normal_gravity
 from difffilter.models.navigation.sins import SinsErrorDynamics, sins_error_matrix
 from difffilter.models.navigation.sins_measurement import SinsPseudorangeMeasurement
+from experiments.papers.constellation import CircularOrbitConstellation
 from experiments.papers.p003 import make_p003_model, simulate_p003
 
 F64 = torch.float64

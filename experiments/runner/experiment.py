@@ -79,18 +79,18 @@ from difffilter._util import as_dtype
 from difffilter.evaluate.evaluation import EXTRA_TESTS_DIR, PER_RUN_FILE, consistency_table, evaluate_filter, evaluate_runs, write_per_run
 from difffilter.filters.protocol import Filter
 from difffilter.learn.callbacks import EpochSummary, GracefulInterrupt
-from difffilter.learn.config_check import check_config
 from difffilter.learn.data import TrajectorySet
 from difffilter.learn.divergence import DivergenceGuard
 from difffilter.learn.learner import FilterLearner
 from difffilter.learn.plots import DiagnosticFigures
-from difffilter.learn.reporting import log_results, parameter_summary, parameter_values
 from difffilter.models.layout import model_defaults
 from difffilter.selection import assign_parameters, parameter_owners
 from difffilter.smoothers import make_smoother, smoother_spec
 
 from .baselines import tune_baseline
+from .config_check import check_config
 from .learner_config import figure_callback, finish_learner, split_learner_config
+from .reporting import log_results, parameter_summary, parameter_values
 from .runs import checkpoint_config, resume_checkpoint, run_status
 
 __all__ = [

@@ -13,7 +13,7 @@ How the truth is produced (nothing is sampled from the filter's error model):
    gyro constant drift + first-order Markov drift + white noise, accelerometer Markov bias + white
    noise (p003's values).  The 20-state error truth is INS minus truth (phi-angle from the attitude
    matrices), sampled at 1 Hz, and the clock follows its own two-state model.
-4. Satellites: :class:`~difffilter.geometry.CircularOrbitConstellation` (24 satellites, 6 planes),
+4. Satellites: :class:`~experiments.papers.constellation.CircularOrbitConstellation` (24 satellites, 6 planes),
    the ``K`` with the highest minimum elevation over the flight; slots below 5 deg are masked.
    Measurements ``drho = |p_INS - s| - (|p_true - s| + dt_u + v)`` and
    ``drhodot = e_I.(v_INS - s') - (e_G.(v_true - s') + dt_ru + v')``.
@@ -48,6 +48,7 @@ from torch import Tensor
 
 from difffilter import geometry as geo
 from difffilter._util import generator
+from experiments.papers import constellation as sky
 
 from .flight import (
     P003_CONFIG,
@@ -268,7 +269,7 @@ def simulate_p003(
     ke = np.arange(steps + 1) * imu_rate
     t_llh, t_vel, t_c = llh[:, ke], vel[:, ke], c_true[:, ke]
     tt = torch.arange(steps + 1, dtype=f64).expand(bsz, steps + 1)
-    sp, sv = geo.CircularOrbitConstellation().state(tt, torch.tensor(earth_angle)[:, None], torch.tensor(orbit_phase)[:, None])
+    sp, sv = sky.CircularOrbitConstellation().state(tt, torch.tensor(earth_angle)[:, None], torch.tensor(orbit_phase)[:, None])
     p_true = geo.geodetic_to_ecef(torch.from_numpy(t_llh))
     elev = geo.azimuth_elevation(p_true, sp)[1]
     best = torch.argsort(elev[:, 1:].amin(1), dim=-1, descending=True)[:, :k_sat]  # [B, K]

@@ -2,7 +2,7 @@
 ``conf/realdata.yaml`` + ``conf/realdata/<name>.yaml``).
 
 For every fold (an assignment of contiguous blocks of each drive to train / validation / test,
-:func:`~difffilter.evaluate.holdout.contiguous_blocks`) and every learned variant (a pseudorange noise
+:func:`~experiments.holdout.contiguous_blocks`) and every learned variant (a pseudorange noise
 model, :mod:`experiments.papers.smartloc.variants`):
 
 1. training data: windows of the train blocks of all drives (one batch; each window starts from the
@@ -12,12 +12,12 @@ model, :mod:`experiments.papers.smartloc.variants`):
 2. the learned filter (EKF on the odometry + pseudorange model with the variant's noise model and a
    learnable smooth reject gate) starts from the hand-tuned values; every positive parameter is
    bounded to ``[start / bound_ratio, start x bound_ratio]`` and pulled back to its start by a
-   :class:`~difffilter.evaluate.holdout.LogDistancePrior`; ``seeds`` replicates (seeded log-normal
+   :class:`~experiments.holdout.LogDistancePrior`; ``seeds`` replicates (seeded log-normal
    perturbations of the start) train by innovation likelihood (no reference positions);
 3. after every epoch the validation blocks' horizontal median + RMS error is recorded
-   (:class:`~difffilter.evaluate.holdout.EpochSnapshots`); the model used on test is the
+   (:class:`~experiments.holdout.EpochSnapshots`); the model used on test is the
    (seed, epoch) - or the unperturbed start - with the lowest validation score
-   (:func:`~difffilter.evaluate.holdout.select_candidate`), within ``epochs x h`` epochs for each
+   (:func:`~experiments.holdout.select_candidate`), within ``epochs x h`` epochs for each
    stability horizon ``h``;
 4. on every test block: the hand-tuned filter (the gated EKF with the loader's values), the
    selected learned filters, the EKF without gate and the single-epoch WLS, with paired
@@ -43,7 +43,6 @@ import torch
 from pytorch_lightning.loggers import TensorBoardLogger
 from torch import Tensor
 
-from difffilter.evaluate.holdout import EpochSnapshots, LogDistancePrior, bound_parameters, contiguous_blocks, restore_snapshot
 from difffilter.filters import EKF
 from difffilter.filters.protocol import Filter
 from difffilter.learn.data import TrajectorySet, WindowedTrajectories
@@ -51,6 +50,7 @@ from difffilter.learn.learner import FilterLearner, LearnerOptions
 from difffilter.learn.losses import LogPrior
 from difffilter.learn.replicates import perturb_initial_values
 from difffilter.selection import assign_parameters, match_parameters, parameter_owners
+from experiments.holdout import EpochSnapshots, LogDistancePrior, bound_parameters, contiguous_blocks, restore_snapshot
 
 from .data import SmartLocData, find_drives, load_drive
 from .model import make_smartloc_model, smartloc_initial_belief

@@ -31,9 +31,9 @@ import pytorch_lightning as pl
 import torch
 from torch import Tensor, nn
 
-from ..params import Interval, register_constrained
-from ..selection import match_parameters, parameter_owners
-from .intervals import block_bootstrap_difference
+from difffilter.evaluate.intervals import block_bootstrap_difference
+from difffilter.params import Interval, register_constrained
+from difffilter.selection import match_parameters, parameter_owners
 
 __all__ = [
     "EpochSnapshots",

@@ -30,8 +30,8 @@ from difffilter.constraints import FactorCovariance
 from difffilter.filters import UKF, KalmanFilter, SquareRootUKF
 from difffilter.models import FunctionalModel, LinearModel
 from difffilter.models.base import MeasurementModel, StateSpaceModel, wrap_angle
-from difffilter.models.navigation.gnss_imu import GnssMeasurement
 from difffilter.params import ScaledMatrix
+from experiments.papers.p004.model import GnssMeasurement
 from experiments.runner.config_check import check_config
 
 from .filter_contract import cv_matrices, numpy_kalman

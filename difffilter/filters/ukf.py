@@ -287,7 +287,7 @@ class SimplifiedUKF(UKF):
     parameters.
 
     When the dynamics offer ``linear_prediction(x, u) -> (f(x, u), F, Q)`` (e.g.
-    :class:`~difffilter.models.navigation.sins.SinsErrorDynamics`), the prediction takes all three from that
+    :class:`~experiments.papers.p003.sins.SinsErrorDynamics`), the prediction takes all three from that
     one call, so a model whose ``F`` is expensive (matrix exponential) builds it once per step
     instead of once each in ``matrix``, ``process_noise`` and ``f``.
     """

@@ -21,7 +21,7 @@ import torch
 from torch import Tensor
 
 from difffilter._util import as_dtype
-from difffilter.models.navigation.gpsdr import GpsDrModel
+from experiments.papers.p000.model import GpsDrModel
 
 from .errors import SensorErrors
 from .simulator import GpsDrScenario, simulate_p000

@@ -32,7 +32,7 @@ position, velocity and attitude errors are subtracted from the INS solution (the
 are not fed back).  The INS errors then stay at the GNSS level instead of drifting freely (the
 0.1 deg initial tilt alone drives a Schuler oscillation of ~10 km), so the linear error model stays
 valid.  Controls get ``"feedback" [B, T, 20]``: the correction applied at the previous epoch, which
-:class:`~difffilter.models.navigation.sins.SinsErrorDynamics` subtracts (``x_k = Phi (x_{k-1} - c_{k-1})``), so
+:class:`~experiments.papers.p003.sins.SinsErrorDynamics` subtracts (``x_k = Phi (x_{k-1} - c_{k-1})``), so
 any filter under test sees the same corrected INS and knows the corrections.  ``truth``, the
 measurements and the INS controls at epoch ``k`` are *before* that epoch's correction.
 """

@@ -80,7 +80,10 @@ def test_epoch_snapshots_record_and_restore_every_epoch() -> None:
     truth = torch.cumsum(torch.cumsum(torch.randn(8, 60, 1, generator=g, dtype=F64) * 1.5, 1), 1)
     z = truth + 2.0 * torch.randn(8, 60, 1, generator=g, dtype=F64)
     data = TrajectorySet(
-        z, None, None, torch.cat([truth, truth], -1), torch.zeros(8, 2, dtype=F64), torch.eye(2, dtype=F64).expand(8, 2, 2) * 100, None
+        measurements=z,
+        truth=torch.cat([truth, truth], -1),
+        initial_mean=torch.zeros(8, 2, dtype=F64),
+        initial_cov=torch.eye(2, dtype=F64).expand(8, 2, 2) * 100,
     )
     filt = KalmanFilter(_model())
 

@@ -35,9 +35,9 @@ from difffilter._util import as_dtype, generator
 from difffilter.filters.ekf import EKF
 from difffilter.filters.sigma_points import SigmaPoints
 from difffilter.filters.ukf import UKF
-from difffilter.learn.data import SimulatedTrajectories
 from difffilter.mixers.blend import Blend, Statistics
 from difffilter.models.base import StateSpaceModel
+from difffilter.sim import TrajectorySet
 from experiments.papers.p004.model import GnssImuModel
 
 from .simulator import GnssImuScenario, simulate_p004
@@ -45,8 +45,8 @@ from .simulator import GnssImuScenario, simulate_p004
 __all__ = ["P004Imu", "P004Trajectories", "blend_filter", "gnss_imu_model", "p004_simulator"]
 
 
-@dataclass
-class P004Trajectories(SimulatedTrajectories):
+@dataclass(kw_only=True)
+class P004Trajectories(TrajectorySet):
     """p004 drives in the data module's layout.
 
     Attributes:

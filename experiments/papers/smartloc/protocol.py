@@ -150,14 +150,20 @@ def block_sets(
         mean0, cov0 = smartloc_initial_belief(drive.data, torch.tensor(starts), wls=drive.wls)
         piece = (cut(z), cut(mask), {key: cut(v) for key, v in u.items()}, cut(drive.data.truth_enu[None]), mean0, cov0)
         if length is None:
-            sets.append(TrajectorySet(piece[0], piece[1], piece[2], piece[3], piece[4], piece[5], source=drive.data.name))
+            sets.append(_trajectory_set(*piece, source=drive.data.name))
         else:
             pieces.append(piece)
     if pieces:
         u = {key: torch.cat([p[2][key] for p in pieces]) for key in pieces[0][2]}
         cat = lambda j: torch.cat([p[j] for p in pieces])  # noqa: E731
-        sets.append(TrajectorySet(cat(0), cat(1), u, cat(3), cat(4), cat(5), source="train"))
+        sets.append(_trajectory_set(cat(0), cat(1), u, cat(3), cat(4), cat(5), source="train"))
     return sets
+
+
+def _trajectory_set(
+    z: Tensor, mask: Tensor, u: dict[str, Tensor], truth: Tensor, mean0: Tensor, cov0: Tensor, source: str
+) -> TrajectorySet:
+    return TrajectorySet(measurements=z, mask=mask, controls=u, truth=truth, initial_mean=mean0, initial_cov=cov0, source=source)
 
 
 def build_filter(cfg: Mapping[str, Any], drives: Sequence[Drive], variant: str, coefficients: Tensor, *, learned: bool) -> Filter:

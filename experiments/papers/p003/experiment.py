@@ -62,7 +62,7 @@ __all__ = [
     "sojourn_transition",
 ]
 
-_WHITE = slice(3, 9)  # accelerometer and gyro white-noise PSD entries of models.navigation.sins
+_WHITE = slice(3, 9)  # accelerometer and gyro white-noise PSD entries of experiments.papers.p003.sins
 
 
 def p003_mode_model(

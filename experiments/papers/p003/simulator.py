@@ -75,7 +75,7 @@ __all__ = ["P003Scenario", "simulate_p003"]
 class P003Scenario:
     """Simulated flights (batch-first, 1 Hz, ``T = duration`` steps at ``t_k = k`` s).
 
-    ``truth [B, T, 20]`` error state (``models.navigation.sins`` layout), ``measurements [B, T, 2K]``
+    ``truth [B, T, 20]`` error state (``experiments.papers.p003.sins`` layout), ``measurements [B, T, 2K]``
     (``[drho, drhodot]``), ``mask [B, T, 2K]``, ``controls`` (``llh, vel, f_n, C_bn, dt, sat_pos,
     sat_vel``), ``manoeuvre [B, T]`` (step ``k`` inside a manoeuvre phase), ``initial_mean [B, 20]``
     (zeros), ``initial_cov [20, 20]``, ``initial_truth [B, 20]`` (the error at ``t = 0``),
@@ -177,7 +177,7 @@ def simulate_p003(
         sensor_errors / initial_errors / measurement_noise: switch off for tests (with both error
             switches off the INS equals the truth to rounding); ``imu_noise=False`` keeps the
             biases but drops the white noises and Markov driving noises (deterministic errors).
-        position_in_metres: express truth and covariances in the ``models.navigation.sins`` metre layout.
+        position_in_metres: express truth and covariances in the ``experiments.papers.p003.sins`` metre layout.
         feedback: ``"none"`` (open-loop INS, free-inertial drift) or ``"imm"`` (closed loop, see
             the module docstring; adds ``controls["feedback"]``).
     """

@@ -38,9 +38,9 @@ import torch
 from torch import Tensor
 
 from difffilter.datasets.ranging import RangingRecording
-from difffilter.evaluate.holdout import error_statistics, paired_error_table
 from difffilter.filters import EKF, SageHusa, VBAdaptiveR
 from difffilter.models.navigation.ranging2d import make_ranging_model, multilateration
+from experiments.holdout import error_statistics, paired_error_table
 
 __all__ = [
     "EXTRA_BASELINES",

@@ -1,7 +1,7 @@
 """Which engine a plain filter call runs on: one switch, ``DIFFFILTER_ENGINE``.
 
 ``UKF(model)(z, m0, P0)`` (and every :class:`~difffilter.filters.base.RecursiveFilter` call,
-so also ``FilterLearner`` with its default ``fused=False`` and the smoothers' forward filters) asks
+so also a ``FilterLearner`` given a plain filter and the smoothers' forward filters) asks
 :func:`run_compiled_if_chosen` first:
 
 * ``eager`` (the default, :data:`DEFAULT_ENGINE`): the filter's own Python loop, always;

@@ -12,6 +12,7 @@ from .base import Belief, StepInfo, gaussian_update
 from .diffuse import DIFFUSE_COV
 from .ekf import EKF
 from .ukf import state_add
+from .update import JosephForm
 
 __all__ = ["GatedEKF", "innovation_gate_factor"]
 
@@ -67,16 +68,6 @@ class GatedEKF(EKF):
         hph = h @ pht
         d = torch.sqrt(innovation_gate_factor(self.gate, e, hph + r))
         r = r * d[..., :, None] * d[..., None, :]
-        joseph = (h, r) if self.joseph else None
-        new_mean, new_cov, info = gaussian_update(
-            mean,
-            cov,
-            e,
-            hph + r,
-            pht,
-            mask,
-            joseph=joseph,
-            joseph_fallback=None if self.joseph else (h, r),
-            add=state_add(self.model.dynamics),
-        )
+        joseph = JosephForm.linear(h, r, always=self.joseph)
+        new_mean, new_cov, info = gaussian_update(mean, cov, e, hph + r, pht, mask, joseph=joseph, add=state_add(self.model.dynamics))
         return {**belief, "mean": new_mean, "cov": new_cov}, info

@@ -45,10 +45,10 @@ import torch
 from torch import Tensor
 
 from difffilter.datasets.ranging import RangingRecording
-from difffilter.evaluate.holdout import error_statistics, paired_error_table
 from difffilter.filters import EKF, GatedEKF, SageHusa, VBAdaptiveR
 from difffilter.models.heteroscedastic import RobustGate
 from difffilter.models.navigation.ranging2d import make_ranging_model, multilateration
+from experiments.holdout import error_statistics, paired_error_table
 
 __all__ = [
     "EXTRA_BASELINES",

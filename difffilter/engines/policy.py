@@ -1,7 +1,7 @@
 """Which engine a plain filter call runs on: one switch, ``DIFFFILTER_ENGINE``.
 
 ``UKF(model)(z, m0, P0)`` (and every :class:`~difffilter.filters.base.RecursiveFilter` call,
-so also ``FilterLearner`` with its default ``fused=False``, evaluation, every experiment and the
+so also a ``FilterLearner`` given a plain filter, evaluation, every experiment and the
 smoothers' forward filters) asks :func:`run_compiled_if_chosen` first:
 
 * ``auto`` (the default, :data:`DEFAULT_ENGINE`): the compiled engine when a C++ compiler exists
@@ -10,8 +10,9 @@ smoothers' forward filters) asks :func:`run_compiled_if_chosen` first:
   batches or windows) once their ``max(B, 32) * T`` add up to ``DIFFFILTER_AUTO_MIN_TOTAL``
   (default ``100_000``; the call that reaches it runs compiled; below :data:`EAGER_FLAT_BATCH`
   trajectories an eager call costs about the same, so it counts as that many).  A few small
-  calls, and so the small tests, stay eager and never build a kernel.  The choice depends only on the sequence of calls,
-  so a rerun switches at the same call and repeats its results bit for bit;
+  calls, and so the small tests, stay eager and never build a kernel.  The choice depends only
+  on the sequence of calls, so a rerun switches at the same call and repeats its results bit for
+  bit;
 * ``compiled``: the generated C++ engine (:class:`~.filter.FusedFilter` with ``engine="generated"``)
   for every CPU call it can run;
 * ``eager``: the filter's own Python loop, always.

@@ -16,6 +16,7 @@ from .diffuse import DIFFUSE_COV, propagate_diffuse
 from .jacobians import measurement_matrix, transition_matrix
 from .sigma_points import SigmaPoints
 from .ukf import UKF, centred_points, deviations, linear_image, linear_space, offset_untrusted, state_add, weighted_mean, weighted_moments
+from .update import JosephForm
 
 __all__ = ["ColoredNoiseUKF"]
 
@@ -218,7 +219,7 @@ class ColoredNoiseUKF(UKF):
                 pzz,
                 pxz,
                 mask,
-                sigma_fallback=(dx, dg, wc, r_full),
+                joseph=JosephForm.sigma_points(dx, dg, wc, r_full),
                 add=state_add(dyn),
                 prediction=za_hat.abs() + (coef * zb_hat).abs(),
             )

@@ -174,6 +174,7 @@ FAMILIES: tuple[Family, ...] = (
         "coloured multipath, one shared Psi",
         "p001_multipath.md",
         f"{_R}/p001_multipath_shared",
+        practitioners=True,
     ),
     Family(
         "p002_infamily_exactref", "p002", "in-family", "in-family walks (G vs exact UKF)", "p002_pdr.md", f"{_R}/p002_infamily_exactref"

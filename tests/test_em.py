@@ -450,3 +450,33 @@ def test_docs_example_runs():
     assert em.log_likelihoods[-1] > em.log_likelihoods[0]
     assert 1.0 < float(namespace["kf"].model.R.detach()) < 16.0
     assert len(namespace["found"].table) == 5
+
+
+def test_a_falling_log_likelihood_restores_the_best_iterate(monkeypatch):
+    """An approximate E-step can lower the likelihood; fit_em then returns the best iterate, not
+    the last.  The fall is forced here: the third M-step of Q returns a far too large Q."""
+    import difffilter.learn.em as em
+
+    z = data()
+    calls = {"n": 0}
+    real_step = em.process_noise_step
+
+    def step(*args, **kw):
+        calls["n"] += 1
+        new = real_step(*args, **kw)
+        return new * 50.0 if calls["n"] == 3 else new
+
+    monkeypatch.setattr(em, "process_noise_step", step)
+    filt = KalmanFilter(linear(Q=2 * Q_TRUE, R=2 * R_TRUE))
+    res = fit_em(filt, z.measurements, t(M0), t(P0), num_iters=3, learn=["Q", "R"], tol=0.0)
+    ll = np.array(res.log_likelihoods)
+    assert len(ll) == 4 and ll[3] < ll[2]  # the forced M-step lowered it
+    assert not res.monotone and res.best_iteration == int(np.argmax(ll)) == 2
+    # the filter holds the best iterate's values: a fresh run of the filter reproduces its likelihood
+    again = filt(z.measurements, t(M0), t(P0)).log_likelihood.sum().item()
+    np.testing.assert_allclose(again, ll[2], rtol=1e-12)
+    np.testing.assert_allclose(res.values["model.dynamics.Q"].numpy(), filt.model.dynamics.Q.detach().numpy(), rtol=0, atol=0)
+
+    monkeypatch.setattr(em, "process_noise_step", real_step)
+    exact = fit_em(KalmanFilter(linear(Q=2 * Q_TRUE, R=2 * R_TRUE)), z.measurements, t(M0), t(P0), num_iters=3, tol=0.0)
+    assert exact.monotone and exact.best_iteration == 3

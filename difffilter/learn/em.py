@@ -65,14 +65,19 @@ class EMResult:
 
     Attributes:
         log_likelihoods: total innovation log-likelihood (summed over trajectories and steps)
-            with the starting values, then after each M-step; ``log_likelihoods[-1]`` is that of
-            the returned values.
+            with the starting values, then after each M-step.
         values: the estimated constrained values ``{dotted name: tensor}`` (as also written into
             the filter), plus ``initial_mean``/``initial_cov`` when estimated.
         initial_mean, initial_cov: the initial belief after EM ``[n]``/``[B, n]``, ``[n, n]``/``[B, n, n]``
             (the given one unless estimated; an estimate is pooled: ``[n]``, ``[n, n]``).
         num_iters: M-steps taken.
         converged: whether the relative change of the log-likelihood fell below ``tol``.
+        best_iteration: index into ``log_likelihoods`` of the returned values: the iterate with
+            the highest log-likelihood.  Exact EM never lowers it, so this is the last one for a
+            linear model; with an approximate E-step (extended/unscented smoothers, an IMM) an
+            M-step can lower it, and the parameters of the best iterate are restored.
+        monotone: whether the log-likelihood never fell from one iterate to the next (by more
+            than ``tol`` relative); ``False`` is worth a look (the E-step's approximation).
         cpu_seconds: process CPU time spent (the tuning cost).
         filter: the filter whose parameters were set.
     """
@@ -85,6 +90,8 @@ class EMResult:
     converged: bool
     cpu_seconds: float
     filter: RecursiveFilter = field(repr=False)
+    best_iteration: int = 0
+    monotone: bool = True
 
 
 @dataclass
@@ -261,9 +268,15 @@ def fit_em(
     values: dict[str, Tensor] = {}
     converged = False
     iters = 0
+    # an approximate E-step does not guarantee ascent: keep the best iterate (exact state, not values
+    # pushed back through the constraints) so a falling log-likelihood never makes the result worse
+    best: tuple[int, float, dict[str, Tensor], Tensor, Tensor, dict[str, Tensor]] | None = None
     for it in range(num_iters + 1):
         smoothed = smoother(measurements, mean, cov, mask=mask, controls=controls)
         history.append(float(smoothed.filtered.log_likelihood.sum()))
+        if best is None or (math.isfinite(history[-1]) and not history[-1] <= best[1]):
+            state = {k: v.detach().clone() for k, v in filt.state_dict().items()}
+            best = (it, history[-1], state, mean, cov, dict(values))
         if it > 0 and abs(history[-1] - history[-2]) <= tol * (1.0 + abs(history[-2])):
             converged = True
             break
@@ -298,6 +311,12 @@ def fit_em(
             mean = values["initial_mean"] = new_mean
         if new_cov is not None:
             cov = values["initial_cov"] = new_cov
+    assert best is not None
+    best_it = best[0]
+    if best_it != len(history) - 1:
+        filt.load_state_dict(best[2])
+        mean, cov, values = best[3], best[4], best[5]
+    monotone = all(b >= a - tol * (1.0 + abs(a)) for a, b in zip(history, history[1:], strict=False))
     for t in targets:
         values.setdefault(t.name, getattr(t.owner, t.attr).detach().clone())
     return EMResult(
@@ -309,4 +328,6 @@ def fit_em(
         converged=converged,
         cpu_seconds=time.process_time() - start,
         filter=filt,
+        best_iteration=best_it,
+        monotone=monotone,
     )

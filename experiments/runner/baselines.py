@@ -145,6 +145,8 @@ def tune_baseline(
         )
         ll = result.log_likelihoods
         what = f"EM {result.num_iters} it on {len(data['measurements'])} train traj, loglik {ll[0]:.6g} -> {ll[-1]:.6g}"
+        if not result.monotone:  # an approximate E-step lowered it somewhere: say which iterate is kept
+            what += f" (not monotone; kept iterate {result.best_iteration}, loglik {ll[result.best_iteration]:.6g})"
     else:
         data = _subset(val, tune.get("trajectories"), f"{key}.trajectories")
         mean, cov = _belief(data, initial_mean, initial_cov)

@@ -29,7 +29,7 @@ import torch  # noqa: E402
 import yaml  # noqa: E402
 
 from difffilter.datasets import DATASETS, find_recordings, load_ranging, locate  # noqa: E402
-from experiments.ranging.protocol import _errors, _filters, fold_pieces, piece_tensors  # noqa: E402
+from experiments.ranging.protocol import _errors, _filters, eval_tensors, fold_pieces  # noqa: E402
 from experiments.ranging.report import fold_specs, run_ranging  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -46,7 +46,9 @@ def _header(commit: str, cfg: dict[str, Any]) -> list[str]:
         "shared 2-core machine. Data: CC BY-SA 4.0, T. Pfeifer (TU Chemnitz), libRSF.\n\n",
         "Protocol and verdict rules declared before this run: `results/librsf_w3500_predeclaration.md`. Every trajectory "
         "(training window, validation and test piece) starts at the snapshot fix of its first step with the reference "
-        "heading and a position variance estimated on the train pieces only; the first "
+        "heading and a position variance estimated on the train pieces only; validation and test pieces are warm-started: "
+        f"each is run from {cfg.get('eval_lead_in', 0)} unscored steps of the data before it (as many as there are; a "
+        "validation piece's lead-in never enters a test piece), and the first "
         f"{cfg.get('eval_burn_in', 0)} steps of every validation and test piece are not scored, for every row alike.\n\n",
         "Rows: `hand-tuned` = EKF with the file's range variances, no bias, no gate; `learned` = the selected (seed, epoch) "
         "of the gated model (`difffilter.filters.GatedEKF`) with per-anchor bias, per-anchor noise scale, smooth gate on the "
@@ -92,20 +94,22 @@ def _transient(folder: Path, cfg: dict[str, Any], fold: str, pos_var: float) -> 
     recs = [load_ranging(i, g) for _n, i, g in find_recordings(folder)]
     if "/" in fold:  # a block fold of one data set
         name, short = fold.split("/")
-        pieces = fold_pieces([r for r in recs if r.name == name], cfg["folds"][short])["val"]
+        roles = fold_pieces([r for r in recs if r.name == name], cfg["folds"][short])
     else:  # a leave-one-data-set-out fold
         specs = fold_specs(recs, {**cfg, "folds": {}, "by_dataset": True})
         if fold not in specs:
             return ""
-        pieces = fold_pieces(*specs[fold])["val"]
-    burn = int(cfg.get("eval_burn_in", 0))
+        roles = fold_pieces(*specs[fold])
+    burn, lead = int(cfg.get("eval_burn_in", 0)), cfg.get("eval_lead_in", 0)
     out = []
-    for p in pieces:
-        e = _errors(_filters(p.recording.num_anchors, cfg)["untrained-gate"], piece_tensors(p, pos_var=pos_var), burn)
+    for p in roles["val"]:
+        data = eval_tensors(p, pos_var=pos_var, lead_in=lead, avoid=roles["test"])
+        e = _errors(_filters(p.recording.num_anchors, cfg)["untrained-gate"], data, burn)
         big = torch.nonzero(e > 2.0).reshape(-1) + burn
         where = f", steps {int(big[0])} to {int(big[-1])} of the piece" if len(big) else ""
         out.append(
-            f" The untrained gate on the validation piece {p.recording.name} [{p.first}, {p.stop}) (steps after {burn}): "
+            f" The untrained gate on the validation piece {p.recording.name} [{p.first}, {p.stop}) "
+            f"(run from step {p.first - int(data['skip'])}, scored after step {burn} of the piece): "
             f"median {float(e.median()):.3f} m, RMS {float(e.pow(2).mean().sqrt()):.3f} m, max {float(e.max()):.1f} m, "
             f"{len(big)} of {len(e)} steps above 2 m{where}."
         )

@@ -9,9 +9,11 @@ memory bounded by the window; each window is one optimiser step.
 
 What the learner is given, and what it is not:
 
-* the filter runs as given (convert it first, ``filter.double()``, for float64 learning); a
-  :class:`~difffilter.engines.FusedFilter` wrapping it runs it on a compiled engine (same
-  results, faster) while parameters, their names and checkpoints stay the filter's;
+* the filter runs as given (convert it first, ``filter.double()``, for float64 learning), on the
+  engine the policy picks (``DIFFFILTER_ENGINE``, default ``auto``: the compiled engine once the
+  training calls add up, see :mod:`difffilter.engines.policy`); a
+  :class:`~difffilter.engines.FusedFilter` wrapping it pins the compiled engine from the first
+  step, while parameters, their names and checkpoints stay the filter's;
 * :class:`LearnerOptions` holds the plain settings (initial belief, jitter bound, smoother,
   metric indices, scheduler interval): plain values, kept in checkpoints;
 * a :class:`~difffilter.learn.losses.LogPrior` adds ``-weight * sum log p(value)`` to the loss;

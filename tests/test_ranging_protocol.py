@@ -21,7 +21,20 @@ import torch
 
 from difffilter.datasets import find_recordings, load_ranging
 from difffilter.models.navigation.ranging2d import multilateration
-from experiments.ranging.protocol import EXTRA_BASELINES, _heading, fold_pieces, run_fold, select_candidate, start_position_variance
+from experiments.ranging.protocol import (
+    EXTRA_BASELINES,
+    Piece,
+    _errors,
+    _filters,
+    _heading,
+    eval_tensors,
+    fold_pieces,
+    lead_in_start,
+    piece_tensors,
+    run_fold,
+    select_candidate,
+    start_position_variance,
+)
 from experiments.ranging.report import extras, fold_specs, run_ranging, write_csv
 
 ASSETS = Path(__file__).parent / "assets" / "librsf"
@@ -207,3 +220,49 @@ def test_start_variance_and_heading_follow_their_rules() -> None:
         assert _heading(rec, k) == rec.heading[k]
         gap = (_heading(no_angles, k) - rec.heading[k] + np.pi) % (2 * np.pi) - np.pi
         assert abs(gap) < 0.2, (k, gap)
+
+
+def test_lead_in_start_follows_its_rules() -> None:
+    a, b = _recordings()
+    p = Piece(a, 40, 55)
+    assert lead_in_start(p, 0) == 40 and lead_in_start(p, 10) == 30 and lead_in_start(p, 100) == 0 and lead_in_start(p, None) == 0
+    # a preceding test piece of the same recording bounds the lead-in; other recordings and later pieces do not
+    assert lead_in_start(p, 30, avoid=[Piece(a, 0, 35)]) == 35
+    assert lead_in_start(p, 30, avoid=[Piece(a, 0, 40)]) == 40  # test right before: a cold start
+    assert lead_in_start(p, 30, avoid=[Piece(b, 0, 35), Piece(a, 55, 61)]) == 10
+    with pytest.raises(ValueError, match="eval_lead_in"):
+        lead_in_start(p, -1)
+
+
+def test_a_warm_start_scores_the_pieces_steps_from_one_run_through_the_lead_in() -> None:
+    rec = _recordings()[0]
+    piece, burn = Piece(rec, 40, 61), 2
+    for name, filt in _filters(rec.num_anchors, CFG).items():
+        cold = _errors(filt, eval_tensors(piece, pos_var=4.0, lead_in=0), burn)
+        torch.testing.assert_close(cold, _errors(filt, piece_tensors(piece, pos_var=4.0), burn))
+        for lead, lo in ((15, 25), (None, 0)):
+            warm = eval_tensors(piece, pos_var=4.0, lead_in=lead)
+            assert warm["skip"] == 40 - lo and warm["z"].shape[1] == 61 - lo
+            # reference: one run from the lead-in's first step, its errors at the piece's steps after the burn-in
+            span = piece_tensors(Piece(rec, lo, 61), pos_var=4.0)
+            with torch.no_grad():
+                res = filt(span["z"], span["m0"], span["P0"], mask=span["mask"], controls=span["u"])
+            ref = (res.mean[0, 40 - lo + burn :, :2] - torch.as_tensor(rec.truth[40 + burn : 61])).norm(dim=-1)
+            got = _errors(filt, warm, burn)
+            assert got.shape == cold.shape, name  # the same steps are scored, warm or cold
+            torch.testing.assert_close(got, ref[torch.isfinite(ref)])
+        assert not torch.equal(_errors(filt, eval_tensors(piece, pos_var=4.0, lead_in=None), burn), cold), name
+
+
+def test_run_fold_warm_starts_every_row_alike() -> None:
+    rec = _recordings()[0]
+    pieces = fold_pieces([rec], CFG["folds"]["A"])
+    cold = run_fold(pieces, {**CFG, "seeds": 1, "epochs": 1})
+    warm = run_fold(pieces, {**CFG, "seeds": 1, "epochs": 1, "eval_lead_in": 10})
+    test = eval_tensors(pieces["test"][0], pos_var=warm.selected["start_pos_var"], lead_in=10)
+    assert test["skip"] == 10
+    for row in ("hand-tuned", "untrained-gate", "hand-tuned-hard-gate"):
+        torch.testing.assert_close(warm.errors[row], _errors(_filters(rec.num_anchors, CFG)[row], test, 2))
+    assert {k: len(v) for k, v in warm.errors.items()} == {k: len(v) for k, v in cold.errors.items()}
+    torch.testing.assert_close(warm.errors["snapshot-lsq"], cold.errors["snapshot-lsq"])  # per step: no state to warm
+    assert not torch.equal(warm.errors["hand-tuned"], cold.errors["hand-tuned"])

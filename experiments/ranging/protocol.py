@@ -17,9 +17,10 @@ For one fold (train / validation / test pieces, each a recording and a span of i
    windows after ``burn_in`` steps (``loss: score``; ``mse``: the squared error) - a loss that
    does not reward a wide gate for its own sake (a gate that lets outliers in moves the
    position), and the smooth counterpart of the validation score;
-3. after every epoch the validation pieces (each run whole) are scored by median + RMS position
-   error over their steps after ``eval_burn_in`` (the start transient of a piece is not scored,
-   in validation and in test alike); the filter used on test is the lowest-scoring of every
+3. after every epoch the validation pieces (each run whole, warm-started by a lead-in of
+   ``eval_lead_in`` unscored steps of the data before it: :func:`eval_tensors`) are scored by
+   median + RMS position error over their steps after ``eval_burn_in`` (the start transient of a
+   piece is not scored, in validation and in test alike); the filter used on test is the lowest-scoring of every
    (seed, epoch), **the untrained gated filter and the hand-tuned filter**
    (:func:`select_candidate`), so the selection is never worse than either on validation;
 4. test rows over the same scored steps: ``hand-tuned`` (the file's variances, no bias, no
@@ -54,7 +55,9 @@ __all__ = [
     "EXTRA_BASELINES",
     "Piece",
     "ProtocolResult",
+    "eval_tensors",
     "fold_pieces",
+    "lead_in_start",
     "piece_tensors",
     "run_fold",
     "select_candidate",
@@ -193,6 +196,30 @@ def piece_tensors(piece: Piece, *, length: int | None = None, stride: int | None
     }
 
 
+def lead_in_start(piece: Piece, lead_in: int | None, avoid: Sequence[Piece] = ()) -> int:
+    """First step of the trajectory that warm-starts ``piece``: ``lead_in`` steps before it
+    (``None``: the recording's step 0), never before step 0 and never inside a piece of ``avoid``
+    of the same recording that ends at or before the piece's start (a validation piece never
+    runs over test steps)."""
+    if lead_in is not None and int(lead_in) < 0:
+        raise ValueError(f"eval_lead_in must be None or >= 0, got {lead_in}")
+    lo = 0 if lead_in is None else max(0, piece.first - int(lead_in))
+    for q in avoid:
+        if q.recording is piece.recording and q.first < piece.first:
+            lo = max(lo, min(q.stop, piece.first))
+    return lo
+
+
+def eval_tensors(piece: Piece, *, pos_var: float, lead_in: int | None = 0, avoid: Sequence[Piece] = ()) -> dict[str, Any]:
+    """One trajectory for scoring ``piece``, warm-started: it starts (:func:`start_belief`) at
+    :func:`lead_in_start` and runs through the lead-in into the piece; ``"skip"`` holds the
+    number of lead-in steps, which :func:`_errors` never scores."""
+    lo = lead_in_start(piece, lead_in, avoid)
+    data = piece_tensors(Piece(piece.recording, lo, piece.stop), pos_var=pos_var)
+    data["skip"] = piece.first - lo
+    return data
+
+
 def _scored(e: Tensor, truth: Tensor, burn_in: int) -> Tensor:
     """Errors ``[B, T]`` of the steps after ``burn_in`` that have a reference, flattened."""
     ok = torch.isfinite(truth).all(-1)
@@ -200,9 +227,11 @@ def _scored(e: Tensor, truth: Tensor, burn_in: int) -> Tensor:
 
 
 def _errors(filt: torch.nn.Module, data: Mapping[str, Any], burn_in: int = 0) -> Tensor:
+    """Scored errors of ``filt`` on ``data``: the steps after its lead-in (``data["skip"]``) and
+    then ``burn_in`` more."""
     with torch.no_grad():
         res = filt(data["z"], data["m0"], data["P0"], mask=data["mask"], controls=data["u"])
-    return _scored((res.mean[..., :2] - data["truth"]).norm(dim=-1), data["truth"], burn_in)
+    return _scored((res.mean[..., :2] - data["truth"]).norm(dim=-1), data["truth"], int(data.get("skip", 0)) + burn_in)
 
 
 def _score(filt: torch.nn.Module, val: Sequence[Mapping[str, Any]], burn_in: int = 0) -> float:
@@ -304,7 +333,9 @@ def run_fold(
     """Train, select and test one fold (module docstring).  ``cfg`` keys: ``windows`` {length,
     stride}, ``gate`` {threshold, floor, softness}, ``bias``, ``noise``, ``seeds``, ``epochs``,
     ``lr``, ``batches``, ``burn_in``, ``eval_burn_in`` (steps of each validation and test piece
-    not scored; default 0), ``init_perturbation``, ``loss`` (``score`` or ``mse``),
+    not scored; default 0), ``eval_lead_in`` (unscored steps of the preceding data each validation
+    and test piece is run from, a warm start; ``None``: from step 0; default 0: a cold start; a
+    validation piece's lead-in never enters a test piece), ``init_perturbation``, ``loss`` (``score`` or ``mse``),
     ``bootstrap`` {block, draws, seed}."""
     t0 = time.time()
     num_a = {p.recording.num_anchors for ps in pieces.values() for p in ps}
@@ -320,7 +351,8 @@ def run_fold(
     parts = [piece_tensors(p, length=int(win["length"]), stride=int(win["stride"]), pos_var=pos_var) for p in pieces["train"]]
     train = {k: torch.cat([d[k] for d in parts]) for k in ("z", "mask", "m0", "P0", "truth")}
     train["u"] = {k: torch.cat([d["u"][k] for d in parts]) for k in parts[0]["u"]}
-    val = [piece_tensors(p, pos_var=pos_var) for p in pieces["val"]]
+    lead = cfg.get("eval_lead_in", 0)
+    val = [eval_tensors(p, pos_var=pos_var, lead_in=lead, avoid=pieces["test"]) for p in pieces["val"]]
     base = _filters(a, cfg)
     start = base["untrained-gate"]
     runs = [_train_seed(start, train, val, cfg, s, log) for s in range(int(cfg["seeds"]))]
@@ -353,12 +385,13 @@ def run_fold(
     }
     errors: dict[str, list[Tensor]] = {}
     for p in pieces["test"]:
-        data = piece_tensors(p, pos_var=pos_var)
+        data = eval_tensors(p, pos_var=pos_var, lead_in=lead)
         for row, f in rows_f.items():
             errors.setdefault(row, []).append(_errors(f, data, burn))
         for row, factory in EXTRA_BASELINES.items():
             errors.setdefault(row, []).append(_errors(factory(p.recording), data, burn))
-        errors.setdefault("snapshot-lsq", []).append(_scored((data["fix"] - data["truth"]).norm(dim=-1), data["truth"], burn))
+        fix_err = (data["fix"] - data["truth"]).norm(dim=-1)
+        errors.setdefault("snapshot-lsq", []).append(_scored(fix_err, data["truth"], int(data["skip"]) + burn))
     cat = {k: torch.cat(v) for k, v in errors.items()}
     boot = dict(cfg["bootstrap"])
     kw = {"block": int(boot["block"]), "draws": int(boot["draws"]), "seed": int(boot["seed"])}

@@ -28,8 +28,9 @@ from difffilter.engines import FusedFilter
 from difffilter.engines.build import compiler_available
 from difffilter.filters import EKF, UKF, KalmanFilter, SquareRootUKF
 from difffilter.filters.colored import ColoredNoiseUKF
-from difffilter.models import FunctionalModel, LinearModel
+from difffilter.models import LinearModel
 from experiments.benchmarks.exact import exact_kalman, mpmath_available
+from experiments.reliability_battery import ecef_case
 
 from .filter_contract import cv_matrices, make_data
 from .test_colored import beacon_model
@@ -190,30 +191,8 @@ def test_the_compiled_engine_flags_a_nearly_singular_innovation_covariance_alike
 # -- float32 at ECEF scale -------------------------------------------------------------------
 
 
-def ecef_pseudorange_case(dtype: torch.dtype, steps: int = 8, seed: int = 0):  # type: ignore[no-untyped-def]
-    """A receiver at ~6.3e6 m from the earth's centre, 8 satellites 2e7 m away, state
-    ``[x, y, z, clock bias, clock drift]`` (m, m/s), pseudoranges with sigma 5 m."""
-    rng = np.random.default_rng(seed)
-    pos = np.array([4.0e6, 3.0e5, 4.9e6])
-    dirs = rng.normal(size=(8, 3))
-    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
-    dirs[:, 2] = np.abs(dirs[:, 2])
-    sats_np = pos + 2.0e7 * dirs
-    sats = torch.tensor(sats_np, dtype=dtype)
-
-    def f(x: torch.Tensor) -> torch.Tensor:
-        return torch.cat([x[..., :3], (x[..., 3] + x[..., 4])[..., None], x[..., 4:5]], -1)
-
-    def h(x: torch.Tensor) -> torch.Tensor:
-        return (sats - x[..., None, :3]).norm(dim=-1) + x[..., 3:4]
-
-    q = torch.diag(torch.tensor([1.0, 1.0, 1.0, 0.1, 0.01], dtype=F64)).to(dtype)
-    model = FunctionalModel(f=f, h=h, Q=q, R=25.0 * torch.eye(8, dtype=dtype))
-    bias = 100.0 + 0.5 * np.arange(1, steps + 1)
-    z = np.stack([np.linalg.norm(sats_np - pos, axis=1) + bias[t] + 5 * rng.normal(size=8) for t in range(steps)])
-    m0 = np.concatenate([pos + 10 * rng.normal(size=3), [100.0, 0.5]])
-    p0 = torch.diag(torch.tensor([100.0, 100.0, 100.0, 100.0, 1.0], dtype=dtype))
-    return model, torch.tensor(z, dtype=dtype)[None], torch.tensor(m0, dtype=dtype), p0
+# the battery's case (experiments/reliability_battery.py) is the one tested here
+ecef_pseudorange_case = ecef_case
 
 
 @pytest.mark.parametrize("cls", [EKF, UKF])

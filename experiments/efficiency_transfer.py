@@ -44,13 +44,22 @@ from torch import Tensor  # noqa: E402
 from experiments.results_tables import FIELDS  # noqa: E402
 from experiments.runner.sweep import Job, _interval, _matrix, load_jobs  # noqa: E402
 
-__all__ = ["NOT_BASELINES", "P002_PAIRS", "Pair", "best_baseline", "main", "summarize_efficiency", "summarize_transfer"]
+__all__ = ["DATA_FILES", "NOT_BASELINES", "P002_PAIRS", "Pair", "best_baseline", "main", "summarize_efficiency", "summarize_transfer"]
 
 REFERENCE, LEARNED, EM = "hand-tuned", "learned", "em"
 #: Rows that are not a practitioner's non-learned alternative: trained, or given the truth.
 NOT_BASELINES = frozenset({LEARNED, "learned-adaptive", "oracle", "exact UKF"})
 #: Rows of a source sweep shown on a target's test set as tuned on the source.
 SOURCE_TUNED = ("validation-search", EM)
+
+
+#: The summaries ``experiments/reproduce.py`` writes into the output folders and the data files of
+#: ``results/`` they become (``python experiments/report.py --collect`` copies them).
+DATA_FILES = (
+    ("outputs/efficiency/p002_pdr/efficiency.csv", "results/data/p002_pdr_efficiency.csv"),
+    ("outputs/efficiency/p000_infamily/efficiency.csv", "results/data/p000_infamily_efficiency.csv"),
+    ("outputs/transfer/p002_transfer.csv", "results/data/p002_transfer.csv"),
+)
 
 
 @dataclass(frozen=True)
@@ -185,8 +194,9 @@ def summarize_transfer(
     for p in pairs:
         src = _select(load_jobs(Path(root) / p.source), p.source_select, f"{p.name} source {p.source}")
         tgt = _select(load_jobs(Path(root) / p.target), p.target_select, f"{p.name} target {p.target}")
-        if [j.replicate for j in src] != [j.replicate for j in tgt]:
-            raise ValueError(f"{p.name}: the source's seeds {[j.replicate for j in src]} differ from the target's {[j.replicate for j in tgt]}")
+        seeds_s, seeds_t = [j.replicate for j in src], [j.replicate for j in tgt]
+        if seeds_s != seeds_t:
+            raise ValueError(f"{p.name}: the source's seeds {seeds_s} differ from the target's {seeds_t}")
         hand_s, hand_t = _matrix(src, REFERENCE, metric), _matrix(tgt, REFERENCE, metric)
         if hand_s is None or hand_t is None or hand_s.shape != hand_t.shape or not torch.allclose(hand_s, hand_t, rtol=1e-9, atol=0.0):
             raise ValueError(f"{p.name}: the paper's constants differ between the two sweeps: they were not tested on the same runs")

@@ -269,7 +269,8 @@ def render_paired(rows: Sequence[Row], opts: dict[str, str]) -> str:
     :mod:`experiments.efficiency_transfer`): the difference in the metric's unit and in %, and the
     verdict of :func:`paired_verdict`."""
     metric, unit = opts.get("metric", "rmse_pos"), opts.get("unit", "m")
-    header = [opts.get("group_title", "group"), "filter", "seeds x runs", f"{metric} ({unit})", "tuning CPU-s", "paired against", f"difference ({unit})", "in %", "verdict"]
+    header = [opts.get("group_title", "group"), "filter", "seeds x runs", f"{metric} ({unit})", "tuning CPU-s"]
+    header += ["paired against", f"difference ({unit})", "in %", "verdict"]
     lines = []
     for g in _groups(rows, opts):
         for name in _filters(rows, g, opts, metric):
@@ -282,7 +283,8 @@ def render_paired(rows: Sequence[Row], opts: dict[str, str]) -> str:
                 lines.append([*first, "", "", "", ""])
             for k, p in enumerate(paired):
                 d = next((r for r in rows if (r.group, r.filter, r.quantity, r.reference) == (g, name, "diff", p.reference)), None)
-                cells = [p.reference, fmt_ci(d.estimate, d.lo, d.hi) if d else "", fmt_ci(p.estimate, p.lo, p.hi), paired_verdict(p.lo, p.hi)]
+                diff = fmt_ci(d.estimate, d.lo, d.hi) if d else ""
+                cells = [p.reference, diff, fmt_ci(p.estimate, p.lo, p.hi), paired_verdict(p.lo, p.hi)]
                 lines.append([*(first if k == 0 else [g, name, "", "", ""]), *cells])
     return _table(header, lines)
 

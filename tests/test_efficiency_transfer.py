@@ -160,3 +160,16 @@ def test_efficiency_overlay_only_adds_baselines():
     assert new == base
     assert added["em"]["tune"] == {"method": "em", "learn": ["R"], "num_iters": 20}
     assert "validation-search" in added and added["validation-search"]["tune"]["method"] == "grid"
+
+
+def test_collect_copies_the_summaries_into_results_data(tmp_path):
+    from experiments.efficiency_transfer import DATA_FILES
+    from experiments.results_report import collect
+
+    for s in range(2):
+        _job(tmp_path / "sweep" / str(s), [f"seed={s}", "data.train_size=1"], {"hand-tuned": [1.0, 2.0], "learned": [0.5, 1.5]}, {})
+    source, data = DATA_FILES[0]
+    (tmp_path / "results" / "data").mkdir(parents=True)
+    summarize_efficiency(tmp_path / "sweep", tmp_path / source)
+    assert collect(tmp_path) == [tmp_path / source]
+    assert (tmp_path / data).read_text() == (tmp_path / source).read_text()

@@ -15,7 +15,8 @@ lowest mean test metric among the rows that are neither learned nor given the tr
 sweeps: the source's (its extra test set) and the target's own.  Rows: the paper's constants, the
 model learned on the target, the model learned on the source (the transfer row), the target's best
 non-learned row, and the source's tuned rows; paired: transfer - learned on target, transfer -
-the target's best non-learned, transfer - the paper's constants.  The two sweeps must have tested
+the target's best non-learned, transfer - the paper's constants, and (the target's own verdict)
+learned on target - the target's best non-learned.  The two sweeps must have tested
 on the same runs: a pair whose paper's-constants per-run values differ is refused.
 
 Both write data files in the schema of a sweep's ``summary.csv``
@@ -220,6 +221,8 @@ def summarize_transfer(
         if best is not None and best != REFERENCE:
             rows += _paired(p.name, transfer, learned_s, f"{best} (target)", tgt_mats[best], crossed, prob)
         rows += _paired(p.name, transfer, learned_s, REFERENCE, hand_t, crossed, prob)
+        if best is not None and best != REFERENCE:  # the target's own verdict, for context
+            rows += _paired(p.name, "learned on target", learned_t, f"{best} (target)", tgt_mats[best], crossed, prob)
     return _write(rows, out)
 
 

@@ -173,3 +173,13 @@ def test_collect_copies_the_summaries_into_results_data(tmp_path):
     summarize_efficiency(tmp_path / "sweep", tmp_path / source)
     assert collect(tmp_path) == [tmp_path / source]
     assert (tmp_path / data).read_text() == (tmp_path / source).read_text()
+
+
+def test_transfer_gives_the_targets_own_verdict_too(tmp_path):
+    _, tgt = _transfer_sweeps(tmp_path)
+    pair = Pair("a->b", "a", ("data.train_size=16", "test=b-test"), "b", ("test=own",))
+    rows = read_rows(summarize_transfer(tmp_path, tmp_path / "t.csv", pairs=[pair]))
+    own = torch.tensor([tgt[s]["learned"] for s in range(3)], dtype=torch.float64)
+    best = torch.tensor([tgt[s]["sage-husa"] for s in range(3)], dtype=torch.float64)
+    got = _pick(rows, "a->b", "learned on target", "diff", "sage-husa (target)")
+    assert got.estimate == pytest.approx(float((own - best).mean()), rel=1e-9)

@@ -27,9 +27,9 @@ import torch  # noqa: E402
 from hydra import compose, initialize_config_dir  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
 
-from difffilter.evaluate.holdout import contiguous_blocks  # noqa: E402
 from difffilter.evaluate.metrics import nll_per_step  # noqa: E402
 from difffilter.learn.data import TrajectorySet  # noqa: E402
+from experiments.holdout import contiguous_blocks  # noqa: E402
 from experiments.papers.smartloc.protocol import block_sets, cached_drives, fold_coefficients, hand_tuned_filter, train_jobs  # noqa: E402
 from experiments.papers.smartloc.report import _baselines, resolve_config  # noqa: E402
 

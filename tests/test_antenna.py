@@ -14,8 +14,8 @@ from torch.func import jacfwd, vmap
 from difffilter.filters import EKF
 from difffilter.geometry import geodetic_to_ecef
 from difffilter.models.navigation.antenna import planar_rotation
-from difffilter.models.navigation.gnss_imu import GnssImuModel, GnssMeasurement
 from difffilter.models.navigation.pseudorange import GnssStateLayout, PseudorangeMeasurement
+from experiments.papers.p004.model import GnssImuModel, GnssMeasurement
 
 F64 = torch.float64
 

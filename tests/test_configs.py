@@ -125,7 +125,7 @@ def test_experiment_overlay_builds_and_filters(tmp_path, experiment):
     dtype = as_dtype(cfg.dtype)
     dm = _small_data(cfg)
     hand = build_filter(cfg.filter, dtype=dtype, params=cfg.experiment.hand_tuned)
-    learner = instantiate(cfg.learner, _convert_="all", filter=hand, loss=instantiate(cfg.loss, _convert_="all"))
+    learner = build_learner(cfg, hand)  # the learner.* keys mapped onto the learner's arguments
     assert isinstance(learner, FilterLearner) and learner.learned_names
     batch = dm.dataset("train").all()
     res = learner(batch)

@@ -18,10 +18,12 @@ D = torch.float64
 def fresh_policy(monkeypatch):
     monkeypatch.delenv("DIFFFILTER_ENGINE", raising=False)
     monkeypatch.delenv("DIFFFILTER_AUTO_MIN_WORK", raising=False)
+    monkeypatch.delenv("DIFFFILTER_AUTO_MIN_TOTAL", raising=False)
     policy.set_engine(None)
     policy._runners.clear()
     policy._failed.clear()
     policy._warned.clear()
+    policy._work.clear()
     yield
     policy.set_engine(None)
     policy._runners.clear()
@@ -48,16 +50,75 @@ def _run(ukf: UKF, z, m0, p0):  # type: ignore[no-untyped-def]
     return out, grads
 
 
-def test_default_is_eager_and_builds_nothing():
-    assert policy.DEFAULT_ENGINE == "eager" and policy.chosen_engine() == "eager"
-    _run(_ukf(), *_data())
-    assert not policy._runners
-
-
-def test_auto_keeps_small_calls_eager(monkeypatch):
-    monkeypatch.setenv("DIFFFILTER_ENGINE", "auto")
+def test_default_is_auto_and_small_calls_build_nothing():
+    assert policy.DEFAULT_ENGINE == "auto" and policy.chosen_engine() == "auto"
     _run(_ukf(), *_data(4, 6))  # B * T = 24 < 10_000
     assert not policy._runners
+
+
+class _Recording:
+    """Stands in for the compiled runner: records each call, returns the eager result."""
+
+    calls: list[tuple[int, ...]] = []
+
+    def __init__(self, filt, engine):  # type: ignore[no-untyped-def]
+        self.filter = filt
+
+    def _run(self, z, m0, p0, mask, controls, belief=None):  # type: ignore[no-untyped-def]
+        _Recording.calls.append(tuple(z.shape))
+        return self.filter._run(z, m0, p0, mask, controls, belief=belief)
+
+
+def test_auto_compiles_large_calls_and_a_filter_whose_small_calls_add_up(monkeypatch):
+    monkeypatch.setattr(policy, "FusedFilter", _Recording)
+    _Recording.calls = []
+    monkeypatch.setenv("DIFFFILTER_AUTO_MIN_WORK", "100")
+    monkeypatch.setenv("DIFFFILTER_AUTO_MIN_TOTAL", "576")
+    ukf, other = _ukf(), _ukf()
+    _run(ukf, *_data(4, 6))  # B * T = 24; counts max(B, 32) * T = 192 towards the total: eager
+    _run(other, *_data(4, 6))  # another filter's work does not count
+    _run(ukf, *_data(4, 6))  # total 384: eager
+    assert _Recording.calls == [] and policy.last_engine(ukf) == "eager"
+    _run(ukf, *_data(2, 6))  # total 576: the repeated calls pay for a build
+    _run(ukf, *_data(1, 2))
+    assert _Recording.calls == [(2, 6, 2), (1, 2, 2)] and policy.last_engine(ukf) == "generated"
+    _run(other, *_data(10, 10))  # one call of B * T = 100
+    assert _Recording.calls[-1] == (10, 10, 2) and len(_Recording.calls) == 3
+
+
+def test_eager_builds_nothing_even_for_large_calls(monkeypatch):
+    monkeypatch.setenv("DIFFFILTER_ENGINE", "eager")
+    monkeypatch.setenv("DIFFFILTER_AUTO_MIN_WORK", "1")  # ignored: eager never builds
+    _run(_ukf(), *_data(4, 6))
+    assert not policy._runners
+
+
+def test_an_engine_error_on_good_input_falls_back_with_the_reason(monkeypatch):
+    """An exception inside the engine that is not a refusal: the eager result, flagged once."""
+
+    def broken(self, *args, **kwargs):  # type: ignore[no-untyped-def]
+        raise RuntimeError("engine defect")
+
+    monkeypatch.setattr(policy.FusedFilter, "_run", broken)
+    policy.set_engine("compiled")
+    ukf = _ukf()
+    with pytest.warns(UserWarning, match="cannot run UKF \\(RuntimeError: engine defect\\)") as record:
+        out, _ = _run(ukf, *_data())
+        _run(ukf, *_data())
+    assert len([w for w in record if "cannot run" in str(w.message)]) == 1 and policy.last_engine(ukf) == "eager"
+    policy.set_engine("eager")
+    assert torch.equal(out.mean, _run(ukf, *_data())[0].mean)
+
+
+def test_bad_input_on_the_compiled_path_raises_the_eager_error_and_flags_nothing(monkeypatch):
+    policy.set_engine("compiled")
+    ukf = _ukf()
+    z, m0, _ = _data()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(ValueError, match="initial_cov"):
+            ukf(z, m0, -torch.eye(2, dtype=D))
+    assert not policy._failed
 
 
 @pytest.mark.slow  # builds a small UKF's kernels when the cache is cold

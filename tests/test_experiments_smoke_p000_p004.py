@@ -10,10 +10,10 @@ import pytest
 import torch
 
 from difffilter.filters import EKF, UKF
-from difffilter.models.navigation.gnss_imu import GNSS_IMU_PAPER, GnssImuModel
 from difffilter.selection import parameter_owners
 from experiments.papers.p000 import p000_simulator
 from experiments.papers.p004 import ImuSwitchingStatistics, blend_filter, p004_simulator
+from experiments.papers.p004.model import GNSS_IMU_PAPER, GnssImuModel
 from tests.smoke_helpers import run_train_smoke
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -306,15 +306,18 @@ def test_gpsdr_model_fused_eager_equals_reference() -> None:
 
 
 def test_learner_trains_through_the_fused_step() -> None:
-    """``FilterLearner(fused=...)`` runs the same filter through FusedFilter: same outputs,
-    same gradients, same parameter names (checkpoints stay interchangeable)."""
+    """``FilterLearner(FusedFilter(filter))`` runs the same filter through FusedFilter: same
+    outputs, same gradients, same parameter names (checkpoints stay interchangeable)."""
     import copy
 
-    from difffilter.learn.learner import FilterLearner
+    from difffilter.engines import FusedFilter
+    from difffilter.learn.learner import FilterLearner, LearnerOptions
 
     model, z, m0, p0 = _singer_data()
-    plain = FilterLearner(UKF(model), "nll", initial_mean=m0, initial_cov=p0)
-    fused = FilterLearner(UKF(copy.deepcopy(model)), "nll", initial_mean=m0, initial_cov=p0, fused="eager")
+    opts = LearnerOptions(initial_mean=m0, initial_cov=p0)
+    plain = FilterLearner(UKF(model), "nll", options=opts)
+    fused = FilterLearner(FusedFilter(UKF(copy.deepcopy(model)), compile=False), "nll", options=opts)
+    assert isinstance(fused.engine, FusedFilter) and fused.filter is fused.engine.filter
     assert [n for n, _ in plain.named_parameters()] == [n for n, _ in fused.named_parameters()]
     assert plain.state_dict().keys() == fused.state_dict().keys()
     a, b = plain({"measurements": z}), fused({"measurements": z})
@@ -323,11 +326,12 @@ def test_learner_trains_through_the_fused_step() -> None:
     pb = [p for p in fused.parameters() if p.requires_grad]
     for ga, gb in zip(torch.autograd.grad(a.log_likelihood.sum(), pa), torch.autograd.grad(b.log_likelihood.sum(), pb), strict=True):
         torch.testing.assert_close(gb, ga, rtol=1e-9, atol=1e-12)
-    with pytest.raises(ValueError, match="fused must be"):
-        FilterLearner(UKF(model), "nll", fused="yes")
+    with pytest.raises(ValueError, match="FusedFilter wrapping this learner's filter"):
+        plain.set_engine(FusedFilter(UKF(model), compile=False))
     # any filter runs fused (its own step): a square-root UKF too
-    sr = FilterLearner(SquareRootUKF(model), "nll", initial_mean=m0, initial_cov=p0, fused="eager")
-    _assert_same(sr({"measurements": z}), FilterLearner(SquareRootUKF(model), "nll", initial_mean=m0, initial_cov=p0)({"measurements": z}))
+    sr = FilterLearner(SquareRootUKF(model), "nll", options=opts)
+    sr.set_engine(FusedFilter(sr.filter, compile=False))
+    _assert_same(sr({"measurements": z}), FilterLearner(SquareRootUKF(model), "nll", options=opts)({"measurements": z}))
 
 
 def test_nan_under_the_mask_reaches_no_gradient() -> None:

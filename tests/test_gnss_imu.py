@@ -9,7 +9,9 @@ import torch
 from torch.func import jacrev, vmap
 
 from difffilter.filters import EKF, UKF, MerweScaled
-from difffilter.models.navigation.gnss_imu import (
+from experiments.papers.p004 import P004_SPEED_KNOTS, simulate_p004
+from experiments.papers.p004 import imu_switching_statistics as p004_switching_statistics
+from experiments.papers.p004.model import (
     GRAVITY,
     GnssImuDynamics,
     GnssImuModel,
@@ -18,8 +20,6 @@ from difffilter.models.navigation.gnss_imu import (
     quaternion_multiply,
     quaternion_to_rotation,
 )
-from experiments.papers.p004 import P004_SPEED_KNOTS, simulate_p004
-from experiments.papers.p004 import imu_switching_statistics as p004_switching_statistics
 
 F64 = torch.float64
 NOISE_FREE = {"sigma_accel": 0.0, "sigma_gyro": 0.0, "sigma_accel_bias": 0.0, "sigma_gyro_bias": 0.0}

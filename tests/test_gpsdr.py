@@ -10,8 +10,8 @@ from torch.func import jacrev, vmap
 
 from difffilter.filters import EKF, UKF, Julier
 from difffilter.models.motion import ConstantAcceleration, constant_acceleration_noise
-from difffilter.models.navigation.gpsdr import GPSDR_PAPER, GpsDrDynamics, GpsDrMeasurement, GpsDrModel, gpsdr_paper_initial_belief
 from experiments.papers.p000 import SCRIPTED_DRIVE, simulate_p000
+from experiments.papers.p000.model import GPSDR_PAPER, GpsDrDynamics, GpsDrMeasurement, GpsDrModel, gpsdr_paper_initial_belief
 
 F64 = torch.float64
 MOTIONS = ("paper", "singer", "current_statistical")

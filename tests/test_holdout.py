@@ -9,16 +9,6 @@ import pytest
 import pytorch_lightning as pl
 import torch
 
-from difffilter.evaluate.holdout import (
-    EpochSnapshots,
-    LogDistancePrior,
-    bound_parameters,
-    clone_with_snapshot,
-    contiguous_blocks,
-    error_statistics,
-    paired_error_table,
-    select_candidate,
-)
 from difffilter.evaluate.intervals import block_bootstrap_difference
 from difffilter.filters import KalmanFilter
 from difffilter.learn.data import TrajectorySet, WindowedTrajectories
@@ -28,6 +18,16 @@ from difffilter.models.motion import ConstantVelocity
 from difffilter.models.tracking import linear_measurement
 from difffilter.params import Interval
 from difffilter.selection import named_raw_parameters
+from experiments.holdout import (
+    EpochSnapshots,
+    LogDistancePrior,
+    bound_parameters,
+    clone_with_snapshot,
+    contiguous_blocks,
+    error_statistics,
+    paired_error_table,
+    select_candidate,
+)
 
 F64 = torch.float64
 
@@ -80,7 +80,10 @@ def test_epoch_snapshots_record_and_restore_every_epoch() -> None:
     truth = torch.cumsum(torch.cumsum(torch.randn(8, 60, 1, generator=g, dtype=F64) * 1.5, 1), 1)
     z = truth + 2.0 * torch.randn(8, 60, 1, generator=g, dtype=F64)
     data = TrajectorySet(
-        z, None, None, torch.cat([truth, truth], -1), torch.zeros(8, 2, dtype=F64), torch.eye(2, dtype=F64).expand(8, 2, 2) * 100, None
+        measurements=z,
+        truth=torch.cat([truth, truth], -1),
+        initial_mean=torch.zeros(8, 2, dtype=F64),
+        initial_cov=torch.eye(2, dtype=F64).expand(8, 2, 2) * 100,
     )
     filt = KalmanFilter(_model())
 
@@ -90,7 +93,7 @@ def test_epoch_snapshots_record_and_restore_every_epoch() -> None:
         return float(error_statistics(e)["rms"]), {"median": float(e.median())}
 
     snaps = EpochSnapshots(score, ["model.dynamics.q"])
-    learner = FilterLearner(filt, "nll", learn=["q"], optimizer=lambda p: torch.optim.Adam(p, lr=0.2), figure_every_n_epochs=0)
+    learner = FilterLearner(filt, "nll", learn=["q"], optimizer=lambda p: torch.optim.Adam(p, lr=0.2))
     trainer = pl.Trainer(
         max_epochs=4, logger=False, callbacks=[snaps], enable_checkpointing=False, enable_progress_bar=False, limit_val_batches=0
     )

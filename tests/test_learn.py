@@ -18,7 +18,9 @@ from difffilter.evaluate import evaluate_filter
 from difffilter.filters import KalmanFilter
 from difffilter.learn import (
     FilterLearner,
+    LearnerOptions,
     LogNormalPrior,
+    LogPrior,
     MSELoss,
     NLLLoss,
     TrajectoryDataModule,
@@ -342,7 +344,7 @@ def test_log_prior_enters_the_loss():
     prior = LogNormalPrior(loc=math.log(100.0), scale=0.5)
     kw = dict(learn=["R"])
     plain = FilterLearner(KalmanFilter(cv_model()), "nll", **kw)
-    with_prior = FilterLearner(KalmanFilter(cv_model()), "nll", log_prior={"R": prior}, prior_weight=0.3, **kw)
+    with_prior = FilterLearner(KalmanFilter(cv_model()), "nll", prior=LogPrior({"R": prior}, weight=0.3), **kw)
     batch = next(iter(_small_dm().train_dataloader()))
     r = torch.tensor([25.0, 25.0], dtype=f64)
     ref = float((-0.5 * ((r.log() - math.log(100.0)) / 0.5) ** 2 - math.log(0.5) - 0.5 * math.log(2 * math.pi) - r.log()).sum())
@@ -375,7 +377,8 @@ def test_parameter_scalars_and_argument_errors():
 def _recover(truth, start, learn, loss, *, n, steps, prior, position_index, max_iter=40, test_n=32):
     sim = ModelSimulator(model=truth, num_steps=steps, initial_mean=prior[0], initial_cov=prior[1])
     dm = TrajectoryDataModule(sim, train_size=n, val_size=2, test_size=test_n, batch_size=n, window=None, shuffle=False)
-    learner = FilterLearner(KalmanFilter(start), loss, learn=learn, optimizer=lbfgs(max_iter), position_index=position_index)
+    options = LearnerOptions(position_index=position_index)
+    learner = FilterLearner(KalmanFilter(start), loss, learn=learn, optimizer=lbfgs(max_iter), options=options)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         quiet_trainer(max_epochs=1).fit(learner, dm)

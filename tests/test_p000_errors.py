@@ -12,7 +12,6 @@ from difffilter.filters import UKF, KalmanFilter
 from difffilter.filters.sigma_points import Julier
 from difffilter.models import tracking_model
 from difffilter.models.motion import ConstantVelocity
-from difffilter.models.navigation.gpsdr import A_MAX_VEHICLE, GPSDR_PAPER
 from experiments.papers.p000 import (
     LiteralReuseUKF,
     SensorErrors,
@@ -22,6 +21,7 @@ from experiments.papers.p000 import (
     random_windows,
     simulate_p000,
 )
+from experiments.papers.p000.model import A_MAX_VEHICLE, GPSDR_PAPER
 
 f64 = torch.float64
 

@@ -10,8 +10,8 @@ import pytest
 import torch
 
 from difffilter.evaluate.intervals import crossed_interval
-from difffilter.models.navigation.pdr import wrap_angle
 from experiments.papers.p002 import arc_bursts, gps_availability, p002_infamily, pdr_model, simulate_p002, sweep_table, turn_heading_error
+from experiments.papers.p002.model import wrap_angle
 from experiments.papers.p002.report import between_sweeps, main
 
 f64 = torch.float64

@@ -13,8 +13,8 @@ import torch
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
-from difffilter.models.navigation.gnss_imu import GNSS_IMU_PAPER, GnssImuModel, GnssMeasurement
 from experiments.papers.p004 import p004_simulator, simulate_p004
+from experiments.papers.p004.model import GNSS_IMU_PAPER, GnssImuModel, GnssMeasurement
 
 F64 = torch.float64
 # experiments/papers/p004/conf/scenario/p004_mems_*.yaml

@@ -26,8 +26,8 @@ from difffilter.filters.sigma_points import MerweScaled
 from difffilter.mixers import Blend
 from difffilter.models import LinearModel
 from difffilter.models.base import DynamicsModel, StateSpaceModel
-from difffilter.models.navigation.gnss_imu import GnssImuModel, PlanarGnssImuDynamics
 from experiments.papers.p004 import p004_simulator
+from experiments.papers.p004.model import GnssImuModel, PlanarGnssImuDynamics
 
 f64 = torch.float64
 STEPS, RUNS = 80, 4

@@ -14,10 +14,10 @@ from matplotlib.figure import Figure
 from difffilter import filters, mixers, models, params, sim, smoothers
 from difffilter.filters import UKF, KalmanFilter
 from difffilter.learn.plots import diagnostic_figures, state_labels
-from difffilter.learn.reporting import _describe, parameter_summary, parameter_values
 from difffilter.models import StateLayout, tracking_model
 from difffilter.models.motion import ConstantVelocity
 from difffilter.sim import sample_trajectories, simulate
+from experiments.runner.reporting import _describe, parameter_summary, parameter_values
 
 f64 = torch.float64
 PUBLIC = [

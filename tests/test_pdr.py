@@ -8,7 +8,6 @@ import pytest
 import torch
 
 from difffilter.filters import EKF, UKF, MerweScaled
-from difffilter.models.navigation.pdr import PDRMeasurement, PDRModel, PDRStepDynamics, wrap_angle, wrap_measurement
 from experiments.papers.p002 import (
     BLOCKAGE_PROBS,
     gps_only_positions,
@@ -17,6 +16,7 @@ from experiments.papers.p002 import (
     simulate_p002,
     simulate_p002_random,
 )
+from experiments.papers.p002.model import PDRMeasurement, PDRModel, PDRStepDynamics, wrap_angle, wrap_measurement
 from experiments.papers.p002.track import p002_track
 
 F64 = torch.float64

@@ -28,11 +28,11 @@ from omegaconf import OmegaConf
 
 from difffilter.constraints import FactorCovariance
 from difffilter.filters import UKF, KalmanFilter, SquareRootUKF
-from difffilter.learn.config_check import check_config
 from difffilter.models import FunctionalModel, LinearModel
 from difffilter.models.base import MeasurementModel, StateSpaceModel, wrap_angle
-from difffilter.models.navigation.gnss_imu import GnssMeasurement
 from difffilter.params import ScaledMatrix
+from experiments.papers.p004.model import GnssMeasurement
+from experiments.runner.config_check import check_config
 
 from .filter_contract import cv_matrices, numpy_kalman
 from .smoke_helpers import config_files

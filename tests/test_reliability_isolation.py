@@ -112,3 +112,26 @@ def test_the_corrupted_trajectorys_values_are_kept_and_pass_no_gradient() -> Non
 @pytest.mark.parametrize("corruption", ["huge measurement", "NaN control"])
 def test_the_compiled_engine_isolates_trajectories(corruption: str) -> None:
     _check_isolated(FusedFilter(SquareRootUKF(_model(F64)), engine="generated"), F64, corruption)
+
+
+def test_a_field_shared_by_the_batch_is_checked_once_with_the_same_verdict() -> None:
+    """A covariance expanded over the batch (stride 0, the shared Kalman path) gives the flags that
+    its materialised copy gives: all trajectories when it holds a NaN, none otherwise."""
+    from difffilter.filters import FilterResult
+    from difffilter.filters.isolation import nonfinite_trajectories
+
+    bsz, steps = 5, 3
+    mean = torch.zeros(bsz, steps, 2, dtype=F64)
+    mean[3, 1, 0] = float("inf")
+    for bad_cov in (False, True):
+        common = torch.eye(2, dtype=F64).repeat(steps, 1, 1)
+        if bad_cov:
+            common[2, 0, 1] = float("nan")
+        cov = common.expand(bsz, steps, 2, 2)
+        assert cov.stride(0) == 0
+        zeros = torch.zeros(bsz, steps, dtype=F64)
+        fields = {"prior_mean": mean, "log_likelihood": zeros, "nis": zeros, "num_observed": zeros, "final_belief": {}}
+        shared = FilterResult(mean=mean, cov=cov, prior_cov=cov, **fields)
+        copied = FilterResult(mean=mean, cov=cov.clone(), prior_cov=cov.clone(), **fields)
+        expected = [True] * bsz if bad_cov else [False, False, False, True, False]
+        assert nonfinite_trajectories(shared).tolist() == nonfinite_trajectories(copied).tolist() == expected

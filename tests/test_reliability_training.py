@@ -27,8 +27,8 @@ import torch
 from torch import nn
 
 from difffilter.learn.divergence import DivergenceGuard, TrainingDivergedError, scale_parameters
-from difffilter.learn.liveness import assess
 from difffilter.params import Interval, Positive, PositiveDefinite, register_constrained
+from experiments.runner.liveness import assess
 from experiments.runner.runs import read_status, run_status
 from experiments.runner.sweep import unfinished_jobs
 

@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from difffilter import geometry as geo
+from experiments.papers import constellation as sky
 from experiments.papers.p001 import P001_CONFIG, make_p001_model, simulate_p001
 from experiments.papers.p003 import PAPER_PHASES, flight_profile, make_p003_model, manoeuvre_flags, simulate_p003
 
@@ -44,11 +45,11 @@ def test_geodetic_round_trip_enu_and_stable_displacement() -> None:
 
 
 def test_constellation_orbits_and_azimuth_elevation() -> None:
-    con = geo.CircularOrbitConstellation()
+    con = sky.CircularOrbitConstellation()
     t = torch.tensor([0.0, 600.0], dtype=F64)
     pos, vel = con.state(t)
     assert pos.shape == (2, 24, 3)
-    assert torch.allclose(pos.norm(dim=-1), torch.full((2, 24), geo.GPS_ORBIT_RADIUS, dtype=F64))
+    assert torch.allclose(pos.norm(dim=-1), torch.full((2, 24), sky.GPS_ORBIT_RADIUS, dtype=F64))
     h = 1e-2
     pos2, _ = con.state(t + h)
     assert torch.allclose((pos2 - pos) / h, vel, atol=1e-2)  # ECEF velocity = d/dt of ECEF position
@@ -56,8 +57,8 @@ def test_constellation_orbits_and_azimuth_elevation() -> None:
     assert period / 3600 == pytest.approx(11.97, abs=0.02)
     rx = geo.geodetic_to_ecef(torch.tensor([0.5, 1.0, 0.0], dtype=F64))
     az, el = torch.tensor([0.2, 2.0, 4.0], dtype=F64), torch.tensor([0.3, 0.9, 1.4], dtype=F64)
-    sats = geo.satellites_from_azimuth_elevation(rx, az, el)
-    assert torch.allclose(sats.norm(dim=-1), torch.full((3,), geo.GPS_ORBIT_RADIUS, dtype=F64))
+    sats = sky.satellites_from_azimuth_elevation(rx, az, el)
+    assert torch.allclose(sats.norm(dim=-1), torch.full((3,), sky.GPS_ORBIT_RADIUS, dtype=F64))
     az2, el2 = geo.azimuth_elevation(rx, sats)
     assert torch.allclose(torch.remainder(az2 - az + math.pi, 2 * math.pi), torch.full_like(az, math.pi), atol=1e-10)
     assert torch.allclose(el2, el, atol=1e-10)
@@ -79,7 +80,7 @@ def test_p001_shapes_config_and_determinism() -> None:
     assert sc32.measurements.dtype == torch.float32 and torch.allclose(sc32.measurements.double(), sc.measurements, atol=1e-4)
     # satellites at GPS radius, fixed geometry at the configured elevations
     sats = sc.controls["sat_pos"][0, 0] + sc.frame_origin[0]
-    assert torch.allclose(sats.norm(dim=-1), torch.full((k,), geo.GPS_ORBIT_RADIUS, dtype=F64), rtol=1e-9)
+    assert torch.allclose(sats.norm(dim=-1), torch.full((k,), sky.GPS_ORBIT_RADIUS, dtype=F64), rtol=1e-9)
     el = geo.azimuth_elevation(sc.frame_origin[0], sats)[1]
     assert torch.allclose(torch.rad2deg(el), torch.tensor(P001_CONFIG["elevation_deg"], dtype=F64), atol=1e-8)
 
@@ -176,7 +177,7 @@ def test_p003_outputs_and_truth_kinematics(flight) -> None:  # type: ignore[no-u
     assert sc.nav_truth["llh"][0, 99, 2] > 100.0 and sc.nav_truth["llh"][0, 55, 2].abs() < 1e-6
     heading = torch.rad2deg(torch.atan2(sc.nav_truth["vel"][0, 40, 0], sc.nav_truth["vel"][0, 40, 1]))
     assert heading.item() == pytest.approx(135.0, abs=1e-6)
-    assert torch.allclose(sc.controls["sat_pos"].norm(dim=-1), torch.full((2, 120, 8), geo.GPS_ORBIT_RADIUS, dtype=F64))
+    assert torch.allclose(sc.controls["sat_pos"].norm(dim=-1), torch.full((2, 120, 8), sky.GPS_ORBIT_RADIUS, dtype=F64))
     # the specific force the filter sees reflects the 0-10 s rest and 10-20 s acceleration
     f = sc.controls["f_n"][0]
     assert f[:9, 2].mean().item() == pytest.approx(9.79, abs=0.02)

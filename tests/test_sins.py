@@ -1,4 +1,4 @@
-"""Tests for difffilter.models.navigation.sins (p003 20-state GPS/SINS error model)."""
+"""Tests for experiments.papers.p003.sins (p003 20-state GPS/SINS error model)."""
 
 from __future__ import annotations
 
@@ -11,10 +11,11 @@ import torch
 from torch.func import jacfwd, vmap
 
 from difffilter.filters import EKF, SimplifiedUKF
-from difffilter.geometry import CircularOrbitConstellation, normal_gravity
-from difffilter.models.navigation.sins import SinsErrorDynamics, sins_error_matrix
-from difffilter.models.navigation.sins_measurement import SinsPseudorangeMeasurement
+from difffilter.geometry import normal_gravity
+from experiments.papers.constellation import CircularOrbitConstellation
 from experiments.papers.p003 import make_p003_model, simulate_p003
+from experiments.papers.p003.sins import SinsErrorDynamics, sins_error_matrix
+from experiments.papers.p003.sins_measurement import SinsPseudorangeMeasurement
 
 F64 = torch.float64
 
@@ -130,7 +131,7 @@ def test_batched_matrix_equals_loop_and_metre_units_are_similar() -> None:
 
 
 def test_linear_prediction_builds_F_once_and_matches_the_separate_calls(monkeypatch: pytest.MonkeyPatch) -> None:
-    import difffilter.models.navigation.sins as sins
+    import experiments.papers.p003.sins as sins
 
     u = _nav_inputs()
     u["feedback"] = _state(3, True, scale=0.01, seed=4)
@@ -150,7 +151,7 @@ def test_linear_prediction_builds_F_once_and_matches_the_separate_calls(monkeypa
 
 
 def test_simplified_ukf_builds_F_once_per_predict_with_unchanged_results(monkeypatch: pytest.MonkeyPatch) -> None:
-    import difffilter.models.navigation.sins as sins
+    import experiments.papers.p003.sins as sins
     from difffilter.filters.ukf import symmetrize
     from difffilter.mixers import IMM
 

@@ -13,9 +13,9 @@ import torch
 from difffilter.engines import FusedFilter
 from difffilter.filters import SimplifiedUKF
 from difffilter.filters.base import slice_controls
-from difffilter.models.navigation.sins import SinsErrorDynamics
-from difffilter.models.navigation.sins_measurement import SinsPseudorangeMeasurement
 from experiments.papers.p003 import p003_imm, p003_mode_model, simulate
+from experiments.papers.p003.sins import SinsErrorDynamics
+from experiments.papers.p003.sins_measurement import SinsPseudorangeMeasurement
 
 F64 = torch.float64
 

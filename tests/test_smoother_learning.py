@@ -15,7 +15,7 @@ from scipy.stats import multivariate_normal
 
 from difffilter.evaluate import evaluate_filter
 from difffilter.filters import KalmanFilter
-from difffilter.learn import FilterLearner, MSELoss, StateNLLLoss, TrajectoryDataModule, learnable_values
+from difffilter.learn import FilterLearner, LearnerOptions, MSELoss, StateNLLLoss, TrajectoryDataModule, learnable_values
 from difffilter.models import tracking_model
 from difffilter.models.motion import ConstantVelocity
 from difffilter.sim.sampling import ModelSimulator
@@ -61,7 +61,7 @@ def test_state_nll_equals_the_gaussian_log_density_of_the_truth():
 @pytest.mark.filterwarnings("ignore:You are trying to `self.log\\(\\)`")
 def test_learner_smooths_each_window_from_the_carried_belief():
     dm = _dm(n=3, steps=30, window=10)
-    learner = FilterLearner(KalmanFilter(cv_model(q=2.0)), MSELoss(state_index=[0, 2]), learn=["q"], smoother="rts")
+    learner = FilterLearner(KalmanFilter(cv_model(q=2.0)), MSELoss(state_index=[0, 2]), learn=["q"], options=LearnerOptions(smoother="rts"))
     ref_filter = KalmanFilter(cv_model(q=2.0))
     ref = RTSSmoother(ref_filter)
     belief = None
@@ -74,13 +74,14 @@ def test_learner_smooths_each_window_from_the_carried_belief():
         assert loss.item() == pytest.approx(expected.item(), rel=1e-12)
         belief = {k: v.detach() for k, v in out.final_belief.items()}
     with pytest.raises(ValueError, match="smoother kind"):
-        FilterLearner(KalmanFilter(cv_model()), "mse", smoother="two_filter")
+        FilterLearner(KalmanFilter(cv_model()), "mse", options={"smoother": "two_filter"})
 
 
 def test_validation_logs_filtered_and_smoothed_metrics():
     dm = _dm(n=4, steps=25)
     learner = FilterLearner(
-        KalmanFilter(cv_model()), "nll", learn=["q"], smoother={"kind": "rts", "train": False}, position_index=[0, 2],
+        KalmanFilter(cv_model()), "nll", learn=["q"],
+        options=LearnerOptions(smoother={"kind": "rts", "train": False}, position_index=[0, 2]),
         optimizer=functools.partial(torch.optim.SGD, lr=0.0),
     )  # fmt: skip
     trainer = pl.Trainer(logger=False, enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False, accelerator="cpu")
@@ -104,7 +105,8 @@ def test_smoothed_state_nll_recovers_q_and_r():
     sim = ModelSimulator(model=truth, num_steps=80, initial_mean=CV_PRIOR[0], initial_cov=CV_PRIOR[1])
     dm = TrajectoryDataModule(sim, train_size=24, val_size=2, test_size=2, batch_size=24, window=None, shuffle=False)
     lbfgs = functools.partial(torch.optim.LBFGS, lr=1.0, max_iter=30, line_search_fn="strong_wolfe")
-    learner = FilterLearner(KalmanFilter(cv_model(q=5.0, r=4.0)), StateNLLLoss(), learn=["q", "R"], optimizer=lbfgs, smoother="rts")
+    options = LearnerOptions(smoother="rts")
+    learner = FilterLearner(KalmanFilter(cv_model(q=5.0, r=4.0)), StateNLLLoss(), learn=["q", "R"], optimizer=lbfgs, options=options)
     trainer = pl.Trainer(
         logger=False, enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False,
         num_sanity_val_steps=0, limit_val_batches=0, accelerator="cpu", max_epochs=1,

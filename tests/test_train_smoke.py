@@ -19,7 +19,7 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 
 from difffilter.evaluate.evaluation import EXTRA_TESTS_DIR, PER_RUN_FILE, read_per_run
 from difffilter.filters import KalmanFilter
-from difffilter.learn import FilterLearner, TrajectoryDataModule
+from difffilter.learn import DiagnosticFigures, FilterLearner, LearnerOptions, TrajectoryDataModule
 from difffilter.models import tracking_model
 from difffilter.models.motion import ConstantVelocity
 from difffilter.sim import ModelSimulator
@@ -92,7 +92,11 @@ def test_mode_probability_figure_is_logged(tmp_path):
     sim = ModelSimulator(model=model, num_steps=20, initial_mean=[0.0, 10.0, 0.0, 5.0], initial_cov=[100.0, 4.0, 100.0, 4.0])
     dm = TrajectoryDataModule(sim, train_size=4, val_size=2, test_size=2, batch_size=4, window=10)
     learner = FilterLearner(
-        _ModeRecordingKF(model), "nll", learn=["R"], optimizer=functools.partial(torch.optim.Adam, lr=0.01), position_index=[0, 2]
+        _ModeRecordingKF(model),
+        "nll",
+        learn=["R"],
+        optimizer=functools.partial(torch.optim.Adam, lr=0.01),
+        options=LearnerOptions(position_index=[0, 2]),
     )
     logger = pl.loggers.TensorBoardLogger(str(tmp_path), name="", version="")
     trainer = pl.Trainer(
@@ -102,6 +106,7 @@ def test_mode_probability_figure_is_logged(tmp_path):
         enable_progress_bar=False,
         enable_model_summary=False,
         num_sanity_val_steps=0,
+        callbacks=[DiagnosticFigures(every_n_epochs=1)],
     )
     trainer.fit(learner, dm)
     images = set(_events(tmp_path).Tags()["images"])

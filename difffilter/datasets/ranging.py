@@ -39,7 +39,9 @@ class RangingRecording:
         anchors: ``[T, A, 2]`` anchor positions as the file gives them per line (the last known
             position where missing); ``anchor_ids`` ``[A]``.
         truth: ``[T, 2]`` reference position (NaN without a ``point2`` at that time);
-            ``heading0``: the reference heading at the first step if the truth file has ``angle`` records.
+            ``heading0``: the reference heading at the first step if the truth file has ``angle`` records;
+            ``heading`` ``[T]`` the reference heading at every step (NaN without an ``angle`` record
+            at that time; None when the recording was built without it).
         issues: counts of what was skipped or repaired.
     """
 
@@ -56,6 +58,7 @@ class RangingRecording:
     truth: np.ndarray
     heading0: float | None = None
     issues: dict[str, int] = field(default_factory=dict)
+    heading: np.ndarray | None = None
 
     @property
     def num_steps(self) -> int:
@@ -153,7 +156,7 @@ def load_ranging(
         src = np.flatnonzero(has)
         prev = src[np.clip(np.searchsorted(src, held) - 1, 0, None)]
         odom[held], odom_cov[held] = odom[prev], odom_cov[prev]
-    truth, heading0 = np.full((steps, 2), np.nan), None
+    truth, heading0, heading = np.full((steps, 2), np.nan), None, np.full(steps, np.nan)
     if truth_path is not None:
         gt = read_librsf(truth_path, ["point2", "angle"], on_error=on_error)
         pts = gt.tables["point2"]
@@ -165,11 +168,14 @@ def load_ranging(
         ang = gt.tables["angle"]
         if len(ang) and ang[0, 0] == times[0]:
             heading0 = float(ang[0, 1])
+        k = np.searchsorted(times, ang[:, 0])
+        ok = (k < steps) & (times[np.clip(k, 0, steps - 1)] == ang[:, 0])
+        heading[k[ok]] = ang[ok, 1]
     if issues:
         warnings.warn(f"{rec.path}: {issues}", stacklevel=2)
     dt = np.concatenate([[0.0], np.diff(times)])
     name = re.sub(r"_Input$", "", Path(input_path).stem)
-    return RangingRecording(name, times, dt, odom, odom_cov, ranges, var, mask, anchors, ids, truth, heading0, issues)
+    return RangingRecording(name, times, dt, odom, odom_cov, ranges, var, mask, anchors, ids, truth, heading0, issues, heading)
 
 
 def find_recordings(folder: str | Path) -> list[tuple[str, Path, Path | None]]:

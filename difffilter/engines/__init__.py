@@ -14,8 +14,8 @@
 from ..filters.base import ENGINE_HOOK
 from .build import cache_dir
 from .filter import ENGINES, FusedFilter, fuse
-from .policy import chosen_engine, run_compiled_if_chosen, set_engine
+from .policy import chosen_engine, last_engine, run_compiled_if_chosen, set_engine
 
 ENGINE_HOOK[0] = run_compiled_if_chosen
 
-__all__ = ["ENGINES", "FusedFilter", "cache_dir", "chosen_engine", "fuse", "set_engine"]
+__all__ = ["ENGINES", "FusedFilter", "cache_dir", "chosen_engine", "fuse", "last_engine", "set_engine"]

@@ -1,22 +1,29 @@
 """Which engine a plain filter call runs on: one switch, ``DIFFFILTER_ENGINE``.
 
 ``UKF(model)(z, m0, P0)`` (and every :class:`~difffilter.filters.base.RecursiveFilter` call,
-so also ``FilterLearner`` with its default ``fused=False`` and the smoothers' forward filters) asks
-:func:`run_compiled_if_chosen` first:
+so also a ``FilterLearner`` given a plain filter, evaluation, every experiment and the
+smoothers' forward filters) asks :func:`run_compiled_if_chosen` first:
 
-* ``eager`` (the default, :data:`DEFAULT_ENGINE`): the filter's own Python loop, always;
+* ``auto`` (the default, :data:`DEFAULT_ENGINE`): the compiled engine when a C++ compiler exists
+  and the work pays for a kernel build: a large call, ``B * T >= DIFFFILTER_AUTO_MIN_WORK``
+  (default ``10_000``), or repeated calls of the same filter object (a training loop over small
+  batches or windows) once their ``max(B, 32) * T`` add up to ``DIFFFILTER_AUTO_MIN_TOTAL``
+  (default ``100_000``; the call that reaches it runs compiled; below :data:`EAGER_FLAT_BATCH`
+  trajectories an eager call costs about the same, so it counts as that many).  A few small
+  calls, and so the small tests, stay eager and never build a kernel.  The choice depends only
+  on the sequence of calls, so a rerun switches at the same call and repeats its results bit for
+  bit;
 * ``compiled``: the generated C++ engine (:class:`~.filter.FusedFilter` with ``engine="generated"``)
   for every CPU call it can run;
-* ``auto``: the compiled engine when a C++ compiler exists and the call is large enough to pay
-  for a kernel build, ``B * T >= DIFFFILTER_AUTO_MIN_WORK`` (default ``10_000``); small calls
-  (and so every small test) stay eager and never build a kernel.
+* ``eager``: the filter's own Python loop, always.
 
-Where the compiled engine cannot run a filter (no compiler, an operation the generator lacks),
-the call runs eagerly and one warning per filter class and reason says why (set
-``DIFFFILTER_ENGINE=eager`` to silence it).  Results are the same either way (the compiled
-engine agrees with the eager filters to ~1e-13 in float64); explicit ``FusedFilter(filt)`` is
-unaffected.  Switch in code with :func:`set_engine`; flipping the default is the one line
-:data:`DEFAULT_ENGINE`.
+Where the compiled engine cannot run a filter (no compiler, an operation the generator lacks, an
+error inside the engine on input the eager filter accepts), the call runs eagerly and one warning
+per filter class and reason (one in all for a missing compiler) says why; set
+``DIFFFILTER_ENGINE=eager`` to silence it.  Results are the same either way up to rounding (the
+compiled engine agrees with the eager filters to ~1e-13 in float64, and each engine is
+deterministic run to run); explicit ``FusedFilter(filt)`` is unaffected.  Switch in code with
+:func:`set_engine`.
 """
 
 from __future__ import annotations
@@ -24,6 +31,7 @@ from __future__ import annotations
 import os
 import threading
 import warnings
+import weakref
 from collections import OrderedDict
 
 import torch
@@ -35,16 +43,18 @@ from .build import CompileError, compiler_available
 from .filter import FusedFilter
 from .graph import UnsupportedOp
 
-__all__ = ["DEFAULT_ENGINE", "POLICIES", "chosen_engine", "run_compiled_if_chosen", "set_engine"]
+__all__ = ["DEFAULT_ENGINE", "POLICIES", "chosen_engine", "last_engine", "run_compiled_if_chosen", "set_engine"]
 
 #: what a plain filter call runs on when neither ``DIFFFILTER_ENGINE`` nor :func:`set_engine` says
-DEFAULT_ENGINE = "eager"
+DEFAULT_ENGINE = "auto"
 POLICIES = ("eager", "compiled", "auto")
 _CACHE_SIZE = 8  # filters whose compiled runner is kept (each holds its filter alive)
 
 _override: list[str | None] = [None]
 _runners: OrderedDict[int, FusedFilter] = OrderedDict()
-_failed: dict[int, str] = {}
+_work: weakref.WeakKeyDictionary[RecursiveFilter, int] = weakref.WeakKeyDictionary()  # max(B, 32) * T so far
+_last: weakref.WeakKeyDictionary[RecursiveFilter, str] = weakref.WeakKeyDictionary()
+_failed: weakref.WeakKeyDictionary[RecursiveFilter, str] = weakref.WeakKeyDictionary()
 _warned: set[tuple[str, str]] = set()
 _lock = threading.Lock()
 _local = threading.local()
@@ -68,16 +78,32 @@ def chosen_engine() -> str:
     return raw
 
 
-def _min_work() -> int:
-    raw = os.environ.get("DIFFFILTER_AUTO_MIN_WORK", "10000")
+def _env_int(name: str, default: int) -> int:
+    raw = os.environ.get(name, str(default))
     try:
         return int(raw)
     except ValueError as exc:
-        raise ValueError(f"DIFFFILTER_AUTO_MIN_WORK must be an integer (B * T), got {raw!r}") from exc
+        raise ValueError(f"{name} must be an integer (B * T), got {raw!r}") from exc
+
+
+#: below this batch size an eager step costs about the same whatever the batch (Python and
+#: dispatch overhead per step; the benchmark's UKF training step, process CPU per step on the
+#: loaded 2-core machine: 2.0 ms at B = 1, 2.6 ms at B = 32, 7.5 ms at B = 256), so a
+#: small-batch call counts as this many trajectories towards ``DIFFFILTER_AUTO_MIN_TOTAL``
+EAGER_FLAT_BATCH = 32
+
+
+def _pays_for_a_build(filt: RecursiveFilter, batch: int, steps: int) -> bool:
+    """``auto``'s rule: this call is large, or this filter's calls add up to a lot of work."""
+    min_work, min_total = _env_int("DIFFFILTER_AUTO_MIN_WORK", 10_000), _env_int("DIFFFILTER_AUTO_MIN_TOTAL", 100_000)
+    with _lock:
+        total = _work[filt] = _work.get(filt, 0) + max(batch, EAGER_FLAT_BATCH) * steps
+    return batch * steps >= min_work or total >= min_total
 
 
 def _announce(filt: RecursiveFilter, reason: str) -> None:
-    key = (type(filt).__name__, reason)
+    # a missing compiler concerns every filter: said once, not once per filter class
+    key = ("" if reason == compiler_available() else type(filt).__name__, reason)
     with _lock:
         if key in _warned:
             return
@@ -112,30 +138,66 @@ def run_compiled_if_chosen(
 ) -> FilterResult | None:
     """The call's result from the compiled engine, or ``None`` to run ``filt`` eagerly (see the
     module docstring)."""
+    if getattr(_local, "inside", False):  # the compiled engine's own (or its fallback's) call of filt
+        return None
+    out, engine = _compiled_result(filt, measurements, initial_mean, initial_cov, mask, controls, belief)
+    with _lock:
+        _last[filt] = engine
+    return out
+
+
+def last_engine(filt: RecursiveFilter) -> str | None:
+    """The engine that ran ``filt``'s last plain call: ``"generated"`` (compiled), ``"eager"``, or
+    ``None`` before its first call."""
+    with _lock:
+        return _last.get(filt)
+
+
+def _compiled_result(
+    filt: RecursiveFilter,
+    measurements: Tensor,
+    initial_mean: Tensor | None,
+    initial_cov: Tensor | None,
+    mask: Tensor | None,
+    controls: Controls,
+    belief: Belief | None,
+) -> tuple[FilterResult | None, str]:
     policy = chosen_engine()
-    if policy == "eager" or getattr(_local, "inside", False) or not isinstance(measurements, Tensor):
-        return None
+    if policy == "eager" or not isinstance(measurements, Tensor):
+        return None, "eager"
     if measurements.device.type != "cpu" or measurements.dtype not in (torch.float32, torch.float64) or measurements.dim() != 3:
-        return None
+        return None, "eager"
     if torch.compiler.is_compiling():
-        return None
-    if policy == "auto" and measurements.shape[0] * measurements.shape[1] < _min_work():
-        return None
+        return None, "eager"
+    if policy == "auto" and not _pays_for_a_build(filt, measurements.shape[0], measurements.shape[1]):
+        return None, "eager"
     reason = compiler_available()
     if reason is None:
         with _lock:
-            reason = _failed.get(id(filt))
+            reason = _failed.get(filt)
     if reason is not None:
         _announce(filt, reason)
-        return None
+        return None, "eager"
     fused = _runner(filt)
     _local.inside = True
     try:
-        return fused(measurements, initial_mean, initial_cov, mask, controls, belief=belief)
+        # FusedFilter's own run, without its forward's thread scope and isolation of non-finite
+        # trajectories: the filter's forward, which asked this hook, already provides both
+        return fused._run(measurements, initial_mean, initial_cov, mask, controls, belief=belief), "generated"
     except (UnsupportedOp, CompileError) as exc:
-        with _lock:
-            _failed[id(filt)] = str(exc)[:300]
-        _announce(filt, str(exc)[:300])
-        return None
+        _give_up(filt, str(exc)[:300])
+        return None, "eager"
+    except Exception as exc:  # noqa: BLE001 - bad input, or a defect of the engine: the eager filter tells which
+        # bad input raises here again, as the eager filter raises it; input the eager filter accepts
+        # means the engine failed on it: the eager result, flagged
+        result = filt._run(measurements, initial_mean, initial_cov, mask, controls, belief=belief)
+        _give_up(filt, f"{type(exc).__name__}: {exc}"[:300])
+        return result, "eager"
     finally:
         _local.inside = False
+
+
+def _give_up(filt: RecursiveFilter, reason: str) -> None:
+    with _lock:
+        _failed[filt] = reason
+    _announce(filt, reason)

@@ -1,6 +1,6 @@
 """Evaluating filters: metrics (RMSE, NEES, NIS, NLL), consistency bands, confidence intervals
-(paired t, block bootstrap, gap closed), per-run tables and validation-based selection on blocked
-folds (holdout)."""
+(paired t, block bootstrap, gap closed) and per-run tables.  The real-data protocol built on them
+(blocked folds, validation-based selection) is the research tree's ``experiments.holdout``."""
 
 from .consistency import Consistency, consistency
 from .evaluation import evaluate_filter, evaluate_runs

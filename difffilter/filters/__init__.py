@@ -5,6 +5,7 @@ from .adaptive_noise import AdaptiveNoiseFilter, CovarianceMatching, SageHusa, V
 from .base import Belief, FilterResult, GaussianFilter, RecursiveFilter, StepInfo
 from .colored import ColoredNoiseUKF
 from .ekf import EKF
+from .gated import GatedEKF
 from .iterated import IteratedEKF
 from .kalman import KalmanFilter
 from .parallel import ParallelKalmanFilter
@@ -21,6 +22,7 @@ __all__ = [
     "VBAdaptiveQR",
     "VBAdaptiveR",
     "EKF",
+    "GatedEKF",
     "RCUKF",
     "UKF",
     "ColoredNoiseUKF",

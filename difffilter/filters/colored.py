@@ -14,6 +14,7 @@ from .diffuse import DIFFUSE_COV, propagate_diffuse
 from .jacobians import measurement_matrix, transition_matrix
 from .sigma_points import SigmaPoints
 from .ukf import UKF, deviations, state_add, weighted_mean, weighted_moments
+from .update import JosephForm
 
 __all__ = ["ColoredNoiseUKF"]
 
@@ -175,7 +176,7 @@ class ColoredNoiseUKF(UKF):
             post, info = self._diffuse_update(belief, innovation, (dx, dg, wc, r_full), coef, mask, u)
         else:
             new_mean, new_cov, info = gaussian_update(
-                mean, cov, innovation, pzz, pxz, mask, sigma_fallback=(dx, dg, wc, r_full), add=state_add(dyn)
+                mean, cov, innovation, pzz, pxz, mask, joseph=JosephForm.sigma_points(dx, dg, wc, r_full), add=state_add(dyn)
             )
             post = {"mean": new_mean, "cov": new_cov}
         drop = ("cross_cov", "prev_mean", "prev_cov", "prev_measurement", "prev_observed", "prev_diffuse_cov", "diffuse_cross")

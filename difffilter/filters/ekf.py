@@ -10,6 +10,7 @@ from .base import Belief, RecursiveFilter, StepInfo, diffuse_gaussian_update, ga
 from .diffuse import DIFFUSE_COV, propagate_diffuse
 from .jacobians import autodiff_jacobian, measurement_noise_cov, noise_jacobian
 from .ukf import state_add
+from .update import JosephForm
 
 __all__ = ["EKF", "autodiff_jacobian", "noise_jacobian"]
 
@@ -88,8 +89,6 @@ class EKF(RecursiveFilter):
             add = state_add(self.model.dynamics)
             post, info = diffuse_gaussian_update(belief, e, (*square_root_deviations(cov, h), r), mask, obs_matrix=h, add=add)
             return {**belief, **post}, info
-        joseph = (h, r) if self.joseph else None
-        new_mean, new_cov, info = gaussian_update(
-            mean, cov, e, s, pht, mask, joseph=joseph, joseph_fallback=None if self.joseph else (h, r), add=state_add(self.model.dynamics)
-        )
+        joseph = JosephForm.linear(h, r, always=self.joseph)
+        new_mean, new_cov, info = gaussian_update(mean, cov, e, s, pht, mask, joseph=joseph, add=state_add(self.model.dynamics))
         return {**belief, "mean": new_mean, "cov": new_cov}, info

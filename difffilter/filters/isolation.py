@@ -39,7 +39,11 @@ def nonfinite_trajectories(result: FilterResult) -> Tensor:
     for name in _FIELDS[:-1]:
         v = getattr(result, name)
         if v.is_floating_point():
-            row = ~torch.isfinite(v).flatten(1).all(1)
+            # a field shared by the batch (expanded, stride 0: a Kalman filter's common
+            # covariances) is checked once, not once per trajectory
+            shared = v.dim() > 1 and v.shape[0] > 1 and v.stride(0) == 0
+            row = ~torch.isfinite(v[:1] if shared else v).flatten(1).all(1)
+            row = row.expand(v.shape[0]) if shared else row
             bad = row if bad is None else bad | row
     assert bad is not None
     return bad

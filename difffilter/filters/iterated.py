@@ -9,6 +9,7 @@ from .base import Belief, StepInfo, gaussian_update
 from .diffuse import DIFFUSE_COV
 from .ekf import EKF
 from .ukf import state_add
+from .update import JosephForm
 
 __all__ = ["IteratedEKF"]
 
@@ -56,9 +57,6 @@ class IteratedEKF(EKF):
             r = self.measurement_noise_cov(x, u)
             pht = cov @ h.mT
             e = hm.residual(z, hm(x, u)) + (h @ self.model.dynamics.residual(x, mean)[..., None])[..., 0]
-            joseph = (h, r) if self.joseph else None
-            x, new_cov, info = gaussian_update(
-                mean, cov, e, h @ pht + r, pht, mask, joseph=joseph, joseph_fallback=None if self.joseph else (h, r),
-                add=state_add(self.model.dynamics),
-            )  # fmt: skip
+            joseph = JosephForm.linear(h, r, always=self.joseph)
+            x, new_cov, info = gaussian_update(mean, cov, e, h @ pht + r, pht, mask, joseph=joseph, add=state_add(self.model.dynamics))
         return {**belief, "mean": x, "cov": new_cov}, info

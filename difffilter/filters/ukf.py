@@ -16,6 +16,7 @@ from .base import Belief, RecursiveFilter, StepInfo, diffuse_gaussian_update, ga
 from .diffuse import DIFFUSE_COV, propagate_diffuse
 from .jacobians import measurement_matrix
 from .sigma_points import MerweScaled, SigmaPoints
+from .update import JosephForm
 
 __all__ = [
     "UKF",
@@ -264,7 +265,8 @@ class UKF(RecursiveFilter):
             h = measurement_matrix(hm, mean, u)
             post, info = diffuse_gaussian_update(belief, e, (dx, dz, wc, r), mask, obs_matrix=h, add=state_add(dyn))
             return {**self._carry(belief), **post}, info
-        new_mean, new_cov, info = gaussian_update(mean, cov, e, pzz, pxz, mask, sigma_fallback=(dx, dz, wc, r), add=state_add(dyn))
+        joseph = JosephForm.sigma_points(dx, dz, wc, r)
+        new_mean, new_cov, info = gaussian_update(mean, cov, e, pzz, pxz, mask, joseph=joseph, add=state_add(dyn))
         if not exact:
             lossy = offset_untrusted(mean, cov, zhat, pzz, info.nis)
             info = replace(info, untrusted=lossy if info.untrusted is None else info.untrusted | lossy)
@@ -285,7 +287,7 @@ class SimplifiedUKF(UKF):
     parameters.
 
     When the dynamics offer ``linear_prediction(x, u) -> (f(x, u), F, Q)`` (e.g.
-    :class:`~difffilter.models.navigation.sins.SinsErrorDynamics`), the prediction takes all three from that
+    :class:`~experiments.papers.p003.sins.SinsErrorDynamics`), the prediction takes all three from that
     one call, so a model whose ``F`` is expensive (matrix exponential) builds it once per step
     instead of once each in ``matrix``, ``process_noise`` and ``f``.
     """

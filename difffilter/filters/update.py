@@ -10,6 +10,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
@@ -20,6 +21,7 @@ from .diffuse import DIFFUSE_COV, DIFFUSE_SCALE, diffuse_update
 from .protocol import Belief
 
 __all__ = [
+    "JosephForm",
     "diffuse_gaussian_update",
     "gaussian_update",
     "square_root_deviations",
@@ -37,6 +39,43 @@ def _trust_limits(dtype: torch.dtype) -> tuple[float, float, float]:
     return 64.0 * eps**0.5, eps / 1e-2, eps * eps / 1e-2
 
 
+class JosephForm(NamedTuple):
+    """The Joseph-type covariance form that :func:`gaussian_update` uses instead of, or as the
+    fallback of, ``P - K S K^T``; build it with :meth:`linear` or :meth:`sigma_points`.
+
+    Attributes:
+        r: measurement noise ``R [B, m, m]`` (``None`` when sigma points already carry it).
+        h: ``H [B, m, n]`` for the linear form ``(I - K H) P (I - K H)^T + K R K^T``.
+        points: ``(dx [B, S, n], dz [B, S, m], wc [S])`` sigma-point deviations for the unscented
+            form ``sum_i wc_i (dx_i - K dz_i)(dx_i - K dz_i)^T + K R K^T``.
+        always: use the form for every batch element (KF/EKF ``joseph=True``); otherwise only
+            on the elements where ``P - K S K^T`` cancels (see :func:`gaussian_update`).
+    """
+
+    r: Tensor | None
+    h: Tensor | None = None
+    points: tuple[Tensor, Tensor, Tensor] | None = None
+    always: bool = False
+
+    @classmethod
+    def linear(cls, h: Tensor, r: Tensor, *, always: bool = False) -> JosephForm:
+        """The linear Joseph form with ``H`` and ``R``; ``always``: on every element."""
+        return cls(r, h=h, always=bool(always))
+
+    @classmethod
+    def sigma_points(cls, dx: Tensor, dz: Tensor, wc: Tensor, r: Tensor | None) -> JosephForm:
+        """The unscented Joseph form of sigma-point deviations, as a fallback."""
+        return cls(r, points=(dx, dz, wc))
+
+    def covariance(self, cov: Tensor, gain: Tensor, mask: Tensor | None) -> Tensor:
+        """The posterior covariance in this form from the prior ``cov`` and the gain ``K``."""
+        if self.h is not None:
+            return joseph_update(cov, gain, *_masked_system(self.h, self.r, mask))  # type: ignore[arg-type]
+        if self.points is None:
+            raise ValueError("JosephForm needs h (JosephForm.linear) or points (JosephForm.sigma_points)")
+        return _sigma_joseph(gain, *self.points, self.r, mask)
+
+
 def gaussian_update(
     mean: Tensor,
     cov: Tensor,
@@ -45,9 +84,7 @@ def gaussian_update(
     cross_cov: Tensor,
     mask: Tensor | None,
     *,
-    joseph: tuple[Tensor, Tensor] | None = None,
-    joseph_fallback: tuple[Tensor, Tensor] | None = None,
-    sigma_fallback: tuple[Tensor, Tensor, Tensor, Tensor | None] | None = None,
+    joseph: JosephForm | None = None,
     add: Callable[[Tensor, Tensor], Tensor] | None = None,
 ) -> tuple[Tensor, Tensor, StepInfo]:
     """Linear-Gaussian measurement update shared by every Kalman-family filter.
@@ -58,14 +95,9 @@ def gaussian_update(
         innovation_cov: ``S [B, m, m]`` (measurement noise included).
         cross_cov: ``P_xz [B, n, m]``.
         mask: ``[B, m]`` bool, True = observed (``None``: all observed).
-        joseph: ``(H [B, m, n], R [B, m, m])`` to use the Joseph form (KF/EKF) instead of
-            ``P - K S K^T``.
-        joseph_fallback: ``(H, R)`` for the Joseph form on the batch elements where
-            ``P - K S K^T`` cancels (below).
-        sigma_fallback: ``(dx [B, S, n], dz [B, S, m], wc [S], R [B, m, m] or None)``, the
-            sigma-point deviations of an unscented update, for its Joseph form on those
-            elements: ``sum_i wc_i (dx_i - K dz_i)(dx_i - K dz_i)^T + K R K^T`` (``R`` None when
-            the points already carry the measurement noise).
+        joseph: the :class:`JosephForm`: with ``always`` the covariance is formed that way
+            (KF/EKF ``joseph=True``), else it is the fallback on the batch elements where
+            ``P - K S K^T`` cancels (below); ``None``: ``P - K S K^T`` only.
         add: ``add(x, dx)``, the state addition (e.g. ``DynamicsModel.add`` wrapping angular
             states) for the mean correction; None adds plainly.
 
@@ -91,24 +123,20 @@ def gaussian_update(
     correction = (w.mT @ v[..., None])[..., 0]
     new_mean = mean + correction if add is None else add(mean, correction)
     untrusted = None
-    if joseph is None:
+    if joseph is None or not joseph.always:
         new_cov = symmetrize(cov - w.mT @ w)
         switch, std_limit, _ = _trust_limits(mean.dtype)
         prior_var = torch.diagonal(cov, dim1=-2, dim2=-1)
         post_var = torch.diagonal(new_cov, dim1=-2, dim2=-1)
-        if joseph_fallback is None and sigma_fallback is None:
+        if joseph is None:
             untrusted = ~(post_var >= std_limit * prior_var).all(-1)
         elif any_set(post_var < switch * prior_var):
             lossy = (post_var < switch * prior_var).any(-1)
             gain = torch.linalg.solve_triangular(chol.mT, w, upper=True).mT  # K = W^T L^{-1}
-            if joseph_fallback is not None:
-                stable = joseph_update(cov, gain, *_masked_system(*joseph_fallback, mask))
-            else:
-                stable = _sigma_joseph(gain, *sigma_fallback, mask)  # type: ignore[misc]
-            new_cov = torch.where(lossy[..., None, None], stable, new_cov)
+            new_cov = torch.where(lossy[..., None, None], joseph.covariance(cov, gain, mask), new_cov)
     else:
         gain = torch.linalg.solve_triangular(chol.mT, w, upper=True).mT  # K = W^T L^{-1}
-        new_cov = joseph_update(cov, gain, *_masked_system(*joseph, mask))
+        new_cov = joseph.covariance(cov, gain, mask)
     loglik, maha = gaussian_log_density(innovation, chol, num_obs, whitened=v)
     info = StepInfo(loglik, maha, num_obs, innovation, innovation_cov, untrusted, jitter)
     return new_mean, new_cov, info

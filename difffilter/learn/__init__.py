@@ -10,16 +10,20 @@ from . import replicates  # noqa: F401 - registers the `replicate_seed` resolver
 from .checkpoints import best_checkpoint
 from .data import TrajectoryDataModule, TrajectorySet, WindowedTrajectories
 from .em import EMResult, fit_em
-from .learner import FilterLearner, load_filter
-from .losses import CompositeLoss, HuberLoss, LogNormalPrior, MSELoss, NEESLoss, NLLLoss, NormalPrior, StateNLLLoss
+from .learner import FilterLearner, LearnerOptions, load_filter
+from .losses import CompositeLoss, HuberLoss, LogNormalPrior, LogPrior, MSELoss, NEESLoss, NLLLoss, NormalPrior, StateNLLLoss
+from .plots import DiagnosticFigures
 from .search import SearchResult, grid_search, log_grid, random_search, validation_loss
 
 __all__ = [
     "CompositeLoss",
+    "DiagnosticFigures",
     "EMResult",
     "FilterLearner",
     "HuberLoss",
+    "LearnerOptions",
     "LogNormalPrior",
+    "LogPrior",
     "MSELoss",
     "NEESLoss",
     "NLLLoss",

@@ -1,7 +1,8 @@
 """Trajectory data for learning: simulated train/val/test sets and truncated-BPTT windows.
 
-A *simulator* is any callable ``simulator(batch_size=..., seed=..., dtype=...)`` returning an
-object with ``truth [B, T, n_t]``, ``measurements [B, T, m]``, ``mask`` (``[B, T]``,
+A *simulator* is any callable ``simulator(batch_size=..., seed=..., dtype=...)`` returning a
+:class:`~difffilter.sim.TrajectorySet` (or any object with its fields): ``truth [B, T, n_t]``,
+``measurements [B, T, m]``, ``mask`` (``[B, T]``,
 ``[B, T, m]`` or ``None``) and ``controls`` (tensor or dict of ``[B, T, ...]``, or ``None``), and
 optionally ``initial_mean [B, n]|[n]`` / ``initial_cov [n, n]|[B, n, n]`` (the belief before the
 first measurement), ``true_params`` and ``make_model()`` (for oracles).  Every difffilter
@@ -26,7 +27,6 @@ import inspect
 import math
 import warnings
 from collections.abc import Callable, Iterator, Mapping
-from dataclasses import dataclass
 from typing import Any
 
 import pytorch_lightning as pl
@@ -34,19 +34,24 @@ import torch
 from torch import Tensor
 
 from .._util import as_dtype
-from ..models.base import Controls
+from ..sim.trajectories import TrajectorySet
 
-__all__ = ["EpochOrder", "SimulatedTrajectories", "TrajectoryDataModule", "TrajectorySet", "WindowedTrajectories"]
+__all__ = ["EpochOrder", "TrajectoryDataModule", "TrajectorySet", "WindowedTrajectories"]
+
+
+def __getattr__(name: str) -> Any:
+    # SimulatedTrajectories was a second container with TrajectorySet's fields; it is TrajectorySet now
+    if name == "SimulatedTrajectories":
+        warnings.warn(
+            "difffilter.learn.data.SimulatedTrajectories is deprecated: subclass difffilter.sim.TrajectorySet",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        return TrajectorySet
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 Batch = dict[str, Any]
-
-
-def _map_controls(controls: Controls, fn: Callable[[Tensor], Tensor]) -> Controls:
-    if controls is None:
-        return None
-    if isinstance(controls, Tensor):
-        return fn(controls)
-    return {k: fn(v) for k, v in controls.items()}
 
 
 def _accepts(fn: Callable[..., Any], name: str) -> bool:
@@ -55,102 +60,6 @@ def _accepts(fn: Callable[..., Any], name: str) -> bool:
     except (TypeError, ValueError):
         return False
     return name in params or any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values())
-
-
-def _cast(x: Tensor | None, dtype: torch.dtype) -> Tensor | None:
-    return x.to(dtype) if x is not None and x.is_floating_point() else x
-
-
-@dataclass
-class SimulatedTrajectories:
-    """The fields a paper's simulator wrapper hands to :meth:`TrajectorySet.from_simulation`
-    (subclasses add their scenario, true parameters and ``make_model``): ``truth [B, T, ...]``,
-    ``measurements [B, T, m]``, ``mask [B, T, m]``, ``controls`` (dict of ``[B, T, ...]``),
-    ``initial_mean [B, n]`` and ``initial_cov [n, n]`` or ``[B, n, n]``."""
-
-    truth: Tensor
-    measurements: Tensor
-    mask: Tensor
-    controls: dict[str, Tensor]
-    initial_mean: Tensor
-    initial_cov: Tensor
-
-
-@dataclass
-class TrajectorySet:
-    """A set of ``N`` trajectories of ``T`` steps in a simulator-independent layout.
-
-    ``initial_mean [N, n]`` and ``initial_cov [N, n, n]`` are ``None`` when the simulator gives no
-    initial belief (the learner then uses its own).  ``source`` is the simulator's raw output
-    (``true_params``, ``make_model()``...).  ``modes [N, T]``: the true mode index of every step
-    when the simulator gives one (``modes``; drawn over IMM mode probabilities in the figures).
-    """
-
-    measurements: Tensor
-    mask: Tensor | None
-    controls: Controls
-    truth: Tensor | None
-    initial_mean: Tensor | None
-    initial_cov: Tensor | None
-    source: Any = None
-    modes: Tensor | None = None
-
-    @classmethod
-    def from_simulation(cls, data: Any, dtype: torch.dtype | None = None, max_steps: int | None = None) -> TrajectorySet:
-        """Normalise a simulator's output (shapes checked, floats cast to ``dtype``, time cut to
-        the first ``max_steps`` steps)."""
-        z = data.measurements
-        if not isinstance(z, Tensor) or z.ndim != 3:
-            raise ValueError(f"simulator output must have measurements [B, T, m], got {getattr(z, 'shape', type(z))}")
-        dtype = dtype or z.dtype
-        n_traj, steps = z.shape[:2]
-        cut = slice(0, steps if max_steps is None else min(int(max_steps), steps))
-        mean0 = getattr(data, "initial_mean", None)
-        cov0 = getattr(data, "initial_cov", None)
-        if mean0 is not None and mean0.ndim == 1:
-            mean0 = mean0.expand(n_traj, -1)
-        if cov0 is not None and cov0.ndim == 2:
-            cov0 = cov0.expand(n_traj, -1, -1)
-        truth = getattr(data, "truth", None)
-        modes = getattr(data, "modes", None)
-        return cls(
-            measurements=z[:, cut].to(dtype),
-            mask=None if getattr(data, "mask", None) is None else data.mask[:, cut],
-            controls=_map_controls(getattr(data, "controls", None), lambda v: _cast(v[:, cut], dtype)),  # type: ignore[arg-type]
-            truth=None if truth is None else truth[:, cut].to(dtype),
-            initial_mean=_cast(mean0, dtype),
-            initial_cov=_cast(cov0, dtype),
-            source=data,
-            modes=modes[:, cut] if isinstance(modes, Tensor) else None,
-        )
-
-    def __len__(self) -> int:
-        return int(self.measurements.shape[0])
-
-    @property
-    def num_steps(self) -> int:
-        return int(self.measurements.shape[1])
-
-    def batch(self, index: Tensor, start: int = 0, stop: int | None = None) -> Batch:
-        """Trajectories ``index`` restricted to steps ``[start, stop)`` as a batch dict."""
-        t = slice(start, stop)
-        pick: Callable[[Tensor], Tensor] = lambda v: v[index][:, t]  # noqa: E731
-        return {
-            "measurements": pick(self.measurements),
-            "mask": None if self.mask is None else pick(self.mask),
-            "controls": _map_controls(self.controls, pick),
-            "truth": None if self.truth is None else pick(self.truth),
-            "initial_mean": None if self.initial_mean is None else self.initial_mean[index],
-            "initial_cov": None if self.initial_cov is None else self.initial_cov[index],
-            "index": index,
-            "modes": None if self.modes is None else pick(self.modes),
-        }
-
-    def all(self) -> Batch:
-        """Every trajectory, whole, as one batch."""
-        out = self.batch(torch.arange(len(self)))
-        out.update(window_index=0, num_windows=1, start=0)
-        return out
 
 
 class EpochOrder:

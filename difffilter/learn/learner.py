@@ -7,29 +7,37 @@ truncated-BPTT windows (:mod:`difffilter.learn.data`): window ``k > 0`` of a bat
 from the detached final belief of window ``k - 1``, so a trajectory of any length trains in
 memory bounded by the window; each window is one optimiser step.
 
-Stability kit:
+What the learner is given, and what it is not:
 
-* ``dtype`` converts the filter (float64 for learning, the default of the configs);
-* ``max_jitter`` bounds the Cholesky jitter (:func:`~difffilter.evaluate.stability.bounded_jitter`);
-* trajectories with a non-finite loss are left out of the batch mean and counted
-  (``stability/nonfinite_trajectories``); a step whose loss or gradient is not finite is
-  skipped (gradients cleared, so the optimiser leaves the parameters and its state alone) and
-  counted (``stability/skipped_steps``).  Each kind warns once;
-* gradient clipping is the Trainer's ``gradient_clip_val``.
+* the filter runs as given (convert it first, ``filter.double()``, for float64 learning), on the
+  engine the policy picks (``DIFFFILTER_ENGINE``, default ``auto``: the compiled engine once the
+  training calls add up, see :mod:`difffilter.engines.policy`); a
+  :class:`~difffilter.engines.FusedFilter` wrapping it pins the compiled engine from the first
+  step, while parameters, their names and checkpoints stay the filter's;
+* :class:`LearnerOptions` holds the plain settings (initial belief, jitter bound, smoother,
+  metric indices, scheduler interval): plain values, kept in checkpoints;
+* a :class:`~difffilter.learn.losses.LogPrior` adds ``-weight * sum log p(value)`` to the loss;
+* figures are the :class:`~difffilter.learn.plots.DiagnosticFigures` callback, a seeded
+  perturbation of the start values is
+  :func:`~difffilter.learn.replicates.perturb_initial_values` (both called by the runner).
 
-Smoothing (``smoother="rts"`` or a mapping ``{kind, lag, time_chunk, train, evaluate}``, see
-:func:`difffilter.smoothers.smoother_spec`): with ``train`` (default) every window is smoothed
-after filtering and the loss receives the :class:`~difffilter.smoothers.SmootherResult` (state
-losses then score ``x_{t|T}``); the belief carried to the next window is still the filter's.
-Validation and test also log the smoothed ``smoothed_rmse_pos``, ``smoothed_rmse_state`` and
+Stability: ``options.max_jitter`` bounds the Cholesky jitter
+(:func:`~difffilter.evaluate.stability.bounded_jitter`); trajectories with a non-finite loss are
+left out of the batch mean and counted (``stability/nonfinite_trajectories``); a step whose loss
+or gradient is not finite is skipped (gradients cleared, so the optimiser leaves the parameters
+and its state alone) and counted (``stability/skipped_steps``).  Each kind warns once.
+Gradient clipping is the Trainer's ``gradient_clip_val``.
+
+Smoothing (``options.smoother="rts"`` or a mapping ``{kind, lag, time_chunk, train, evaluate}``,
+see :func:`difffilter.smoothers.smoother_spec`): with ``train`` (default) every window is
+smoothed after filtering and the loss receives the :class:`~difffilter.smoothers.SmootherResult`
+(state losses then score ``x_{t|T}``); the belief carried to the next window is still the
+filter's.  Validation and test also log ``smoothed_rmse_pos``, ``smoothed_rmse_state`` and
 ``smoothed_anees``.
 
 Logged to every logger: ``train/loss``, ``val/loss`` and ``val/{rmse_pos, rmse_state, anees,
-nis, nll}`` (``test/...`` likewise), every element of every learnable constrained value each
-epoch (``params/model.measurement.R[0,0]``...), and, to loggers that can, figures: truth vs
-estimate, errors with their ±3 sigma envelope, and IMM mode probabilities when the result has
-``mode_probs`` (with the true mode drawn over them when the data have ``modes``), axes named
-after the model's :class:`~difffilter.models.layout.StateLayout`.
+nis, nll}`` (``test/...`` likewise) and every element of every learnable constrained value each
+epoch (``params/model.measurement.R[0,0]``...).
 
 Checkpoints load back without arguments: ``FilterLearner.load_from_checkpoint(path)`` rebuilds
 the filter from ``filter_config`` (which :func:`~experiments.runner.experiment.run_experiment`
@@ -39,6 +47,7 @@ checkpoint also carries what resuming needs (:mod:`difffilter.learn.checkpoints`
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any
@@ -49,7 +58,6 @@ from hydra.utils import instantiate
 from torch import Tensor, nn
 
 from .. import linalg
-from .._util import as_dtype
 from ..engines import FusedFilter
 from ..evaluate.stability import OnceWarner, bounded_jitter
 from ..filters.base import detach_belief
@@ -58,51 +66,32 @@ from ..selection import learnable_values, match_parameters, parameter_owners, se
 from ..smoothers import Smoother, SmootherResult, make_smoother, smoother_spec
 from .checkpoints import CHECKPOINT_KEY, learner_state, restore_learner_state, set_rng_state
 from .eval_steps import EvaluationSteps
-from .losses import FilterLoss, Prior, make_loss
-from .replicates import perturb_initial_values
+from .losses import FilterLoss, LogPrior, make_loss
+from .options import LearnerOptions
 from .reporting import parameter_scalars
 
-__all__ = ["FilterLearner", "load_filter", "make_loss", "parameter_scalars"]
+__all__ = ["FilterLearner", "LearnerOptions", "load_filter", "make_loss", "parameter_scalars"]
 
 
 class FilterLearner(EvaluationSteps, pl.LightningModule):
     """Learn a filter's parameters from trajectories.
 
     Args:
-        filter: the filter or mixer to train (any :class:`~difffilter.filters.protocol.Filter`);
-            may be left out when ``filter_config`` is given.
+        filter: the filter or mixer to train (any :class:`~difffilter.filters.protocol.Filter`),
+            or a :class:`~difffilter.engines.FusedFilter` wrapping it (trained through the
+            compiled engine; :attr:`filter` is then the wrapped filter); may be left out when
+            ``filter_config`` is given.
         loss: ``"mse"``, ``"nll"``, ``"nees"``, a Hydra loss config (``{"_target_": ...}``) or a
             callable ``(result, batch) -> [B]`` (see :mod:`difffilter.learn.losses`).  Names and
             configs are kept in the checkpoint's hyperparameters, callables are not.
         learn: names of the parameters to train (``["R", "Q", "tau", "transition"]``; matched as
             in :mod:`difffilter.selection`); ``None`` trains every parameter.
         optimizer: ``params -> torch.optim.Optimizer`` (a Hydra ``_partial_``); default Adam(lr=0.01).
-        scheduler: optional ``optimizer -> LR scheduler`` (a Hydra ``_partial_``).
-        scheduler_interval: ``"epoch"`` or ``"step"``.
-        monitor: metric a plateau scheduler watches.
-        initial_mean, initial_cov: ``[n]``, ``[n, n]`` initial belief used when the batches
-            carry none.
-        log_prior: ``{parameter name: prior with log_prob(value)}``; the loss becomes
-            ``data_loss - prior_weight * sum log p(value)``.
-        prior_weight: weight of the log-prior (the data loss is per step and trajectory, so
-            ``1 / (trajectories x steps)`` makes the objective the MAP one).
-        dtype: convert the filter to this dtype (``"float64"``); ``None`` keeps it.
-        max_jitter: largest relative Cholesky jitter allowed while filtering (``None``: default).
-        position_index, truth_position_index: state/truth components of the position (for
-            ``rmse_pos`` and the trajectory figure).
-        state_index, truth_index: state/truth components for ``rmse_state`` and NEES.
-        figure_every_n_epochs: validation figures every n epochs (0: never).
-        max_logged_elements: larger parameters log only their diagonal / norm.
-        fused: run the filter through :class:`~difffilter.filters.FusedFilter` (same results,
-            faster): ``True`` uses its default engine (generated kernels on CPU), ``"eager"``
-            runs the batch-last step uncompiled, ``False`` (default) the filter itself.
-            Parameters, their names and checkpoints are the filter's either way.
-        smoother: ``None``, ``"rts"``, ``"fixed_lag"`` or a mapping (see the module docstring);
-            the smoother runs on the filter's result (also a fused one).
-        init_perturbation: log-scale standard deviation of a seeded perturbation of the learned
-            parameters' initial values (:func:`~difffilter.learn.replicates.perturb_initial_values`);
-            0 (default) starts from the given values exactly.
-        init_seed: seed of that perturbation (a multirun's ``${seed}``).
+        scheduler: optional ``optimizer -> LR scheduler`` (a Hydra ``_partial_``); its interval
+            and monitored metric are ``options.scheduler_interval`` and ``options.monitor``.
+        prior: a :class:`~difffilter.learn.losses.LogPrior`; the loss becomes
+            ``data_loss - prior.weight * sum log p(value)``.
+        options: :class:`LearnerOptions` (or a mapping of its fields).
         filter_config: a Hydra config that builds the filter's structure (its values come from
             the state dict), kept in the checkpoint so that ``load_from_checkpoint(path)`` needs
             no argument; builds ``filter`` when that is left out.  ``run_experiment`` sets it
@@ -110,37 +99,21 @@ class FilterLearner(EvaluationSteps, pl.LightningModule):
 
     Example::
 
-        learner = FilterLearner(UKF(model), "nll", learn=["Q", "R"])
+        learner = FilterLearner(UKF(model).double(), "nll", learn=["Q", "R"])
         pl.Trainer(max_epochs=20).fit(learner, datamodule=TrajectoryDataModule(simulator))
         learned = FilterLearner.load_from_checkpoint(path, filter=UKF(model)).filter
     """
 
     def __init__(
         self,
-        filter: Filter | None = None,  # noqa: A002 - the field's word
+        filter: Filter | FusedFilter | None = None,  # noqa: A002 - the field's word
         loss: FilterLoss | str | Mapping[str, Any] = "nll",
         *,
         learn: Sequence[str] | None = None,
         optimizer: Callable[[Iterable[nn.Parameter]], torch.optim.Optimizer] | None = None,
         scheduler: Callable[[torch.optim.Optimizer], Any] | None = None,
-        scheduler_interval: str = "epoch",
-        monitor: str = "val/loss",
-        initial_mean: Tensor | Sequence[float] | None = None,
-        initial_cov: Tensor | Sequence[Sequence[float]] | None = None,
-        log_prior: Mapping[str, Prior] | None = None,
-        prior_weight: float = 1.0,
-        dtype: torch.dtype | str | None = None,
-        max_jitter: float | None = None,
-        position_index: Sequence[int] | None = None,
-        truth_position_index: Sequence[int] | None = None,
-        state_index: Sequence[int] | None = None,
-        truth_index: Sequence[int] | None = None,
-        figure_every_n_epochs: int = 1,
-        max_logged_elements: int = 64,
-        fused: bool | str = False,
-        smoother: str | Mapping[str, Any] | None = None,
-        init_perturbation: float = 0.0,
-        init_seed: int = 0,
+        prior: LogPrior | None = None,
+        options: LearnerOptions | Mapping[str, Any] | None = None,
         filter_config: Mapping[str, Any] | None = None,
     ) -> None:
         super().__init__()
@@ -151,52 +124,29 @@ class FilterLearner(EvaluationSteps, pl.LightningModule):
                 "FilterLearner needs filter= (or filter_config=); a checkpoint saved without filter_config loads with "
                 "FilterLearner.load_from_checkpoint(path, filter=<a filter of the same structure>)"
             )
+        engine = filter if isinstance(filter, FusedFilter) else None
+        if engine is not None:
+            filter = engine.filter  # noqa: A001
         if not isinstance(filter, Filter):
             raise TypeError(
-                "filter must be a difffilter Filter (a RecursiveFilter, formerly GaussianFilter; a mixer; a baseline), "
-                f"got {type(filter).__name__}"
+                "filter must be a difffilter Filter (a RecursiveFilter, formerly GaussianFilter; a mixer; a baseline) "
+                f"or a FusedFilter wrapping one, got {type(filter).__name__}"
             )
-        if scheduler_interval not in ("epoch", "step"):
-            raise ValueError(f"scheduler_interval must be 'epoch' or 'step', got {scheduler_interval!r}")
+        if prior is not None and not isinstance(prior, LogPrior):
+            raise TypeError(f"prior must be a difffilter.learn.losses.LogPrior, got {type(prior).__name__}")
         # names and configs are kept (load_from_checkpoint rebuilds from them); objects are not
-        ignore = ["filter", "optimizer", "scheduler", "log_prior"] + ([] if isinstance(loss, str | Mapping) else ["loss"])
+        ignore = ["filter", "optimizer", "scheduler", "prior", "options"] + ([] if isinstance(loss, str | Mapping) else ["loss"])
         self.save_hyperparameters(ignore=ignore)
-        self.filter = filter if dtype is None else filter.to(as_dtype(dtype))
+        self.filter = filter
         self.loss_fn = make_loss(loss)
         self.learned_names = select_parameters(self.filter, None if learn is None else list(learn))
-        perturb_initial_values(self.filter, self.learned_names, init_perturbation, seed=init_seed)
         # An empty config group (scheduler: none) arrives as an empty mapping: no scheduler.
         self.optimizer_factory = optimizer or None
         self.scheduler_factory = scheduler or None
-        self.scheduler_interval, self.monitor = scheduler_interval, monitor
-        pdt = next((p.dtype for p in self.filter.parameters()), as_dtype(dtype))
-        self.register_buffer("initial_mean", None if initial_mean is None else torch.as_tensor(initial_mean, dtype=pdt))
-        cov0 = None if initial_cov is None else torch.as_tensor(initial_cov, dtype=pdt)
-        if cov0 is not None and cov0.ndim == 1:
-            cov0 = torch.diag_embed(cov0)
-        self.register_buffer("initial_cov", cov0)
-        self.priors = dict(log_prior or {})
-        self.prior_names = {k: match_parameters(self.filter, [k])[k] for k in self.priors}
-        self.prior_weight = float(prior_weight)
-        self.max_jitter = max_jitter
-        if fused not in (False, True, "eager"):
-            raise ValueError(f"fused must be False, True or 'eager', got {fused!r}")
-        # kept outside the module tree: parameter names and state_dict stay the filter's own
-        runner = FusedFilter(self.filter, compile=fused is True) if fused else self.filter
-        object.__setattr__(self, "_runner", runner)
-        spec = smoother_spec(smoother)
-        built = None if spec is None else make_smoother(self.filter, spec["kind"], lag=spec.get("lag"), time_chunk=spec.get("time_chunk"))
-        object.__setattr__(self, "_smoother", built)  # shares self.filter; kept out of the module tree
-        self.smooth_training = spec is not None and bool(spec.get("train", True))
-        idx = lambda v: None if v is None else [int(i) for i in v]  # noqa: E731
-        self.indices = {
-            "position_index": idx(position_index),
-            "truth_position_index": idx(truth_position_index),
-            "state_index": idx(state_index),
-            "truth_index": idx(truth_index),
-        }
-        self.figure_every_n_epochs = int(figure_every_n_epochs)
-        self.max_logged_elements = int(max_logged_elements)
+        self.prior = prior
+        self.prior_names = {} if prior is None else {k: match_parameters(self.filter, [k])[k] for k in prior.priors}
+        self.set_engine(engine)
+        self.set_options(LearnerOptions.of(options))
         self.skipped_steps = 0
         self.nonfinite_trajectories = 0
         self._warn = OnceWarner()
@@ -204,11 +154,39 @@ class FilterLearner(EvaluationSteps, pl.LightningModule):
         self._carry_index: Tensor | None = None
         self._skip_pending = False
         self._sums: dict[str, Tensor] = {}
-        self._figure_data: dict[str, Any] | None = None
         self._restored_rng: Mapping[str, Any] | None = None
         self._restored_carry = False
         #: the resolved experiment config (kept in checkpoints; set by run_experiment)
         self.run_config: dict[str, Any] | None = None
+
+    def set_options(self, options: LearnerOptions) -> None:
+        """Use ``options`` (the initial belief buffers, the smoother and the indices follow them)."""
+        self.options = options
+        self.hparams["options"] = options.as_dict()
+        pdt = next((p.dtype for p in self.filter.parameters()), torch.get_default_dtype())
+        mean0, cov0 = options.initial_mean, options.initial_cov
+        self.register_buffer("initial_mean", None if mean0 is None else torch.as_tensor(mean0, dtype=pdt))
+        cov0 = None if cov0 is None else torch.as_tensor(cov0, dtype=pdt)
+        self.register_buffer("initial_cov", torch.diag_embed(cov0) if cov0 is not None and cov0.ndim == 1 else cov0)
+        spec = smoother_spec(options.smoother)
+        built = None if spec is None else make_smoother(self.filter, spec["kind"], lag=spec.get("lag"), time_chunk=spec.get("time_chunk"))
+        object.__setattr__(self, "_smoother", built)  # shares self.filter; kept out of the module tree
+        self.smooth_training = spec is not None and bool(spec.get("train", True))
+        self.indices = options.indices
+
+    @property
+    def engine(self) -> FusedFilter | None:
+        """The :class:`~difffilter.engines.FusedFilter` that runs :attr:`filter`, or ``None``
+        (the filter runs itself)."""
+        return self._engine
+
+    def set_engine(self, engine: FusedFilter | None) -> None:
+        """Run :attr:`filter` through ``engine`` (a ``FusedFilter(learner.filter)``) from now on;
+        ``None``: the filter itself.  Kept outside the module tree: parameter names and the
+        state dict stay the filter's own."""
+        if engine is not None and (not isinstance(engine, FusedFilter) or engine.filter is not self.filter):
+            raise ValueError("engine must be a FusedFilter wrapping this learner's filter (FusedFilter(learner.filter)) or None")
+        object.__setattr__(self, "_engine", engine)
 
     # -- running the filter -------------------------------------------------------------------
     def initial_belief(self, batch: Mapping[str, Any]) -> tuple[Tensor, Tensor]:
@@ -217,7 +195,7 @@ class FilterLearner(EvaluationSteps, pl.LightningModule):
         mean = self.initial_mean if mean is None else mean
         cov = self.initial_cov if cov is None else cov
         if mean is None or cov is None:
-            raise ValueError("no initial belief: the batches carry none, so give FilterLearner initial_mean= and initial_cov=")
+            raise ValueError("no initial belief: the batches carry none, so give LearnerOptions(initial_mean=..., initial_cov=...)")
         return mean, cov
 
     def forward(self, batch: Mapping[str, Any], belief: Belief | None = None) -> FilterResult | SmootherResult:  # type: ignore[override]
@@ -229,8 +207,8 @@ class FilterLearner(EvaluationSteps, pl.LightningModule):
     def run_filter(self, batch: Mapping[str, Any], belief: Belief | None = None) -> FilterResult:
         """The filter's result on a batch dict (from ``belief`` if given, else the initial belief)."""
         mean, cov = self.initial_belief(batch)
-        with bounded_jitter(self.max_jitter):
-            return self._runner(
+        with bounded_jitter(self.options.max_jitter):
+            return (self._engine or self.filter)(
                 batch["measurements"],
                 None if belief is not None else mean,
                 None if belief is not None else cov,
@@ -247,20 +225,20 @@ class FilterLearner(EvaluationSteps, pl.LightningModule):
     def smooth(self, result: FilterResult, batch: Mapping[str, Any], belief: Belief | None = None) -> SmootherResult:
         """The configured smoother's backward pass over the filter ``result`` of ``batch``."""
         if self._smoother is None:
-            raise ValueError("FilterLearner has no smoother: pass smoother='rts' (or a mapping)")
+            raise ValueError("FilterLearner has no smoother: pass options=LearnerOptions(smoother='rts') (or a mapping)")
         if belief is None:
             mean, cov = self.initial_belief(batch)
             belief = self.filter.initial_belief(mean, cov, batch_size=int(batch["measurements"].shape[0]))
-        with bounded_jitter(self.max_jitter):
+        with bounded_jitter(self.options.max_jitter):
             return self._smoother.smooth(result, belief, batch.get("controls"))
 
     def log_prior(self) -> Tensor | None:
         """Sum of the configured parameter log-priors (``None`` without priors)."""
-        if not self.priors:
+        if self.prior is None:
             return None
         owners = parameter_owners(self.filter)
         total: Tensor | None = None
-        for key, prior in self.priors.items():
+        for key, prior in self.prior.priors.items():
             for name in self.prior_names[key]:
                 mod, attr, _ = owners[name]
                 lp = prior.log_prob(getattr(mod, attr))
@@ -308,7 +286,7 @@ class FilterLearner(EvaluationSteps, pl.LightningModule):
         loss, _ = self._reduce_loss(self.loss_fn(result, batch), "train")
         prior = self.log_prior()
         if loss is not None and prior is not None:
-            loss = loss - self.prior_weight * prior
+            loss = loss - self.prior.weight * prior  # type: ignore[union-attr]
         if loss is None or not bool(torch.isfinite(loss)):
             self._skip_pending = True
             loss = self._zero_loss()
@@ -336,7 +314,7 @@ class FilterLearner(EvaluationSteps, pl.LightningModule):
     def on_train_epoch_end(self) -> None:
         scalars: dict[str, float] = {}
         for name, value in learnable_values(self.filter).items():
-            scalars.update(parameter_scalars(f"params/{name}", value, self.max_logged_elements))
+            scalars.update(parameter_scalars(f"params/{name}", value, self.options.max_logged_elements))
         scalars["stability/nonfinite_trajectories"] = float(self.nonfinite_trajectories)
         # covariance factorisations that failed even at the largest allowed jitter (identity
         # factor substituted): process-wide count from difffilter.linalg
@@ -360,6 +338,11 @@ class FilterLearner(EvaluationSteps, pl.LightningModule):
         checkpoint[CHECKPOINT_KEY] = learner_state(self)
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        stored = checkpoint.get("hyper_parameters") or {}
+        if "options" not in stored:  # a checkpoint from before LearnerOptions: the same fields, flat
+            legacy = {f.name: stored[f.name] for f in dataclasses.fields(LearnerOptions) if f.name in stored}
+            if legacy:
+                self.set_options(LearnerOptions(**legacy))
         restore_learner_state(self, checkpoint.get(CHECKPOINT_KEY))
 
     def configure_optimizers(self) -> Any:
@@ -373,7 +356,7 @@ class FilterLearner(EvaluationSteps, pl.LightningModule):
         scheduler = self.scheduler_factory(optimizer)
         return {
             "optimizer": optimizer,
-            "lr_scheduler": {"scheduler": scheduler, "interval": self.scheduler_interval, "monitor": self.monitor},
+            "lr_scheduler": {"scheduler": scheduler, "interval": self.options.scheduler_interval, "monitor": self.options.monitor},
         }
 
 

@@ -23,7 +23,7 @@ rest.  ``batch`` holds at least ``truth [B, T, n_t]`` for the supervised losses.
   consistent estimates.
 
 Every loss reads ``result.mean``/``result.cov``: given a
-:class:`~difffilter.smoothers.SmootherResult` (``FilterLearner(..., smoother="rts")``) the
+:class:`~difffilter.smoothers.SmootherResult` (``LearnerOptions(smoother="rts")``) the
 state losses score the *smoothed* states ``x_{t|T}``, ``P_{t|T}`` (the innovation ``nll`` stays
 the filter's likelihood).
 """
@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any, Protocol
 
 import torch
@@ -47,6 +48,7 @@ __all__ = [
     "FilterLoss",
     "HuberLoss",
     "LogNormalPrior",
+    "LogPrior",
     "MSELoss",
     "NEESLoss",
     "NLLLoss",
@@ -223,6 +225,28 @@ class LogNormalPrior:
             value = torch.diagonal(value, dim1=-2, dim2=-1)
         logv = torch.log(value)
         return NormalPrior(loc=self.loc, scale=self.scale).log_prob(logv) - logv.sum()
+
+
+@dataclass(frozen=True)
+class LogPrior:
+    """Priors on named parameters for a MAP objective: the learner's loss becomes
+    ``data_loss - weight * sum_name log p(value of name)``.
+
+    Attributes:
+        priors: ``{parameter name: prior with log_prob(value)}`` (names matched as in
+            :mod:`difffilter.selection`).
+        weight: weight of the log-prior (the data loss is per step and trajectory, so
+            ``1 / (trajectories x steps)`` makes the objective the MAP one).
+    """
+
+    priors: Mapping[str, Prior]
+    weight: float = 1.0
+
+    def __post_init__(self) -> None:
+        bad = [k for k, v in self.priors.items() if not callable(getattr(v, "log_prob", None))]
+        if bad:
+            raise TypeError(f"LogPrior priors must have log_prob(value); not so for {bad}")
+        object.__setattr__(self, "weight", float(self.weight))
 
 
 _LOSSES: dict[str, Callable[[], FilterLoss]] = {"mse": MSELoss, "nll": NLLLoss, "nees": NEESLoss, "state_nll": StateNLLLoss}

@@ -1,4 +1,5 @@
-"""Diagnostic figures (matplotlib, object-oriented API: no global pyplot state).
+"""Diagnostic figures (matplotlib, object-oriented API: no global pyplot state), and the
+:class:`DiagnosticFigures` callback that logs them during training.
 
 Each function draws one trajectory and returns a ``matplotlib.figure.Figure`` ready for
 ``SummaryWriter.add_figure`` or ``fig.savefig``.  Axes carry the state components' names and
@@ -11,13 +12,14 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from typing import Any
 
+import pytorch_lightning as pl
 import torch
 from matplotlib.figure import Figure
 from torch import Tensor
 
-from ..models.layout import StateLayout
+from ..models.layout import StateLayout, model_defaults
 
-__all__ = ["diagnostic_figures", "plot_errors", "plot_mode_probs", "plot_trajectory", "state_labels"]
+__all__ = ["DiagnosticFigures", "diagnostic_figures", "plot_errors", "plot_mode_probs", "plot_trajectory", "state_labels"]
 
 
 def state_labels(index: Sequence[int], layout: StateLayout | None = None) -> list[str]:
@@ -150,3 +152,68 @@ def diagnostic_figures(
     if data.get("mode_probs") is not None:
         figures["mode_probs"] = plot_mode_probs(data["mode_probs"], true_modes=data.get("modes"))
     return figures
+
+
+class DiagnosticFigures(pl.Callback):
+    """Log :func:`diagnostic_figures` of the first trajectory of the first validation batch
+    every ``every_n_epochs`` epochs (0: never), and of the test set, to every logger that takes
+    figures (``add_figure``, e.g. TensorBoard): truth vs estimate, errors with their ±3 sigma
+    envelope, and IMM mode probabilities when the result has ``mode_probs`` (with the true mode
+    drawn over them when the data have ``modes``), axes named after the model's
+    :class:`~difffilter.models.layout.StateLayout`.
+
+    Works with a :class:`~difffilter.learn.learner.FilterLearner`, whose validation and test
+    steps return the filter's result of the batch.
+    """
+
+    def __init__(self, *, every_n_epochs: int = 1) -> None:
+        self.every_n_epochs = int(every_n_epochs)
+        self._data: dict[str, Any] | None = None
+
+    def _keep(self, outputs: Any, batch: Mapping[str, Any], batch_idx: int, dataloader_idx: int) -> None:
+        if batch_idx != 0 or dataloader_idx != 0 or outputs is None:
+            return
+        first = lambda v: None if v is None else v[0].detach()  # noqa: E731
+        self._data = {
+            "truth": first(batch.get("truth")),
+            "mean": first(outputs.mean),
+            "cov": first(outputs.cov),
+            "mode_probs": first(outputs.extras.get("mode_probs")),
+            "modes": first(batch.get("modes")),
+        }
+
+    def on_validation_batch_end(
+        self, trainer: pl.Trainer, pl_module: pl.LightningModule, outputs: Any, batch: Any, batch_idx: int, dataloader_idx: int = 0
+    ) -> None:  # noqa: E501
+        self._keep(outputs, batch, batch_idx, dataloader_idx)
+
+    def on_test_batch_end(
+        self, trainer: pl.Trainer, pl_module: pl.LightningModule, outputs: Any, batch: Any, batch_idx: int, dataloader_idx: int = 0
+    ) -> None:  # noqa: E501
+        self._keep(outputs, batch, batch_idx, dataloader_idx)
+
+    def on_validation_epoch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        every = self.every_n_epochs
+        if every > 0 and trainer.current_epoch % every == 0 and not trainer.sanity_checking:
+            self._log(trainer, pl_module, "val")
+        self._data = None
+
+    def on_test_epoch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        self._log(trainer, pl_module, "test")
+        self._data = None
+
+    def _log(self, trainer: pl.Trainer, pl_module: pl.LightningModule, stage: str) -> None:
+        writers = [lg.experiment for lg in trainer.loggers if hasattr(lg.experiment, "add_figure")]
+        if self._data is None or not trainer.is_global_zero or not writers:
+            return
+        indices = getattr(pl_module, "indices", {})
+        defaults = model_defaults(getattr(pl_module, "filter", None))
+        figures = diagnostic_figures(
+            self._data,
+            position_index=indices.get("position_index"),
+            truth_position_index=indices.get("truth_position_index"),
+            layout=None if defaults is None else defaults.layout,
+        )
+        for writer in writers:
+            for name, fig in figures.items():
+                writer.add_figure(f"{stage}/{name}", fig, global_step=trainer.global_step, close=False)

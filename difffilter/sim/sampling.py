@@ -42,19 +42,9 @@ from ..models.base import Controls, StateSpaceModel
 from ..models.layout import model_defaults
 from ..params import constrained_values
 from ..selection import assign_parameters
+from .trajectories import TrajectorySet, cast_controls
 
 __all__ = ["ModelSimulator", "SampledTrajectories", "sample_trajectories", "simulate"]
-
-
-def _cast_controls(controls: Controls, dtype: torch.dtype) -> Controls:
-    def cast(v: Tensor) -> Tensor:
-        return v.to(dtype) if v.is_floating_point() else v
-
-    if controls is None:
-        return None
-    if isinstance(controls, Tensor):
-        return cast(controls)
-    return {k: cast(v) for k, v in controls.items()}
 
 
 def _noise_factor(cov: Tensor, batch: int, dim: int) -> Tensor:
@@ -62,17 +52,13 @@ def _noise_factor(cov: Tensor, batch: int, dim: int) -> Tensor:
     return safe_cholesky(cov).factor
 
 
-@dataclass
-class SampledTrajectories:
-    """Trajectories drawn from a model (batch-first, ``T`` steps).
+@dataclass(kw_only=True)
+class SampledTrajectories(TrajectorySet):
+    """Trajectories drawn from a model (batch-first, ``T`` steps): a
+    :class:`~difffilter.sim.TrajectorySet` with ``truth [B, T, n]`` (``x_1..x_T``), ``mask [B, T]``
+    (or ``None``), ``initial_mean [B, n]`` (``m_0``) and ``initial_cov [n, n]`` (``P_0``), plus:
 
     Attributes:
-        truth: ``[B, T, n]`` true states ``x_1..x_T``.
-        measurements: ``[B, T, m]`` (NaN where ``mask`` is False).
-        mask: ``[B, T]`` bool, True = observed, or ``None`` when every step is observed.
-        controls: the per-step inputs ``[B, T, ...]`` used (tensor, dict or ``None``).
-        initial_mean: ``[B, n]`` prior mean ``m_0`` (the filter's starting belief).
-        initial_cov: ``[n, n]`` prior covariance ``P_0``.
         initial_state: ``[B, n]`` the drawn ``x_0``.
         true_params: constrained parameter values of the sampling model, ``{dotted name: value}``
             (e.g. ``{"dynamics.Q": ..., "measurement.R": ...}``), for an oracle filter.
@@ -80,12 +66,6 @@ class SampledTrajectories:
         model: the sampling model (float64 copy); see :meth:`make_model`.
     """
 
-    truth: Tensor
-    measurements: Tensor
-    mask: Tensor | None
-    controls: Controls
-    initial_mean: Tensor
-    initial_cov: Tensor
     initial_state: Tensor
     true_params: dict[str, Tensor] = field(default_factory=dict)
     dt: float | None = None
@@ -148,7 +128,7 @@ def sample_trajectories(
     if cov0.shape != (n, n):
         raise ValueError(f"initial_cov must have shape [{n}, {n}], got {tuple(cov0.shape)}")
     mean0 = mean0.expand(batch_size, n)
-    u_all = _cast_controls(controls, f64)
+    u_all = cast_controls(controls, f64)
 
     chol0 = safe_cholesky(cov0).factor
     x = mean0 + (chol0 @ torch.randn(batch_size, n, 1, generator=gen, dtype=f64))[..., 0]
@@ -177,7 +157,7 @@ def sample_trajectories(
         truth=truth.to(out_dtype),
         measurements=measurements.to(out_dtype),
         mask=mask,
-        controls=_cast_controls(controls, out_dtype),
+        controls=cast_controls(controls, out_dtype),
         initial_mean=mean0.to(out_dtype).clone(),
         initial_cov=cov0.to(out_dtype),
         initial_state=x0.to(out_dtype),
@@ -312,7 +292,7 @@ def simulate(
         given = controls  # per-trajectory inputs, used as they are
 
         def fixed(b: int, t: int, g: torch.Generator | None, d: torch.dtype) -> Controls:
-            return _cast_controls(given[:, :t] if isinstance(given, Tensor) else {k: v[:, :t] for k, v in given.items()}, d)
+            return cast_controls(given[:, :t] if isinstance(given, Tensor) else {k: v[:, :t] for k, v in given.items()}, d)
 
     else:
         fixed = controls

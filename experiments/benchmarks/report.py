@@ -45,9 +45,9 @@ def _find(rows: list[dict[str, Any]], **key: Any) -> dict[str, Any] | None:
 
 
 def summarize_targets(report: BenchReport, *, batch: int = 256, dtype: str = "float64", imm_modes: int = 2) -> list[dict[str, Any]]:
-    """The performance targets of issue 16, checked on the measured rows (``dtype``, ``B = batch``
-    unless stated): training-step and forward throughput against dynamax, IMM cost per mode,
-    TBPTT memory."""
+    """The performance targets of issues 16 and 26, checked on the measured rows (``dtype``,
+    ``B = batch`` unless stated): training-step and forward throughput against dynamax (issue 26:
+    of a plain call, the default path), IMM cost per mode, TBPTT memory."""
     rows = report.rows
     out: list[dict[str, Any]] = []
 
@@ -61,10 +61,16 @@ def summarize_targets(report: BenchReport, *, batch: int = 256, dtype: str = "fl
             }
         )
 
-    def ratio(kind: str, mode: str, b: int, peer: str = "dynamax") -> float | None:
+    def ratio(kind: str, mode: str, b: int, peer: str = "dynamax", column: str = "fused_over_peer") -> float | None:
         r = _find(rows, filter=kind, library=peer, dtype=dtype, B=b, mode=mode)
-        v = None if r is None else r.get("fused_over_peer", math.nan)
+        v = None if r is None else r.get(column, math.nan)
         return None if v is None or math.isnan(v) else float(v)
+
+    # issue 26: the default path, a plain call as a user writes it (the engine DIFFFILTER_ENGINE picks)
+    for kind, b, goal in (("ukf", batch, 5.0), ("ukf", 1, 1.5), ("kf", batch, 2.0)):
+        v = ratio(kind, "train", b, column="difffilter_over_peer")
+        name = f"{kind.upper()} train B={b}: difffilter (plain call) / dynamax throughput"
+        add(name, v, f">= {goal:g}", None if v is None else v >= goal)
 
     for kind, mode, b, goal in (
         ("ukf", "train", batch, 2.0), ("ukf", "train", 16, 1.0), ("ekf", "train", batch, 1.0), ("kf", "train", batch, 1.0),
@@ -168,7 +174,8 @@ def write_report(
     md += [
         "Throughput = trajectory-steps per second (B x T / best wall time). `forward`: the filter without gradient; "
         "`train`: the training step, the batch's total log-likelihood and its gradient w.r.t. the diagonal of R. "
-        "`difffilter_over_peer` = difffilter's "
+        "`difffilter_over_peer` = difffilter's (a plain call as a user writes it: the engine that "
+        "`DIFFFILTER_ENGINE`, default `auto`, picks, named in its row's note; its kernels built before timing) "
         "throughput / the peer's in the same configuration (> 1: difffilter faster); `fused_over_peer` the same for "
         "`difffilter-fused` (`FusedFilter`; its `compile_s` is the first call, which builds or loads its kernels). "
         "`fb_over_f` = training-step time / forward time of the same library. `cpu_seconds`: process CPU time "

@@ -3,25 +3,32 @@ folds, training of the sensor extras, selection on validation, test rows with pa
 
 For one fold (train / validation / test pieces, each a recording and a span of its steps):
 
-1. training windows (``length`` steps every ``stride``) of the train pieces, each started from the
-   snapshot multilateration fix of its first step (heading from the reference, which odometry and
-   ranges alone do not give; every filter gets the same start);
-2. the learned filter is the EKF of :func:`~difffilter.models.navigation.make_ranging_model`: per
-   anchor range bias, per anchor noise scale on the file's variances, a smooth learnable reject
-   gate, odometry scale and process noise, **all learned jointly**; ``seeds`` replicates start
-   from seeded perturbations of the untrained values and minimise the mean + RMS position error
-   against the reference on the training windows (``loss: score``; ``mse``: the squared error) -
-   a loss that does not reward a wide gate (a gate that lets outliers in moves the position), and
-   the smooth counterpart of the validation score;
+1. every trajectory the protocol runs (training window, validation piece, test piece) starts at
+   the snapshot multilateration fix of its first step (heading from the reference, which
+   odometry and ranges alone do not give; every filter gets the same start) with a position
+   variance estimated on the **train pieces only** (:func:`start_position_variance`: the
+   Gaussian whose 95 % circle matches the 95th percentile of the fixes' errors there);
+2. the learned filter is a :class:`~difffilter.filters.GatedEKF` on the model of
+   :func:`~difffilter.models.navigation.make_ranging_model`: per anchor range bias, per anchor
+   noise scale on the file's variances, odometry scale, process noise, and a smooth learnable
+   reject gate on the **normalised innovation** ``|e_j| / sqrt((H P- H^T + R)_jj)``, **all
+   learned jointly**; ``seeds`` replicates start from seeded perturbations of the untrained
+   values and minimise the mean + RMS position error against the reference on the training
+   windows after ``burn_in`` steps (``loss: score``; ``mse``: the squared error) - a loss that
+   does not reward a wide gate for its own sake (a gate that lets outliers in moves the
+   position), and the smooth counterpart of the validation score;
 3. after every epoch the validation pieces (each run whole) are scored by median + RMS position
-   error; the filter used on test is the lowest-scoring of every (seed, epoch), **the untrained
-   gated filter and the hand-tuned filter**, so the selection is never worse than either on
-   validation;
-4. test rows: ``hand-tuned`` (the file's variances, no bias, no gate), ``learned``,
-   ``untrained-gate`` (the gated filter at its start), ``hand-tuned-hard-gate`` (a 3-sigma reject
-   gate), ``snapshot-lsq`` (per-step weighted least-squares multilateration) and every factory of
-   :data:`EXTRA_BASELINES` (Sage-Husa and VB adaptive-R filters; the hook for EM), with paired block-bootstrap
-   intervals of each row minus hand-tuned.
+   error over their steps after ``eval_burn_in`` (the start transient of a piece is not scored,
+   in validation and in test alike); the filter used on test is the lowest-scoring of every
+   (seed, epoch), **the untrained gated filter and the hand-tuned filter**
+   (:func:`select_candidate`), so the selection is never worse than either on validation;
+4. test rows over the same scored steps: ``hand-tuned`` (the file's variances, no bias, no
+   gate), ``learned``, ``untrained-gate`` (the gated filter at its start),
+   ``hand-tuned-hard-gate`` (the textbook hard gate on the normalised innovation at the gate's
+   threshold), ``snapshot-lsq`` (per-step weighted least-squares multilateration) and every
+   factory of :data:`EXTRA_BASELINES` (Sage-Husa and VB adaptive-R filters; the hook for EM),
+   with paired block-bootstrap intervals of each row minus hand-tuned and minus the untrained
+   gate.
 """
 
 from __future__ import annotations
@@ -38,9 +45,10 @@ import torch
 from torch import Tensor
 
 from difffilter.datasets.ranging import RangingRecording
-from difffilter.evaluate.holdout import error_statistics, paired_error_table
-from difffilter.filters import EKF, SageHusa, VBAdaptiveR
+from difffilter.filters import EKF, GatedEKF, SageHusa, VBAdaptiveR
+from difffilter.models.heteroscedastic import RobustGate
 from difffilter.models.navigation.ranging2d import make_ranging_model, multilateration
+from experiments.holdout import error_statistics, paired_error_table
 
 __all__ = [
     "EXTRA_BASELINES",
@@ -49,7 +57,9 @@ __all__ = [
     "fold_pieces",
     "piece_tensors",
     "run_fold",
+    "select_candidate",
     "start_belief",
+    "start_position_variance",
     "summary_statistics",
 ]
 
@@ -108,36 +118,70 @@ def _hold(x: Tensor) -> Tensor:
 
 
 def _heading(rec: RangingRecording, k: int) -> float:
+    """Reference heading at step ``k``: the truth file's ``angle`` record, else the direction of
+    the reference motion over the next step minus the direction of the body-frame odometry
+    velocity that produced it (a robot may drive backwards or sideways in its body frame)."""
+    if rec.heading is not None and math.isfinite(float(rec.heading[k])):
+        return float(rec.heading[k])
     if k == 0 and rec.heading0 is not None:
         return rec.heading0
     t = rec.truth
     for j in range(k, min(k + 20, rec.num_steps - 1)):
         d = t[j + 1] - t[j]
-        if np.all(np.isfinite(d)) and np.hypot(*d) > 1e-6:
-            return float(np.arctan2(d[1], d[0]))
+        v = rec.odom[j + 1, :2]
+        if np.all(np.isfinite(d)) and np.hypot(*d) > 1e-6 and np.hypot(*v) > 1e-6:
+            return float(np.arctan2(d[1], d[0]) - np.arctan2(v[1], v[0]))
     return 0.0
 
 
-def start_belief(rec: RangingRecording, k: int, fix: Tensor) -> tuple[Tensor, Tensor]:
-    """Initial mean ``[3]`` (snapshot fix at step ``k``, reference heading) and covariance ``[3, 3]``."""
+def start_belief(rec: RangingRecording, k: int, fix: Tensor, pos_var: float = 4.0) -> tuple[Tensor, Tensor]:
+    """Initial mean ``[3]`` (snapshot fix at step ``k``, reference heading) and covariance ``[3, 3]``
+    (``pos_var`` m^2 per position axis, 0.01 rad^2 heading)."""
     m = torch.tensor([float(fix[k, 0]), float(fix[k, 1]), _heading(rec, k)], dtype=torch.float64)
-    return m, torch.diag(torch.tensor([4.0, 4.0, 0.01], dtype=torch.float64))
+    return m, torch.diag(torch.tensor([float(pos_var), float(pos_var), 0.01], dtype=torch.float64))
 
 
-def piece_tensors(piece: Piece, *, length: int | None = None, stride: int | None = None) -> dict[str, Any]:
-    """Batch-first tensors of a piece cut into windows (``length=None``: one trajectory)."""
+#: chi-square quantile, 2 degrees of freedom, 0.95: a 2-D Gaussian N(0, s^2 I) puts 95 % of its
+#: mass within radius sqrt(CHI2_2_95) s.
+CHI2_2_95 = -2.0 * math.log(0.05)
+
+
+def _fix(r: RangingRecording) -> Tensor:
+    t64 = lambda a: torch.as_tensor(np.ascontiguousarray(a), dtype=torch.float64)  # noqa: E731
+    return _hold(multilateration(t64(r.ranges), t64(r.range_var), torch.as_tensor(r.mask), t64(r.anchors)))
+
+
+def start_position_variance(pieces: Sequence[Piece], *, floor: float = 0.25) -> float:
+    """Start variance (m^2 per axis) from the snapshot fixes' errors on ``pieces`` (the train
+    pieces: the reference is used where training may use it): ``q95(|error|)^2 / CHI2_2_95``,
+    the isotropic Gaussian whose 95 % circle is the fixes' 95th percentile error (a mean square
+    would follow the rare catastrophic fixes instead of the typical start), at least ``floor``."""
+    errs = []
+    for p in pieces:
+        r = p.recording
+        e = (_fix(r)[p.first : p.stop] - torch.as_tensor(r.truth[p.first : p.stop])).norm(dim=-1)
+        errs.append(e[torch.isfinite(e)])
+    e = torch.cat(errs)
+    if not len(e):
+        raise ValueError("the train pieces hold no step with a reference position: no start variance")
+    return max(float(floor), float(torch.quantile(e, 0.95)) ** 2 / CHI2_2_95)
+
+
+def piece_tensors(piece: Piece, *, length: int | None = None, stride: int | None = None, pos_var: float = 4.0) -> dict[str, Any]:
+    """Batch-first tensors of a piece cut into windows (``length=None``: one trajectory), each
+    started by :func:`start_belief` with ``pos_var``."""
     r = piece.recording
     t64 = lambda a: torch.as_tensor(np.ascontiguousarray(a), dtype=torch.float64)  # noqa: E731
     size = piece.stop - piece.first if length is None else int(length)
     starts = list(range(piece.first, piece.stop - size + 1, size if stride is None else int(stride)))
     if not starts:
         raise ValueError(f"piece [{piece.first}, {piece.stop}) of {r.name} holds no window of {size} steps")
-    fix = _hold(multilateration(t64(r.ranges), t64(r.range_var), torch.as_tensor(r.mask), t64(r.anchors)))
+    fix = _fix(r)
     cut = lambda a: torch.stack([a[s : s + size] for s in starts])  # noqa: E731
     u = {"odom": cut(t64(r.odom)), "odom_cov": cut(t64(r.odom_cov)), "dt": cut(t64(r.dt))[..., None]}
     u.update(anchors=cut(t64(r.anchors)), range_var=cut(t64(r.range_var)), z_obs=cut(t64(r.ranges)))
     u["dt"][:, 0] = 0.0  # the window starts at its first step's belief
-    beliefs = [start_belief(r, s, fix) for s in starts]
+    beliefs = [start_belief(r, s, fix, pos_var) for s in starts]
     return {
         "z": cut(t64(r.ranges)),
         "mask": cut(torch.as_tensor(r.mask)),
@@ -149,39 +193,48 @@ def piece_tensors(piece: Piece, *, length: int | None = None, stride: int | None
     }
 
 
-def _errors(filt: torch.nn.Module, data: Mapping[str, Any]) -> Tensor:
+def _scored(e: Tensor, truth: Tensor, burn_in: int) -> Tensor:
+    """Errors ``[B, T]`` of the steps after ``burn_in`` that have a reference, flattened."""
+    ok = torch.isfinite(truth).all(-1)
+    return e[:, burn_in:][ok[:, burn_in:]].reshape(-1)
+
+
+def _errors(filt: torch.nn.Module, data: Mapping[str, Any], burn_in: int = 0) -> Tensor:
     with torch.no_grad():
         res = filt(data["z"], data["m0"], data["P0"], mask=data["mask"], controls=data["u"])
-    e = (res.mean[..., :2] - data["truth"]).norm(dim=-1)
-    return e[torch.isfinite(data["truth"]).all(-1)].reshape(-1)
+    return _scored((res.mean[..., :2] - data["truth"]).norm(dim=-1), data["truth"], burn_in)
 
 
-def _score(filt: torch.nn.Module, val: Sequence[Mapping[str, Any]]) -> float:
-    e = torch.cat([_errors(filt, d) for d in val])
-    if not bool(torch.isfinite(e).all()):
+def _score(filt: torch.nn.Module, val: Sequence[Mapping[str, Any]], burn_in: int = 0) -> float:
+    e = torch.cat([_errors(filt, d, burn_in) for d in val])
+    if not len(e) or not bool(torch.isfinite(e).all()):
         return math.inf
     return float(e.median() + e.pow(2).mean().sqrt())
+
+
+def select_candidate(scores: Sequence[float]) -> int:
+    """Index of the lowest validation score; non-finite scores never win, ties keep the earlier
+    candidate.  The protocol lists the untrained start first and hand-tuned second, so the
+    selection is never worse on validation than its start (and keeps the start unless a trained
+    candidate is strictly better)."""
+    if not len(scores):
+        raise ValueError("scores must hold at least one candidate (the untrained start)")
+    return min(range(len(scores)), key=lambda i: (scores[i] if math.isfinite(scores[i]) else math.inf, i))
 
 
 def _filters(num_anchors: int, cfg: Mapping[str, Any]) -> dict[str, torch.nn.Module]:
     g = dict(cfg["gate"])
     kw = {"num_anchors": num_anchors}
+    soft = RobustGate(
+        kind="reject", threshold=float(g["threshold"]), floor=float(g["floor"]), softness=float(g["softness"]), learnable=True
+    )
     return {
         "hand-tuned": EKF(make_ranging_model(**kw, bias=None, noise=None, gate=None)),
-        "hand-tuned-hard-gate": EKF(
-            make_ranging_model(**kw, bias=None, noise=None, gate="hard", gate_threshold=float(g["threshold"]), gate_floor=float(g["floor"]))
+        "hand-tuned-hard-gate": GatedEKF(
+            make_ranging_model(**kw, bias=None, noise=None, gate=None),
+            gate=RobustGate(kind="reject", threshold=float(g["threshold"]), floor=float(g["floor"])),
         ),
-        "untrained-gate": EKF(
-            make_ranging_model(
-                **kw,
-                bias=cfg["bias"],
-                noise=cfg["noise"],
-                gate="soft",
-                gate_threshold=float(g["threshold"]),
-                gate_floor=float(g["floor"]),
-                gate_softness=float(g["softness"]),
-            )
-        ),
+        "untrained-gate": GatedEKF(make_ranging_model(**kw, bias=cfg["bias"], noise=cfg["noise"], gate=None), gate=soft),
     }
 
 
@@ -215,7 +268,8 @@ def _train_seed(
     burn = int(cfg["burn_in"])
     n = train["z"].shape[0]
     batches = max(1, int(cfg["batches"]))
-    scores, snaps = [_score(filt, val)], [copy.deepcopy(filt.state_dict())]
+    eval_burn = int(cfg.get("eval_burn_in", 0))
+    scores, snaps = [_score(filt, val, eval_burn)], [copy.deepcopy(filt.state_dict())]
     for epoch in range(int(cfg["epochs"])):
         order = torch.randperm(n, generator=gen)
         total = 0.0
@@ -236,7 +290,7 @@ def _train_seed(
             torch.nn.utils.clip_grad_norm_(filt.parameters(), 10.0)
             opt.step()
             total += float(loss.detach())
-        scores.append(_score(filt, val))
+        scores.append(_score(filt, val, eval_burn))
         snaps.append(copy.deepcopy(filt.state_dict()))
         if log is not None:
             log(f"seed{seed}/train_loss", total / batches, epoch + 1)
@@ -249,7 +303,8 @@ def run_fold(
 ) -> ProtocolResult:
     """Train, select and test one fold (module docstring).  ``cfg`` keys: ``windows`` {length,
     stride}, ``gate`` {threshold, floor, softness}, ``bias``, ``noise``, ``seeds``, ``epochs``,
-    ``lr``, ``batches``, ``burn_in``, ``init_perturbation``, ``loss`` (``score`` or ``mse``),
+    ``lr``, ``batches``, ``burn_in``, ``eval_burn_in`` (steps of each validation and test piece
+    not scored; default 0), ``init_perturbation``, ``loss`` (``score`` or ``mse``),
     ``bootstrap`` {block, draws, seed}."""
     t0 = time.time()
     num_a = {p.recording.num_anchors for ps in pieces.values() for p in ps}
@@ -257,19 +312,25 @@ def run_fold(
         raise ValueError(f"the recordings of one fold must have the same anchors, got counts {sorted(num_a)}")
     a = num_a.pop()
     win = dict(cfg["windows"])
-    parts = [piece_tensors(p, length=int(win["length"]), stride=int(win["stride"])) for p in pieces["train"]]
+    burn = int(cfg.get("eval_burn_in", 0))
+    for p in (*pieces["val"], *pieces["test"]):
+        if p.stop - p.first <= burn:
+            raise ValueError(f"eval_burn_in={burn} leaves no scored step of piece [{p.first}, {p.stop}) of {p.recording.name}")
+    pos_var = start_position_variance(pieces["train"])
+    parts = [piece_tensors(p, length=int(win["length"]), stride=int(win["stride"]), pos_var=pos_var) for p in pieces["train"]]
     train = {k: torch.cat([d[k] for d in parts]) for k in ("z", "mask", "m0", "P0", "truth")}
     train["u"] = {k: torch.cat([d["u"][k] for d in parts]) for k in parts[0]["u"]}
-    val = [piece_tensors(p) for p in pieces["val"]]
+    val = [piece_tensors(p, pos_var=pos_var) for p in pieces["val"]]
     base = _filters(a, cfg)
     start = base["untrained-gate"]
     runs = [_train_seed(start, train, val, cfg, s, log) for s in range(int(cfg["seeds"]))]
-    candidates = [("untrained-gate", 0, _score(start, val), start.state_dict()), ("hand-tuned", 0, _score(base["hand-tuned"], val), None)]
+    candidates = [
+        ("untrained-gate", 0, _score(start, val, burn), start.state_dict()),
+        ("hand-tuned", 0, _score(base["hand-tuned"], val, burn), None),
+    ]
     for r in runs:
         candidates += [(f"seed{r['seed']}", e, s, sd) for e, (s, sd) in enumerate(zip(r["scores"], r["snapshots"], strict=True))]
-    # lowest score; ties keep the earlier candidate (the untrained start first, then hand-tuned)
-    best = min(range(len(candidates)), key=lambda i: (candidates[i][2] if math.isfinite(candidates[i][2]) else math.inf, i))
-    name, epoch, score, state = candidates[best]
+    name, epoch, score, state = candidates[select_candidate([c[2] for c in candidates])]
     if state is None:
         learned = copy.deepcopy(base["hand-tuned"])
     else:
@@ -281,6 +342,8 @@ def run_fold(
         "val_score": score,
         "val_untrained": candidates[0][2],
         "val_hand_tuned": candidates[1][2],
+        "start_pos_var": pos_var,
+        "eval_burn_in": burn,
     }
     rows_f: dict[str, torch.nn.Module] = {
         "hand-tuned": base["hand-tuned"],
@@ -290,19 +353,22 @@ def run_fold(
     }
     errors: dict[str, list[Tensor]] = {}
     for p in pieces["test"]:
-        data = piece_tensors(p)
+        data = piece_tensors(p, pos_var=pos_var)
         for row, f in rows_f.items():
-            errors.setdefault(row, []).append(_errors(f, data))
+            errors.setdefault(row, []).append(_errors(f, data, burn))
         for row, factory in EXTRA_BASELINES.items():
-            errors.setdefault(row, []).append(_errors(factory(p.recording), data))
-        fixe = (data["fix"] - data["truth"]).norm(dim=-1)
-        errors.setdefault("snapshot-lsq", []).append(fixe[torch.isfinite(data["truth"]).all(-1)].reshape(-1))
+            errors.setdefault(row, []).append(_errors(factory(p.recording), data, burn))
+        errors.setdefault("snapshot-lsq", []).append(_scored((data["fix"] - data["truth"]).norm(dim=-1), data["truth"], burn))
     cat = {k: torch.cat(v) for k, v in errors.items()}
     boot = dict(cfg["bootstrap"])
-    table = paired_error_table(cat, "hand-tuned", block=int(boot["block"]), draws=int(boot["draws"]), seed=int(boot["seed"]))
+    kw = {"block": int(boot["block"]), "draws": int(boot["draws"]), "seed": int(boot["seed"])}
+    table = paired_error_table(cat, "hand-tuned", **kw)
+    vs_start = {r["filter"]: r for r in paired_error_table(cat, "untrained-gate", **kw)}
     rows = []
     for r in table:
         row = {"filter": r.pop("filter"), "pos_err_p50": r.pop("median"), "rmse_pos": r.pop("rms"), "pos_err_p95": r.pop("p95"), **r}
+        # the same resamples against the untrained gated filter (its own row has none)
+        row.update({f"u_{k[2:]}": v for k, v in vs_start[row["filter"]].items() if k.startswith("d_")})
         rows.append(row)
     history = [{"seed": r["seed"], "scores": r["scores"]} for r in runs]
     return ProtocolResult(rows, selected, learned, start, history, cat, time.time() - t0)

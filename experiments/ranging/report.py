@@ -1,7 +1,8 @@
 """Running the 2-D ranging protocol (:mod:`.protocol`) on a folder of libRSF recordings
 and writing its report: ``<fold>/results.csv`` per fold (rows ``hand-tuned``, ``learned`` and
-every baseline; columns ``pos_err_p50``, ``rmse_pos``, ``pos_err_p95`` and the paired differences
-to hand-tuned with their 95 % block-bootstrap intervals), ``results.md``, ``summary.json``,
+every baseline; columns ``pos_err_p50``, ``rmse_pos``, ``pos_err_p95``, the paired differences
+to hand-tuned (``d_*``) and to the untrained gated filter (``u_*``) with their 95 % block-bootstrap
+intervals), ``results.md``, ``summary.json``,
 ``learned_extras.png`` and TensorBoard events (``tb/``: training loss and validation score per
 seed, the learned extras and the figure)."""
 
@@ -25,7 +26,24 @@ from .protocol import ProtocolResult, fold_pieces, run_fold
 
 __all__ = ["extras", "fold_specs", "plot_extras", "run_ranging", "write_csv"]
 
-COLUMNS = ("filter", "pos_err_p50", "rmse_pos", "pos_err_p95", "d_median", "d_median_lo", "d_median_hi", "d_rms", "d_rms_lo", "d_rms_hi")
+COLUMNS = (
+    "filter",
+    "pos_err_p50",
+    "rmse_pos",
+    "pos_err_p95",
+    "d_median",
+    "d_median_lo",
+    "d_median_hi",
+    "d_rms",
+    "d_rms_lo",
+    "d_rms_hi",
+    "u_median",
+    "u_median_lo",
+    "u_median_hi",
+    "u_rms",
+    "u_rms_lo",
+    "u_rms_hi",
+)
 
 
 def fold_specs(recordings: Sequence[RangingRecording], cfg: Mapping[str, Any]) -> dict[str, tuple[list[RangingRecording], dict[str, Any]]]:
@@ -48,7 +66,8 @@ def fold_specs(recordings: Sequence[RangingRecording], cfg: Mapping[str, Any]) -
 
 def extras(filt: torch.nn.Module) -> dict[str, list[float]]:
     """The learned extras of a ranging EKF: range bias, noise scale (per anchor), gate
-    threshold / floor / softness, odometry scale, process noise (absent ones left out)."""
+    threshold / floor / softness (a :class:`~difffilter.filters.GatedEKF`'s gate, else the
+    measurement model's), odometry scale, process noise (absent ones left out)."""
     meas, dyn = filt.model.measurement, filt.model.dynamics
     out: dict[str, list[float]] = {}
     if getattr(meas, "bias_mode", None) is not None:
@@ -57,7 +76,7 @@ def extras(filt: torch.nn.Module) -> dict[str, list[float]]:
         out["noise_scale"] = [float(v) for v in meas.noise_scale.detach().reshape(-1)]
     out["odom_scale"] = [float(dyn.odom_scale.detach())]
     out["process_psd"] = [float(v) for v in dyn.process_psd.detach().reshape(-1)]
-    gate = getattr(meas, "gate", None)
+    gate = getattr(filt, "gate", None) or getattr(meas, "gate", None)
     if gate is not None:
         out["gate_threshold"] = [float(torch.as_tensor(gate.threshold).detach())]
         out["gate_floor"] = [float(torch.as_tensor(gate.floor).detach())]
@@ -66,22 +85,22 @@ def extras(filt: torch.nn.Module) -> dict[str, list[float]]:
     return out
 
 
-def _gate_curve(ex: Mapping[str, list[float]], residual: torch.Tensor, var: float) -> torch.Tensor:
-    """Variance factor ``f`` of a reject gate with the extras' threshold / floor / softness."""
-    n = residual.abs() / math.sqrt(var + ex["gate_floor"][0] ** 2)
+def _gate_curve(ex: Mapping[str, list[float]], n: torch.Tensor) -> torch.Tensor:
+    """Variance factor ``f`` of a reject gate with the extras' threshold / softness against the
+    normalised innovation ``n = |e| / sqrt(S + floor^2)``."""
     soft = ex.get("gate_softness", [0.0])[0]
     if soft <= 0:
         return torch.where(n > ex["gate_threshold"][0], torch.full_like(n, 1e6), torch.ones_like(n))
     return torch.exp(math.log(1e6) * torch.sigmoid((n - ex["gate_threshold"][0]) / soft))
 
 
-def plot_extras(results: Mapping[str, ProtocolResult], *, range_var: float = 0.25) -> Figure:
+def plot_extras(results: Mapping[str, ProtocolResult]) -> Figure:
     """One figure: range bias and noise scale per anchor (each fold's selection against the
-    untrained 0 / 1), the gate's weight ``1 / f`` against the range residual (untrained and
-    learned), and test-error CDFs of hand-tuned vs learned."""
+    untrained 0 / 1), the gate's weight ``1 / f`` against the normalised innovation (untrained
+    and learned), and test-error CDFs of hand-tuned vs learned."""
     fig = Figure(figsize=(16, 4.2), layout="constrained")
     ax = fig.subplots(1, 4)
-    res = torch.linspace(0.0, 15.0, 301, dtype=torch.float64)
+    res = torch.linspace(0.0, 8.0, 321, dtype=torch.float64)
     for i, (fold, r) in enumerate(results.items()):
         ex, color = extras(r.learned), f"C{i % 10}"
         label = f"{fold} ({r.selected['candidate']})"
@@ -90,7 +109,7 @@ def plot_extras(results: Mapping[str, ProtocolResult], *, range_var: float = 0.2
         if "noise_scale" in ex:
             ax[1].semilogy(range(1, len(ex["noise_scale"]) + 1), ex["noise_scale"], "o-", color=color)
         if "gate_threshold" in ex:
-            ax[2].semilogy(res, 1.0 / _gate_curve(ex, res, range_var), color=color)
+            ax[2].semilogy(res, 1.0 / _gate_curve(ex, res), color=color)
         for row, style in (("hand-tuned", ":"), ("learned", "-")):
             e = torch.sort(r.errors[row]).values
             ax[3].plot(e, torch.linspace(0, 1, len(e)), style, color=color, label=label if row == "learned" else None)
@@ -105,17 +124,17 @@ def plot_extras(results: Mapping[str, ProtocolResult], *, range_var: float = 0.2
             va="bottom",
         )
     first = next(iter(results.values()))
-    ax[2].semilogy(res, 1.0 / _gate_curve(extras(first.start), res, range_var), "k--", label="untrained gate")
+    ax[2].semilogy(res, 1.0 / _gate_curve(extras(first.start), res), "k--", label="untrained gate")
     ax[0].axhline(0.0, color="k", ls="--", lw=0.8)
     ax[1].axhline(1.0, color="k", ls="--", lw=0.8)
     ax[0].set(xlabel="anchor", ylabel="m")
     ax[1].set(xlabel="anchor", ylabel="factor")
-    ax[2].set(xlabel="|range residual| (m)", ylabel="weight 1/f", ylim=(1e-6, 2))
+    ax[2].set(xlabel="normalised innovation |e| / sqrt(S + floor²)", ylabel="weight 1/f", ylim=(1e-6, 2))
     ax[3].set(xlabel="position error (m)", ylabel="fraction of test steps", xscale="log")
     titles = (
         "range bias per anchor (untrained: 0)",
         "noise scale on the file's variance (untrained: 1)",
-        f"gate weight vs residual (R = {range_var} m²)",
+        "gate weight vs normalised innovation (S = H P H^T + R)",
         "test error CDF (dotted: hand-tuned)",
     )
     for a, title in zip(ax, titles, strict=True):
@@ -135,30 +154,33 @@ def write_csv(path: Path, rows: Sequence[Mapping[str, Any]]) -> None:
             w.writerow({k: (f"{r[k]:.6g}" if isinstance(r.get(k), float) else r.get(k, "")) for k in COLUMNS})
 
 
-def _diff(row: Mapping[str, Any], stat: str) -> str:
-    if f"d_{stat}" not in row:
+def _diff(row: Mapping[str, Any], stat: str, prefix: str = "d") -> str:
+    if f"{prefix}_{stat}" not in row:
         return ""
-    return f"{row[f'd_{stat}']:+.3f} [{row[f'd_{stat}_lo']:+.3f}, {row[f'd_{stat}_hi']:+.3f}]"
+    return f"{row[f'{prefix}_{stat}']:+.3f} [{row[f'{prefix}_{stat}_lo']:+.3f}, {row[f'{prefix}_{stat}_hi']:+.3f}]"
 
 
 def _markdown(results: Mapping[str, ProtocolResult]) -> str:
     out = [
-        "| fold | filter | p50 (m) | RMS (m) | p95 (m) | Δ p50 vs hand-tuned [95 % CI] | Δ RMS vs hand-tuned [95 % CI] |",
-        "|---|---|---|---|---|---|---|",
+        "| fold | filter | p50 (m) | RMS (m) | p95 (m) | Δ p50 vs hand-tuned [95 % CI] | Δ RMS vs hand-tuned [95 % CI] "
+        "| Δ p50 vs untrained gate [95 % CI] | Δ RMS vs untrained gate [95 % CI] |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for fold, r in results.items():
         for row in r.rows:
             stats = f"{row['pos_err_p50']:.3f} | {row['rmse_pos']:.3f} | {row['pos_err_p95']:.3f}"
-            out.append(f"| {fold} | {row['filter']} | {stats} | {_diff(row, 'median')} | {_diff(row, 'rms')} |")
+            diffs = " | ".join(_diff(row, stat, prefix) for prefix in ("d", "u") for stat in ("median", "rms"))
+            out.append(f"| {fold} | {row['filter']} | {stats} | {diffs} |")
     out += [
         "",
-        "| fold | selected | validation score (median + RMS, m): selected / untrained gate / hand-tuned | seconds |",
-        "|---|---|---|---|",
+        "| fold | selected | validation score (median + RMS, m): selected / untrained gate / hand-tuned "
+        "| start position variance (m²) | seconds |",
+        "|---|---|---|---|---|",
     ]
     for fold, r in results.items():
         s = r.selected
         scores = f"{s['val_score']:.3f} / {s['val_untrained']:.3f} / {s['val_hand_tuned']:.3f}"
-        out.append(f"| {fold} | {s['candidate']} epoch {s['epoch']} | {scores} | {r.seconds:.0f} |")
+        out.append(f"| {fold} | {s['candidate']} epoch {s['epoch']} | {scores} | {s['start_pos_var']:.2f} | {r.seconds:.0f} |")
     return "\n".join(out) + "\n"
 
 

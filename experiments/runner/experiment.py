@@ -80,16 +80,18 @@ from difffilter._util import as_dtype
 from difffilter.evaluate.evaluation import EXTRA_TESTS_DIR, PER_RUN_FILE, consistency_table, evaluate_filter, evaluate_runs, write_per_run
 from difffilter.filters.protocol import Filter
 from difffilter.learn.callbacks import EpochSummary, GracefulInterrupt
-from difffilter.learn.config_check import check_config
 from difffilter.learn.data import TrajectorySet
 from difffilter.learn.divergence import DivergenceGuard
 from difffilter.learn.learner import FilterLearner
-from difffilter.learn.reporting import log_results, parameter_summary, parameter_values
+from difffilter.learn.plots import DiagnosticFigures
 from difffilter.models.layout import model_defaults
 from difffilter.selection import assign_parameters, parameter_owners
 from difffilter.smoothers import make_smoother, smoother_spec
 
 from .baselines import tune_baseline
+from .config_check import check_config
+from .learner_config import figure_callback, finish_learner, split_learner_config
+from .reporting import log_results, parameter_summary, parameter_values
 from .runs import checkpoint_config, resume_checkpoint, run_status
 
 __all__ = [
@@ -229,7 +231,8 @@ def rebuild_filter(
     e.g. p003's grouped process noise), that factory applied to it."""
     filt = build_filter(filter, dtype=as_dtype(dtype), params=_plain(params))
     if learner is not None and learner.get("_target_") not in (None, _LEARNER_TARGET):
-        factory = {k: v for k, v in _plain(learner).items() if k not in ("optimizer", "scheduler", "log_prior")}
+        factory, _ = split_learner_config(_plain(learner))
+        factory = {k: v for k, v in factory.items() if k not in ("optimizer", "scheduler", "prior")}
         filt = instantiate(factory, _convert_="all", filter=filt, loss="nll").filter
     return filt
 
@@ -249,9 +252,14 @@ def build_learner(cfg: DictConfig, hand: Filter) -> FilterLearner:
         "params": _plain(cfg.experiment.get("hand_tuned")) or None,
         "learner": _plain(cfg.learner),
     }
-    learner = instantiate(cfg.learner, _convert_="all", filter=copy.deepcopy(hand), loss=instantiate(cfg.loss, _convert_="all"))
+    factory, settings = split_learner_config(_plain(cfg.learner))
+    filt = copy.deepcopy(hand)
+    if settings.get("dtype") is not None:
+        filt = filt.to(as_dtype(settings["dtype"]))
+    learner = instantiate(factory, _convert_="all", filter=filt, loss=instantiate(cfg.loss, _convert_="all"))
     if not isinstance(learner, FilterLearner):
         raise TypeError(f"learner config must build a FilterLearner, got {type(learner).__name__}")
+    finish_learner(learner, settings)
     # Set after construction: Hydra would instantiate configs passed as arguments.  The
     # checkpoint's hyperparameters are these entries (FilterLearner.load_from_checkpoint).
     learner.hparams.update(filter_config=recipe, loss=_plain(cfg.loss))
@@ -267,6 +275,8 @@ def _trainer(cfg: DictConfig) -> tuple[pl.Trainer, list[Any]]:
     for kind in (EpochSummary, GracefulInterrupt):
         if not any(isinstance(c, kind) for c in callbacks):
             callbacks.append(kind())
+    if not any(isinstance(c, DiagnosticFigures) for c in callbacks):  # every learner.figure_every_n_epochs, and the test set
+        callbacks.append(figure_callback(_plain(cfg.get("learner"))))
     # always on unless divergence.enabled=false: a run that walks off stops as `diverged`
     if not any(isinstance(c, DivergenceGuard) for c in callbacks):
         callbacks.append(DivergenceGuard(**(_plain(cfg.get("divergence")) or {})))

@@ -8,7 +8,7 @@ config it was trained with.
   (with the error), so that a failed or stopped run is marked as such instead of looking like
   an empty or unfinished folder; :func:`read_status` reports a ``running`` whose process was
   killed (SIGKILL leaves no chance to write) as ``killed`` or ``stale``
-  (:mod:`difffilter.learn.liveness`);
+  (:mod:`experiments.runner.liveness`);
 * :func:`resume_checkpoint` - the checkpoint a training run continues from (``ckpt_path=``, or
   ``resume=true``: ``last.ckpt`` of this run directory);
 * :func:`checkpoint_config` - the config an evaluation of a checkpoint runs under: the stored
@@ -36,7 +36,8 @@ from pytorch_lightning.utilities.rank_zero import rank_zero_only
 from difffilter.learn.callbacks import TrainingInterrupted
 from difffilter.learn.checkpoints import read_checkpoint, run_config
 from difffilter.learn.divergence import TrainingDivergedError
-from difffilter.learn.liveness import HEARTBEAT_INTERVAL_S, Heartbeat, assess, stamp
+
+from .liveness import HEARTBEAT_INTERVAL_S, Heartbeat, assess, stamp
 
 __all__ = ["STATUS_FILE", "LightningTips", "checkpoint_config", "read_status", "resume_checkpoint", "run_status"]
 
@@ -76,7 +77,7 @@ def _write(path: Path, state: dict[str, Any]) -> None:
 
 def read_status(run_dir: str | Path, *, raw: bool = False) -> dict[str, Any] | None:
     """The ``status.json`` of a run directory (``None`` if it has none); a recorded ``running``
-    whose process is gone reads as ``killed`` or ``stale`` (:func:`~difffilter.learn.liveness.assess`),
+    whose process is gone reads as ``killed`` or ``stale`` (:func:`~experiments.runner.liveness.assess`),
     unless ``raw``."""
     p = Path(run_dir) / STATUS_FILE
     if not p.is_file():

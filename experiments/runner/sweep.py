@@ -47,8 +47,9 @@ from torch import Tensor
 
 from difffilter.evaluate.evaluation import EXTRA_TESTS_DIR, PER_RUN_FILE, read_per_run
 from difffilter.evaluate.intervals import GapClosed, Interval, crossed_interval, gap_closed, nested_interval
-from difffilter.learn.liveness import assess
 from experiments.results_tables import anees_verdict
+
+from .liveness import assess
 
 __all__ = ["SUMMARY_CSV", "SUMMARY_MD", "SweepSummary", "load_jobs", "main", "summarize_sweep", "unfinished_jobs"]
 

@@ -41,6 +41,7 @@ from ..base import Belief, RecursiveFilter, gaussian_update
 from ..ekf import EKF
 from ..kalman import KalmanFilter
 from ..ukf import UKF, SimplifiedUKF, deviations, state_add, weighted_mean
+from ..update import JosephForm
 
 __all__ = ["AdaptiveNoiseFilter", "Moments", "blockdiag_sample", "is_positive_definite"]
 
@@ -163,11 +164,8 @@ class AdaptiveNoiseFilter(RecursiveFilter):
         s = mo.spread + r
         add = state_add(self.model.dynamics)
         if self.unscented:
-            return gaussian_update(mean, cov, e, s, mo.pxz, mask, sigma_fallback=(mo.dx, mo.dz, mo.wc, r), add=add)
-        joseph = self.inner.joseph
-        return gaussian_update(
-            mean, cov, e, s, mo.pxz, mask, joseph=(mo.h, r) if joseph else None, joseph_fallback=None if joseph else (mo.h, r), add=add
-        )
+            return gaussian_update(mean, cov, e, s, mo.pxz, mask, joseph=JosephForm.sigma_points(mo.dx, mo.dz, mo.wc, r), add=add)
+        return gaussian_update(mean, cov, e, s, mo.pxz, mask, joseph=JosephForm.linear(mo.h, r, always=self.inner.joseph), add=add)
 
     @staticmethod
     def predictive_info(innovation: Tensor, innovation_cov: Tensor, mask: Tensor | None) -> StepInfo:

@@ -14,7 +14,7 @@ small, constant and hard to survey, so they are best learned:
 ``learn: [lever_arm, latency]`` trains them; :func:`antenna_offset` is the displacement
 ``C_nb l - tau v`` the model adds to its position.  Used by
 :class:`~difffilter.models.navigation.pseudorange.PseudorangeMeasurement` (odometry layouts: yaw
-state, speed input) and :class:`~difffilter.models.navigation.gnss_imu.GnssMeasurement` (IMU
+state, speed input) and :class:`~experiments.papers.p004.model.GnssMeasurement` (IMU
 layouts: heading or quaternion, velocity states).
 """
 

@@ -1,7 +1,7 @@
 """p000 (Yang & Zhang): UKF for GPS/DR vehicle positioning - the drive simulator, the sensor error
 processes of its mis-specified scenario families, the paper's literal UKF, the sigma_a sweep of
 its EKF-vs-UKF comparison and the experiment set-up (``experiment=p000_gpsdr``,
-``experiment=p000_infamily``).  The GPS/DR model itself is :class:`difffilter.models.GpsDrModel`."""
+``experiment=p000_infamily``).  The GPS/DR model itself is :class:`~experiments.papers.p000.model.GpsDrModel` (model.py)."""
 
 from .errors import SensorErrors, gauss_markov, random_windows
 from .experiment import P000Trajectories, p000_simulator

@@ -18,10 +18,10 @@ from dataclasses import dataclass
 from typing import Any
 
 import torch
-from torch import Tensor
 
 from difffilter._util import as_dtype
-from difffilter.models.navigation.gpsdr import GpsDrModel
+from difffilter.sim import TrajectorySet
+from experiments.papers.p000.model import GpsDrModel
 
 from .errors import SensorErrors
 from .simulator import GpsDrScenario, simulate_p000
@@ -29,8 +29,8 @@ from .simulator import GpsDrScenario, simulate_p000
 __all__ = ["P000Trajectories", "p000_simulator"]
 
 
-@dataclass
-class P000Trajectories:
+@dataclass(kw_only=True)
+class P000Trajectories(TrajectorySet):
     """p000 trajectories in the data module's layout.
 
     Attributes:
@@ -42,13 +42,7 @@ class P000Trajectories:
         scenario: the simulator's own output (sensor settings, ``make_model``).
     """
 
-    truth: Tensor
-    measurements: Tensor
-    mask: Tensor
-    initial_mean: Tensor
-    initial_cov: Tensor
     scenario: GpsDrScenario
-    controls: None = None
 
     def make_model(self, **kwargs: Any) -> GpsDrModel:
         """The hand-tuned p000 model for this data (see :meth:`GpsDrScenario.make_model`)."""

@@ -37,7 +37,7 @@ from torch import Tensor
 from difffilter.filters import EKF, UKF
 from difffilter.filters.protocol import Filter
 from difffilter.filters.sigma_points import Julier
-from difffilter.models.navigation.gpsdr import GPSDR_PAPER, GpsDrModel
+from experiments.papers.p000.model import GPSDR_PAPER, GpsDrModel
 
 from .filters import LiteralReuseUKF
 from .simulator import simulate_p000

@@ -40,8 +40,8 @@ import torch
 from torch import Tensor
 
 from difffilter._util import generator
-from difffilter.models.navigation.gpsdr import GPSDR_PAPER, GpsDrModel
 from difffilter.sim.signals import cumtrapz, moving_average
+from experiments.papers.p000.model import GPSDR_PAPER, GpsDrModel
 
 from .errors import SensorErrors, gauss_markov
 

@@ -30,9 +30,9 @@ import torch
 
 from difffilter._util import as_dtype
 from difffilter.filters.protocol import Filter
-from difffilter.learn.data import SimulatedTrajectories
 from difffilter.learn.learner import FilterLearner
 from difffilter.selection import assign_parameters
+from difffilter.sim import TrajectorySet
 
 from .elevation import paper_law
 from .simulator import LAW_KEYS, P001Scenario, make_p001_model, simulate_p001
@@ -40,8 +40,8 @@ from .simulator import LAW_KEYS, P001Scenario, make_p001_model, simulate_p001
 __all__ = ["P001Trajectories", "p001_simulator", "start_learner"]
 
 
-@dataclass
-class P001Trajectories(SimulatedTrajectories):
+@dataclass(kw_only=True)
+class P001Trajectories(TrajectorySet):
     """p001 epochs in the data module's layout.
 
     Attributes:

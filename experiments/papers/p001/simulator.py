@@ -41,6 +41,7 @@ from difffilter.models.base import StateSpaceModel
 from difffilter.models.layout import StateLayout, describe
 from difffilter.models.navigation.clock import ConstantVelocityClock
 from difffilter.models.navigation.pseudorange import GnssStateLayout, PseudorangeMeasurement
+from experiments.papers import constellation as sky
 
 from .elevation import ElevationPseudorange, elevation_noise
 
@@ -163,7 +164,7 @@ def simulate_p001(
         az = torch.deg2rad(torch.tensor(cfg["azimuth_deg"], dtype=f64)).expand(bsz, k)
         el = torch.deg2rad(torch.tensor(cfg["elevation_deg"], dtype=f64)).expand(bsz, k)
     origin = geo.geodetic_to_ecef(torch.stack([lat, lon, torch.full_like(lat, float(cfg["height"]))], -1))
-    sats = geo.satellites_from_azimuth_elevation(origin, az, el)  # [B, K, 3]
+    sats = sky.satellites_from_azimuth_elevation(origin, az, el)  # [B, K, 3]
     rel = sats - origin[:, None, :]
     geom_range = torch.linalg.vector_norm(rel, dim=-1)  # receiver at the origin
 

@@ -23,7 +23,7 @@ from torch import Tensor
 
 from difffilter.filters.protocol import Belief, Filter, FilterResult
 from difffilter.models.base import Controls, StateSpaceModel
-from difffilter.models.navigation.pdr import wrap_angle
+from experiments.papers.p002.model import wrap_angle
 
 from .simulator import PDRScenario
 

@@ -12,9 +12,9 @@ from typing import Any
 import torch
 
 from difffilter._util import as_dtype, generator
-from difffilter.models.navigation.pdr import PDRModel
 from difffilter.selection import assign_parameters
 from difffilter.sim.sampling import SampledTrajectories, sample_trajectories
+from experiments.papers.p002.model import PDRModel
 
 from .simulator import gps_availability, simulate_p002_random
 

@@ -18,7 +18,7 @@ timing), not drawn from the filter's model.  Sensors, per trajectory:
 * outages: time is cut into 5 s windows, each blocked with probability ``P``; fixes inside a
   blocked window are lost.
 
-Heading is the azimuth of :mod:`difffilter.models.navigation.pdr` (clockwise from north), unwrapped.  The
+Heading is the azimuth of :mod:`experiments.papers.p002.model` (clockwise from north), unwrapped.  The
 compass is delivered unwrapped next to the gyro-propagated heading (starting from the
 initial-belief heading), what a real pipeline would do before filtering; the raw wrapped
 reading is kept in ``compass_raw``.
@@ -39,7 +39,7 @@ import torch
 from torch import Tensor
 
 from difffilter._util import generator
-from difffilter.models.navigation.pdr import PDRModel, default_pdr_measurement_noise, wrap_angle
+from experiments.papers.p002.model import PDRModel, default_pdr_measurement_noise, wrap_angle
 
 from .disturbances import arc_bursts, turn_heading_error
 from .track import Track, p002_track

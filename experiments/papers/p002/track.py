@@ -1,7 +1,7 @@
 """Planar walking tracks made of straight lines, circular arcs and corner turns.
 
 A track is a chain of segments, each entered after an optional instantaneous turn (a corner
-node), in the azimuth convention used by :mod:`difffilter.models.navigation.pdr`: heading ``psi`` measured
+node), in the azimuth convention used by :mod:`experiments.papers.p002.model`: heading ``psi`` measured
 from north, clockwise positive (east = +pi/2), so a unit step moves ``(dE, dN) = (sin psi,
 cos psi)``.  An arc of signed curvature ``kappa = dpsi/ds`` (``> 0`` turns right) has the closed
 form

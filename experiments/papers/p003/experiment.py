@@ -38,9 +38,9 @@ from difffilter.filters.protocol import Filter
 from difffilter.filters.sigma_points import MerweScaled
 from difffilter.learn.learner import FilterLearner
 from difffilter.mixers import IMM
-from difffilter.models.navigation.sins import SinsErrorDynamics
-from difffilter.models.navigation.sins_measurement import SinsPseudorangeMeasurement
 from difffilter.params import GroupScaledCovariance, register_constrained
+from experiments.papers.p003.sins import SinsErrorDynamics
+from experiments.papers.p003.sins_measurement import SinsPseudorangeMeasurement
 
 from .flight import PAPER_PHASES, manoeuvre_flags
 from .model import make_p003_model, sojourn_transition
@@ -62,7 +62,7 @@ __all__ = [
     "sojourn_transition",
 ]
 
-_WHITE = slice(3, 9)  # accelerometer and gyro white-noise PSD entries of models.navigation.sins
+_WHITE = slice(3, 9)  # accelerometer and gyro white-noise PSD entries of experiments.papers.p003.sins
 
 
 def p003_mode_model(

@@ -71,7 +71,7 @@ P003_CONFIG: dict[str, float] = {
     "clock_bias": 100.0,  # m, "clock-equivalent pseudorange error"
     "clock_drift": 1.0,  # m/s (not in the paper)
     "clock_time": 3600.0,
-    "clock_bias_psd": 0.01,  # m^2/s (TCXO, see models.navigation.sins.sins_noise_psd)
+    "clock_bias_psd": 0.01,  # m^2/s (TCXO, see experiments.papers.p003.sins.sins_noise_psd)
     "clock_drift_psd": 0.04,  # m^2/s^3
     "sigma_range": 3.0,  # m (not in the paper)
     "sigma_rate": 0.05,  # m/s

@@ -14,8 +14,8 @@ from difffilter.filters import SimplifiedUKF
 from difffilter.mixers import IMM
 from difffilter.models.base import StateSpaceModel
 from difffilter.models.layout import StateLayout, describe
-from difffilter.models.navigation.sins import DEG_PER_HOUR, MILLI_G, SinsErrorDynamics, sins_noise_psd
-from difffilter.models.navigation.sins_measurement import SinsPseudorangeMeasurement
+from experiments.papers.p003.sins import DEG_PER_HOUR, MILLI_G, SinsErrorDynamics, sins_noise_psd
+from experiments.papers.p003.sins_measurement import SinsPseudorangeMeasurement
 
 from .flight import P003_CONFIG, PAPER_PHASES
 
@@ -27,7 +27,7 @@ _UNITS = ("m/s",) * 3 + ("rad",) * 3 + ("rad/s",) * 6 + ("m/s^2",) * 3 + ("m", "
 
 
 def sins_layout(position_in_metres: bool = True) -> StateLayout:
-    """The 20-state error layout of :mod:`difffilter.models.navigation.sins` (position errors in
+    """The 20-state error layout of :mod:`experiments.papers.p003.sins` (position errors in
     north/east/up metres, or latitude/longitude radians and height)."""
     head = (("dN", "dE", "dh"), ("m", "m", "m")) if position_in_metres else (("dL", "dlambda", "dh"), ("rad", "rad", "m"))
     return StateLayout(names=head[0] + _ERRORS, units=head[1] + _UNITS, position=(0, 1, 2))

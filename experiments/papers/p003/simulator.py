@@ -13,7 +13,7 @@ How the truth is produced (nothing is sampled from the filter's error model):
    gyro constant drift + first-order Markov drift + white noise, accelerometer Markov bias + white
    noise (p003's values).  The 20-state error truth is INS minus truth (phi-angle from the attitude
    matrices), sampled at 1 Hz, and the clock follows its own two-state model.
-4. Satellites: :class:`~difffilter.geometry.CircularOrbitConstellation` (24 satellites, 6 planes),
+4. Satellites: :class:`~experiments.papers.constellation.CircularOrbitConstellation` (24 satellites, 6 planes),
    the ``K`` with the highest minimum elevation over the flight; slots below 5 deg are masked.
    Measurements ``drho = |p_INS - s| - (|p_true - s| + dt_u + v)`` and
    ``drhodot = e_I.(v_INS - s') - (e_G.(v_true - s') + dt_ru + v')``.
@@ -32,7 +32,7 @@ position, velocity and attitude errors are subtracted from the INS solution (the
 are not fed back).  The INS errors then stay at the GNSS level instead of drifting freely (the
 0.1 deg initial tilt alone drives a Schuler oscillation of ~10 km), so the linear error model stays
 valid.  Controls get ``"feedback" [B, T, 20]``: the correction applied at the previous epoch, which
-:class:`~difffilter.models.navigation.sins.SinsErrorDynamics` subtracts (``x_k = Phi (x_{k-1} - c_{k-1})``), so
+:class:`~experiments.papers.p003.sins.SinsErrorDynamics` subtracts (``x_k = Phi (x_{k-1} - c_{k-1})``), so
 any filter under test sees the same corrected INS and knows the corrections.  ``truth``, the
 measurements and the INS controls at epoch ``k`` are *before* that epoch's correction.
 """
@@ -48,6 +48,7 @@ from torch import Tensor
 
 from difffilter import geometry as geo
 from difffilter._util import generator
+from experiments.papers import constellation as sky
 
 from .flight import (
     P003_CONFIG,
@@ -74,7 +75,7 @@ __all__ = ["P003Scenario", "simulate_p003"]
 class P003Scenario:
     """Simulated flights (batch-first, 1 Hz, ``T = duration`` steps at ``t_k = k`` s).
 
-    ``truth [B, T, 20]`` error state (``models.navigation.sins`` layout), ``measurements [B, T, 2K]``
+    ``truth [B, T, 20]`` error state (``experiments.papers.p003.sins`` layout), ``measurements [B, T, 2K]``
     (``[drho, drhodot]``), ``mask [B, T, 2K]``, ``controls`` (``llh, vel, f_n, C_bn, dt, sat_pos,
     sat_vel``), ``manoeuvre [B, T]`` (step ``k`` inside a manoeuvre phase), ``initial_mean [B, 20]``
     (zeros), ``initial_cov [20, 20]``, ``initial_truth [B, 20]`` (the error at ``t = 0``),
@@ -176,7 +177,7 @@ def simulate_p003(
         sensor_errors / initial_errors / measurement_noise: switch off for tests (with both error
             switches off the INS equals the truth to rounding); ``imu_noise=False`` keeps the
             biases but drops the white noises and Markov driving noises (deterministic errors).
-        position_in_metres: express truth and covariances in the ``models.navigation.sins`` metre layout.
+        position_in_metres: express truth and covariances in the ``experiments.papers.p003.sins`` metre layout.
         feedback: ``"none"`` (open-loop INS, free-inertial drift) or ``"imm"`` (closed loop, see
             the module docstring; adds ``controls["feedback"]``).
     """
@@ -268,7 +269,7 @@ def simulate_p003(
     ke = np.arange(steps + 1) * imu_rate
     t_llh, t_vel, t_c = llh[:, ke], vel[:, ke], c_true[:, ke]
     tt = torch.arange(steps + 1, dtype=f64).expand(bsz, steps + 1)
-    sp, sv = geo.CircularOrbitConstellation().state(tt, torch.tensor(earth_angle)[:, None], torch.tensor(orbit_phase)[:, None])
+    sp, sv = sky.CircularOrbitConstellation().state(tt, torch.tensor(earth_angle)[:, None], torch.tensor(orbit_phase)[:, None])
     p_true = geo.geodetic_to_ecef(torch.from_numpy(t_llh))
     elev = geo.azimuth_elevation(p_true, sp)[1]
     best = torch.argsort(elev[:, 1:].amin(1), dim=-1, descending=True)[:, :k_sat]  # [B, K]

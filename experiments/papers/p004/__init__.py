@@ -1,6 +1,6 @@
 """p004 (Li, Zhu, Wang & Lyu): adaptive EKF/UKF switching for vehicle GNSS/IMU - the drive
 simulator, the switching statistics, the experiment set-up (``experiment=p004_blend``) and the
-paired comparison.  The GNSS/IMU model is :class:`difffilter.models.GnssImuModel`, the blend
+paired comparison.  The GNSS/IMU model is :class:`~experiments.papers.p004.model.GnssImuModel` (model.py), the blend
 :class:`difffilter.mixers.Blend`."""
 
 from .experiment import P004Imu, P004Trajectories, blend_filter, gnss_imu_model, p004_simulator

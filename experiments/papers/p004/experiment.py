@@ -35,18 +35,18 @@ from difffilter._util import as_dtype, generator
 from difffilter.filters.ekf import EKF
 from difffilter.filters.sigma_points import SigmaPoints
 from difffilter.filters.ukf import UKF
-from difffilter.learn.data import SimulatedTrajectories
 from difffilter.mixers.blend import Blend, Statistics
 from difffilter.models.base import StateSpaceModel
-from difffilter.models.navigation.gnss_imu import GnssImuModel
+from difffilter.sim import TrajectorySet
+from experiments.papers.p004.model import GnssImuModel
 
 from .simulator import GnssImuScenario, simulate_p004
 
 __all__ = ["P004Imu", "P004Trajectories", "blend_filter", "gnss_imu_model", "p004_simulator"]
 
 
-@dataclass
-class P004Trajectories(SimulatedTrajectories):
+@dataclass(kw_only=True)
+class P004Trajectories(TrajectorySet):
     """p004 drives in the data module's layout.
 
     Attributes:
@@ -198,7 +198,7 @@ class P004Imu:
 
 
 def gnss_imu_model(**options: Any) -> GnssImuModel:
-    """:class:`~difffilter.models.GnssImuModel` (``options`` as its keywords) whose defaults draw
+    """:class:`~experiments.papers.p004.model.GnssImuModel` (``options`` as its keywords) whose defaults draw
     in-family IMU readings from p004's randomised drives (:class:`P004Imu`), for configs."""
     model = GnssImuModel(**options)
     model.defaults = dataclasses.replace(model.defaults, controls=P004Imu(planar=bool(options.get("planar", False))))

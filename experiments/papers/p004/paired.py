@@ -22,8 +22,8 @@ from omegaconf import OmegaConf
 
 from difffilter.learn.checkpoints import best_checkpoint
 from difffilter.learn.learner import load_filter
-from difffilter.models.navigation.gnss_imu import GnssImuModel
 from difffilter.selection import assign_parameters
+from experiments.papers.p004.model import GnssImuModel
 
 from .experiment import blend_filter, p004_simulator
 

@@ -28,7 +28,7 @@ variant scales each turn rate by ``U(0.7, 1.3)`` (loops flip direction with prob
 weave amplitude by ``U(0.5, 1.5)`` and the fixed speed knots by ``U(0.8, 1.2)``, then solves the
 same system (redrawing when ``v_E`` or ``v_S`` falls outside [3, 25] m/s).
 
-Sensors (module :mod:`difffilter.models.navigation.gnss_imu` for the frames and the IMU convention): the
+Sensors (module :mod:`experiments.papers.p004.model` for the frames and the IMU convention): the
 IMU delivers interval means ``accel = C_bn(t_{k-1}) (Delta v / T - g_n) + b_a + N(0, sigma_accel^2)``
 and ``gyro = Delta theta / T + b_g + N(0, sigma_gyro^2)`` with per-trajectory constant biases
 ``b_a ~ N(0, (0.05 mg)^2)``, ``b_g ~ N(0, (0.1 deg/h)^2)`` per axis; GNSS gives position
@@ -61,8 +61,8 @@ from torch import Tensor
 
 from difffilter._util import generator
 from difffilter.models.base import wrap_angle
-from difffilter.models.navigation.gnss_imu import GNSS_IMU_PAPER, GRAVITY, GnssImuModel
 from difffilter.sim.signals import cumtrapz, moving_average
+from experiments.papers.p004.model import GNSS_IMU_PAPER, GRAVITY, GnssImuModel
 
 from .switching import imu_switching_statistics
 
@@ -277,7 +277,7 @@ def simulate_p004(
         batch_size: number of trajectories ``B``.
         seed: integer seed or ``torch.Generator``.
         randomize: random variant of the script (per trajectory) instead of the fixed one.
-        planar: planar state layout / IMU (see :class:`~difffilter.models.navigation.gnss_imu.PlanarGnssImuDynamics`).
+        planar: planar state layout / IMU (see :class:`~experiments.papers.p004.model.PlanarGnssImuDynamics`).
         velocity, heading: add GNSS velocity / dual-antenna heading observations.
         gnss_outages: ``(start, end)`` windows in seconds without GNSS.
         bias_walk: true in-run bias random walks ``(accel m/s^2/sqrt(s), gyro rad/s/sqrt(s))``.
@@ -285,7 +285,7 @@ def simulate_p004(
             (m) and correlation time (s) (module docstring).
         substeps: fine integration steps per sample.
         dtype: dtype of the returned tensors (the simulation runs in float64).
-        **settings: overrides of :data:`~difffilter.models.navigation.gnss_imu.GNSS_IMU_PAPER`.
+        **settings: overrides of :data:`~experiments.papers.p004.model.GNSS_IMU_PAPER`.
     """
     p = {**GNSS_IMU_PAPER, **settings}
     gen = generator(seed)

@@ -21,7 +21,7 @@ import torch
 from torch import Tensor
 
 from difffilter.models.base import Controls
-from difffilter.models.navigation.gnss_imu import GNSS_IMU_PAPER, GRAVITY
+from experiments.papers.p004.model import GNSS_IMU_PAPER, GRAVITY
 
 __all__ = ["ImuSwitchingStatistics", "imu_switching_statistics", "switching_statistics"]
 

@@ -34,9 +34,9 @@ from torch import Tensor, nn
 
 from difffilter._util import as_dtype, generator
 from difffilter.filters.protocol import Filter
-from difffilter.learn.data import SimulatedTrajectories
 from difffilter.learn.learner import FilterLearner
 from difffilter.selection import assign_parameters
+from difffilter.sim import TrajectorySet
 
 from .data import SmartLocData, load_smartloc
 from .model import make_smartloc_model, smartloc_initial_belief
@@ -92,8 +92,8 @@ def smartloc_learner(
     return FilterLearner(filter, loss, **learner_kwargs)
 
 
-@dataclass
-class SmartLocTrajectories(SimulatedTrajectories):
+@dataclass(kw_only=True)
+class SmartLocTrajectories(TrajectorySet):
     """Windows of the real drive in the data module's layout.
 
     Attributes:

@@ -2,7 +2,7 @@
 ``conf/realdata.yaml`` + ``conf/realdata/<name>.yaml``).
 
 For every fold (an assignment of contiguous blocks of each drive to train / validation / test,
-:func:`~difffilter.evaluate.holdout.contiguous_blocks`) and every learned variant (a pseudorange noise
+:func:`~experiments.holdout.contiguous_blocks`) and every learned variant (a pseudorange noise
 model, :mod:`experiments.papers.smartloc.variants`):
 
 1. training data: windows of the train blocks of all drives (one batch; each window starts from the
@@ -12,12 +12,12 @@ model, :mod:`experiments.papers.smartloc.variants`):
 2. the learned filter (EKF on the odometry + pseudorange model with the variant's noise model and a
    learnable smooth reject gate) starts from the hand-tuned values; every positive parameter is
    bounded to ``[start / bound_ratio, start x bound_ratio]`` and pulled back to its start by a
-   :class:`~difffilter.evaluate.holdout.LogDistancePrior`; ``seeds`` replicates (seeded log-normal
+   :class:`~experiments.holdout.LogDistancePrior`; ``seeds`` replicates (seeded log-normal
    perturbations of the start) train by innovation likelihood (no reference positions);
 3. after every epoch the validation blocks' horizontal median + RMS error is recorded
-   (:class:`~difffilter.evaluate.holdout.EpochSnapshots`); the model used on test is the
+   (:class:`~experiments.holdout.EpochSnapshots`); the model used on test is the
    (seed, epoch) - or the unperturbed start - with the lowest validation score
-   (:func:`~difffilter.evaluate.holdout.select_candidate`), within ``epochs x h`` epochs for each
+   (:func:`~experiments.holdout.select_candidate`), within ``epochs x h`` epochs for each
    stability horizon ``h``;
 4. on every test block: the hand-tuned filter (the gated EKF with the loader's values), the
    selected learned filters, the EKF without gate and the single-epoch WLS, with paired
@@ -43,12 +43,14 @@ import torch
 from pytorch_lightning.loggers import TensorBoardLogger
 from torch import Tensor
 
-from difffilter.evaluate.holdout import EpochSnapshots, LogDistancePrior, bound_parameters, contiguous_blocks, restore_snapshot
 from difffilter.filters import EKF
 from difffilter.filters.protocol import Filter
 from difffilter.learn.data import TrajectorySet, WindowedTrajectories
-from difffilter.learn.learner import FilterLearner
+from difffilter.learn.learner import FilterLearner, LearnerOptions
+from difffilter.learn.losses import LogPrior
+from difffilter.learn.replicates import perturb_initial_values
 from difffilter.selection import assign_parameters, match_parameters, parameter_owners
+from experiments.holdout import EpochSnapshots, LogDistancePrior, bound_parameters, contiguous_blocks, restore_snapshot
 
 from .data import SmartLocData, find_drives, load_drive
 from .model import make_smartloc_model, smartloc_initial_belief
@@ -148,14 +150,20 @@ def block_sets(
         mean0, cov0 = smartloc_initial_belief(drive.data, torch.tensor(starts), wls=drive.wls)
         piece = (cut(z), cut(mask), {key: cut(v) for key, v in u.items()}, cut(drive.data.truth_enu[None]), mean0, cov0)
         if length is None:
-            sets.append(TrajectorySet(piece[0], piece[1], piece[2], piece[3], piece[4], piece[5], source=drive.data.name))
+            sets.append(_trajectory_set(*piece, source=drive.data.name))
         else:
             pieces.append(piece)
     if pieces:
         u = {key: torch.cat([p[2][key] for p in pieces]) for key in pieces[0][2]}
         cat = lambda j: torch.cat([p[j] for p in pieces])  # noqa: E731
-        sets.append(TrajectorySet(cat(0), cat(1), u, cat(3), cat(4), cat(5), source="train"))
+        sets.append(_trajectory_set(cat(0), cat(1), u, cat(3), cat(4), cat(5), source="train"))
     return sets
+
+
+def _trajectory_set(
+    z: Tensor, mask: Tensor, u: dict[str, Tensor], truth: Tensor, mean0: Tensor, cov0: Tensor, source: str
+) -> TrajectorySet:
+    return TrajectorySet(measurements=z, mask=mask, controls=u, truth=truth, initial_mean=mean0, initial_cov=cov0, source=source)
 
 
 def build_filter(cfg: Mapping[str, Any], drives: Sequence[Drive], variant: str, coefficients: Tensor, *, learned: bool) -> Filter:
@@ -264,18 +272,14 @@ def _train_job(job: Mapping[str, Any]) -> dict[str, Any]:
     priors = {n: LogDistancePrior(reference=getattr(owners[n][0], owners[n][1]).detach(), scale=float(prior["scale"])) for n in names}
     snaps = EpochSnapshots(lambda f: validation_score(f, sets["val"]), names)
     learner = FilterLearner(
-        filt,
+        filt.double(),
         "nll",
         learn=names,
         optimizer=functools.partial(torch.optim.Adam, lr=float(cfg["lr"])),
-        log_prior=priors,
-        prior_weight=float(prior["weight"]),
-        dtype="float64",
-        init_perturbation=float(cfg["init_perturbation"]),
-        init_seed=int(job["seed"]),
-        position_index=[0, 1],
-        figure_every_n_epochs=0,
+        prior=LogPrior(priors, weight=float(prior["weight"])),
+        options=LearnerOptions(position_index=[0, 1]),
     )
+    perturb_initial_values(learner.filter, learner.learned_names, float(cfg["init_perturbation"]), seed=int(job["seed"]))
     pl.seed_everything(int(job["seed"]), workers=False, verbose=False)
     logger = TensorBoardLogger(
         job["log_dir"], name=f"{job['fold']}_{job['variant']}", version=f"seed{job['seed']}", default_hp_metric=False

@@ -23,10 +23,10 @@ from typing import Any
 import torch
 from torch.utils.tensorboard import SummaryWriter
 
-from difffilter.evaluate.holdout import paired_error_table, select_candidate
 from difffilter.filters import EKF
 from difffilter.learn.data import TrajectorySet
 from difffilter.selection import learnable_values
+from experiments.holdout import paired_error_table, select_candidate
 
 from .data import default_smartloc_path
 from .filters import SnapshotWLS

@@ -14,11 +14,11 @@ import math
 import torch
 from torch import Tensor
 
-from ...linalg import block_diag
-from ...params import Interval, Positive, register_constrained, register_covariance
-from ..base import Controls, DynamicsModel, MeasurementModel, StateSpaceModel
-from ..layout import StateLayout, describe
-from ..motion import ConstantAcceleration, CurrentStatistical, Singer, _Kinematic
+from difffilter.linalg import block_diag
+from difffilter.models.base import Controls, DynamicsModel, MeasurementModel, StateSpaceModel
+from difffilter.models.layout import StateLayout, describe
+from difffilter.models.motion import ConstantAcceleration, CurrentStatistical, Singer, _Kinematic
+from difffilter.params import Interval, Positive, register_constrained, register_covariance
 
 __all__ = [
     "A_MAX_VEHICLE",

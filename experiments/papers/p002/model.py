@@ -17,9 +17,9 @@ import math
 import torch
 from torch import Tensor
 
-from ...params import check_covariance, register_covariance
-from ..base import Controls, DynamicsModel, MeasurementModel, StateSpaceModel, wrap_angle
-from ..layout import StateLayout, describe
+from difffilter.models.base import Controls, DynamicsModel, MeasurementModel, StateSpaceModel, wrap_angle
+from difffilter.models.layout import StateLayout, describe
+from difffilter.params import check_covariance, register_covariance
 
 __all__ = [
     "PDR_LAYOUT",

@@ -1,5 +1,5 @@
 """The measurement half of p003's GPS/SINS ultra-tight model: pseudorange and pseudorange-rate
-differences INS - GPS (state layout and inputs: :mod:`difffilter.models.navigation.sins`)."""
+differences INS - GPS (state layout and inputs: :mod:`experiments.papers.p003.sins`)."""
 
 from __future__ import annotations
 
@@ -8,9 +8,10 @@ from collections.abc import Mapping
 import torch
 from torch import Tensor
 
-from ... import geometry as geo
-from ...params import register_covariance
-from ..base import Controls, MeasurementModel
+from difffilter import geometry as geo
+from difffilter.models.base import Controls, MeasurementModel
+from difffilter.params import register_covariance
+
 from .sins import _get, _position_scale
 
 __all__ = ["SinsPseudorangeMeasurement"]

@@ -33,10 +33,10 @@ from collections.abc import Mapping
 import torch
 from torch import Tensor
 
-from ... import geometry as geo
-from ..._util import control
-from ...params import register_covariance
-from ..base import Controls, DynamicsModel
+from difffilter import geometry as geo
+from difffilter._util import control
+from difffilter.models.base import Controls, DynamicsModel
+from difffilter.params import register_covariance
 
 __all__ = [
     "DEG_PER_HOUR",

@@ -31,9 +31,9 @@ import pytorch_lightning as pl
 import torch
 from torch import Tensor, nn
 
-from ..params import Interval, register_constrained
-from ..selection import match_parameters, parameter_owners
-from .intervals import block_bootstrap_difference
+from difffilter.evaluate.intervals import block_bootstrap_difference
+from difffilter.params import Interval, register_constrained
+from difffilter.selection import match_parameters, parameter_owners
 
 __all__ = [
     "EpochSnapshots",
@@ -74,7 +74,7 @@ def contiguous_blocks(num_steps: int, spans: Mapping[str, tuple[float, float]]) 
 class LogDistancePrior:
     """``log p(v) = -sum ((log v - log v_ref) / scale)^2 / 2``: a Gaussian pull of a positive
     parameter towards ``reference`` on a log scale (no Jacobian term, so the maximum is exactly
-    at the reference).  For :class:`~difffilter.learn.learner.FilterLearner`'s ``log_prior``."""
+    at the reference).  For :class:`~difffilter.learn.learner.FilterLearner`'s ``prior`` (:class:`~difffilter.learn.losses.LogPrior`)."""
 
     def __init__(self, *, reference: Tensor | float, scale: float = 1.0) -> None:
         if not float(scale) > 0:

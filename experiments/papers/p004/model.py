@@ -28,13 +28,13 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
-from ..._util import control
-from ...linalg import block_diag
-from ...params import Bounded, Positive, register_constrained, register_covariance
-from ..base import Controls, DynamicsModel, MeasurementModel, StateSpaceModel, wrap_angle
-from ..layout import StateLayout, describe
-from .antenna import antenna_offset, has_antenna, planar_rotation, register_antenna
-from .quaternion import quaternion_multiply, quaternion_to_rotation, rotation_quaternion
+from difffilter._util import control
+from difffilter.linalg import block_diag
+from difffilter.models.base import Controls, DynamicsModel, MeasurementModel, StateSpaceModel, wrap_angle
+from difffilter.models.layout import StateLayout, describe
+from difffilter.models.navigation.antenna import antenna_offset, has_antenna, planar_rotation, register_antenna
+from difffilter.models.navigation.quaternion import quaternion_multiply, quaternion_to_rotation, rotation_quaternion
+from difffilter.params import Bounded, Positive, register_constrained, register_covariance
 
 __all__ = [
     "PLANAR_LAYOUT",

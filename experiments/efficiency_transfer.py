@@ -160,15 +160,20 @@ def _write(rows: Sequence[dict[str, Any]], out: str | Path) -> Path:
 def summarize_efficiency(
     sweep_dir: str | Path, out: str | Path, *, select: Sequence[str] = (), metric: str = "rmse_pos", prob: float = 0.95
 ) -> Path:
-    """One group per ``data.train_size`` of ``sweep_dir`` (jobs also matching ``select``); writes ``out``."""
+    """One group per ``data.train_size`` of ``sweep_dir`` (jobs also matching ``select``); writes ``out``.
+    A size with fewer finished seeds than the others (a sweep stopped early) is left out."""
     jobs = [j for j in load_jobs(sweep_dir) if set(select) <= set(j.overrides)]
     sizes = sorted({o.split("=", 1)[1] for j in jobs for o in j.overrides if o.startswith("data.train_size=")}, key=int)
     if not sizes:
         raise ValueError(f"{sweep_dir}: no job with a data.train_size override (and {list(select)})")
     rows: list[dict[str, Any]] = []
+    by_size = {size: _select(jobs, [f"data.train_size={size}"], f"{sweep_dir} N={size}") for size in sizes}
+    seeds = max(len(g) for g in by_size.values())
     for size in sizes:
-        group = f"N={size}"
-        gjobs = _select(jobs, [f"data.train_size={size}"], f"{sweep_dir} {group}")
+        group, gjobs = f"N={size}", by_size[size]
+        if len(gjobs) < seeds:  # an unfinished sweep: a size with fewer seeds is left out, not shown
+            print(f"{sweep_dir}: {group} has {len(gjobs)} of {seeds} seeds finished; left out", file=sys.stderr)
+            continue
         names = list(dict.fromkeys(f for j in gjobs for f in j.per_run))
         mats = {n: m for n in names if (m := _matrix(gjobs, n, metric)) is not None}
         crossed = _shared_runs(mats.get(REFERENCE))

@@ -80,6 +80,15 @@ def test_efficiency_pairs_learned_and_em_with_the_best_other_baseline(tmp_path):
     assert _pick(rows, "N=4", "learned", "diff_pct", "em").hi < 0
 
 
+def test_efficiency_leaves_out_a_size_with_fewer_seeds(tmp_path):
+    for size, seeds in ((1, 3), (4, 1)):
+        for s in range(seeds):
+            per_run = {"hand-tuned": [1.0, 2.0, 3.0], "learned": [0.5, 1.5, 2.0 + 0.1 * s]}
+            _job(tmp_path / f"{size}_{s}", [f"data.train_size={size}", f"seed={s}"], per_run, {})
+    rows = read_rows(summarize_efficiency(tmp_path, tmp_path / "eff.csv"))
+    assert {r.group for r in rows} == {"N=1"}
+
+
 def _transfer_sweeps(tmp_path: Path, shift: float = 0.0) -> tuple[dict, dict]:
     runs, seeds = 6, 3
     hand = [2.0 + 0.1 * r for r in range(runs)]

@@ -218,6 +218,10 @@ JOBS: tuple[Job, ...] = (
     Job("p004_urban", "p004_urban.md", 321, _sweep_and_test("p004_urban", RERUN, learned_values=False)),
     # issue 25: the families again with the practitioners' rows (results/p00_practitioners.md)
     Job("p001_elevation_practitioners", "p00_practitioners.md", 489, _practitioners("p001_elevation")),
+    Job("p000_infamily_practitioners", "p00_practitioners.md", 411, _practitioners("p000_infamily")),
+    Job("p001_colored_practitioners", "p00_practitioners.md", 446, _practitioners("p001_colored")),
+    Job("p001_multipath_practitioners", "p00_practitioners.md", 377, _practitioners("p001_multipath")),
+    Job("p001_multipath_shared_practitioners", "p00_practitioners.md", 387, _practitioners("p001_multipath_shared")),
     Job("p004_urban_practitioners", "p00_practitioners.md", 540, _practitioners("p004_urban")),
     Job("p004_mems_practitioners", "p00_practitioners.md", 491, _practitioners("p004_mems")),
     Job("p004_blend_practitioners", "p00_practitioners.md", 435, _practitioners("p004_blend")),

@@ -3,7 +3,7 @@
 The report is a summary: one row per paper family, the realistic families (mis-specified, the
 paper's own conditions) first, the designed in-family ones after.  Each row shows every
 non-learned method the family's CSV has a row for (today only the paper's constants; the columns
-of the textbook rule, validation search, EM, Sage-Husa and VB-AKF say "not run" until their rows
+of the textbook rule, validation search, EM, Sage-Husa, VB-AKF and covariance matching say "not run" until their rows
 exist), the best of them, the learned filter(s), learned - best non-learned as a paired difference
 in % with its 95 % interval and the verdict of :func:`~experiments.results_tables.paired_verdict`,
 and the learned filter's ANEES with the verdict of :func:`~experiments.results_tables.anees_verdict`.
@@ -134,7 +134,15 @@ FAMILIES: tuple[Family, ...] = (
         "outputs/final/p000_nominal",
         "test=scripted",
     ),
-    Family("p001_colored", "p001", "paper's own", "coloured noise at the paper's values", "p001_colored.md", f"{_R}/p001_colored"),
+    Family(
+        "p001_colored",
+        "p001",
+        "paper's own",
+        "coloured noise at the paper's values",
+        "p001_colored.md",
+        f"{_R}/p001_colored",
+        practitioners=True,
+    ),
     Family(
         "p002_pdr_rcukf",
         "p002",
@@ -148,8 +156,18 @@ FAMILIES: tuple[Family, ...] = (
     Family("p003_imm_sins", "p003", "paper's own", "paper-faithful IMM", "p003_imm_sins.md", "outputs/p003_final/p003_imm_sins"),
     Family("p004_blend", "p004", "paper's own", "the paper's blend and values", "p004_blend.md", f"{_R}/p004_blend", practitioners=True),
     Family("p004_outage", "p004", "paper's own", "cold start (no GNSS 0-30 s)", "p004_blend.md", f"{_R}/p004_outage"),
-    Family("p000_infamily", "p000", "in-family", "CA truth, q and R off", "p000_gpsdr.md", "outputs/final/p000_infamily"),
-    Family("p001_multipath", "p001", "in-family", "coloured multipath, per-channel Psi", "p001_multipath.md", f"{_R}/p001_multipath"),
+    Family(
+        "p000_infamily", "p000", "in-family", "CA truth, q and R off", "p000_gpsdr.md", "outputs/final/p000_infamily", practitioners=True
+    ),
+    Family(
+        "p001_multipath",
+        "p001",
+        "in-family",
+        "coloured multipath, per-channel Psi",
+        "p001_multipath.md",
+        f"{_R}/p001_multipath",
+        practitioners=True,
+    ),
     Family(
         "p001_multipath_shared",
         "p001",
@@ -157,6 +175,7 @@ FAMILIES: tuple[Family, ...] = (
         "coloured multipath, one shared Psi",
         "p001_multipath.md",
         f"{_R}/p001_multipath_shared",
+        practitioners=True,
     ),
     Family(
         "p002_infamily_exactref", "p002", "in-family", "in-family walks (G vs exact UKF)", "p002_pdr.md", f"{_R}/p002_infamily_exactref"
@@ -173,6 +192,7 @@ METHODS: tuple[tuple[str, str], ...] = (
     ("EM", "em"),
     ("Sage-Husa", "sage-husa"),
     ("VB-AKF", "vb-akf"),
+    ("covariance matching", "covariance-matching"),
 )
 LEARNED: tuple[tuple[str, str], ...] = (("learned", "learned"), ("learned adaptive", "learned-adaptive"))
 REFERENCE = "hand-tuned"
@@ -280,7 +300,7 @@ def build_report(families: Sequence[Family] = FAMILIES, root: Path = ROOT) -> st
         "",
         "- learned - best non-learned: the paired difference per test run and seed, in % of the reference; **win**",
         "  when its 95 % interval lies below zero, **loss** when above, **tie** when it contains zero.  The best",
-        "  non-learned method is the lowest-RMSE row among the six non-learned columns that were run; a method",
+        "  non-learned method is the lowest-RMSE row among the seven non-learned columns that were run; a method",
         "  without a row in the family's CSV says *not run*.  A paired interval exists only against the row the",
         "  sweep pairs with (the paper's constants) or a `diff_pct` row whose `reference` names the best method.",
         "- ANEES of the learned filter (all states, d of them) against the 95 % chi-square band of a consistent",

@@ -18,7 +18,7 @@ from omegaconf import OmegaConf
 
 from difffilter.evaluate.intervals import crossed_interval
 from experiments.practitioners import best_non_learned, summarize_practitioners
-from experiments.results_report import Family, build_report, summary_cells
+from experiments.results_report import METHODS, Family, build_report, summary_cells
 from experiments.results_tables import fmt_ci, read_rows
 from tests.smoke_helpers import run_train_smoke
 
@@ -26,7 +26,13 @@ ROOT = Path(__file__).resolve().parents[1]
 OVERLAYS = sorted(p.stem for p in (ROOT / "experiments" / "papers").glob("*/conf/experiment/*_practitioners.yaml"))
 PRACTITIONER_ROWS = {"validation-search", "sage-husa", "vb-akf"}  # and `textbook` where a rule exists
 #: The family experiment (and overrides) each overlay extends, where its name is not ``<family>_practitioners``.
-FAMILY_OF = {"p002_disturbed_practitioners": ("p002_pdr", "scenario=p002_disturbed")}
+FAMILY_OF = {
+    "p002_disturbed_practitioners": ("p002_pdr", "scenario=p002_disturbed"),
+    "p000_gyro_practitioners": ("p000_gpsdr", "scenario=p000_gyro"),
+    "p000_gps_practitioners": ("p000_gpsdr", "scenario=p000_gps"),
+    "p000_odometer_practitioners": ("p000_gpsdr", "scenario=p000_odometer"),
+    "p000_nominal_practitioners": ("p000_gpsdr", "scenario=p000_random"),
+}
 
 
 def _compose(experiment: str, *overrides: str) -> dict:
@@ -94,7 +100,7 @@ def test_summary_pairs_learned_with_the_best_non_learned_row(tmp_path):
     # REPORT's row: best = textbook, the paired cell from the row above, CPU-s in the cells
     (tmp_path / "data").mkdir()
     cells = summary_cells(Family("x", "p00x", "mis-specified", "synthetic", "x.md", str(tmp_path)), rows)
-    assert cells[3 + 6] == "textbook rule" and cells[5].endswith("; 3 CPU-s")
+    assert cells[3 + len(METHODS)] == "textbook rule" and cells[5].endswith("; 3 CPU-s")
     assert cells[-5] == fmt_ci(pct.estimate, pct.lo, pct.hi) and cells[-4] == "win"
     assert not any(r.reference == "hand-tuned" for r in rows) and not math.isnan(diff.lo)
 

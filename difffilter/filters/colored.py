@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import torch
 from torch import Tensor
 
@@ -13,7 +15,7 @@ from .base import Belief, StepInfo, diffuse_gaussian_update, gaussian_update
 from .diffuse import DIFFUSE_COV, propagate_diffuse
 from .jacobians import measurement_matrix, transition_matrix
 from .sigma_points import SigmaPoints
-from .ukf import UKF, deviations, state_add, weighted_mean, weighted_moments
+from .ukf import UKF, centred_points, deviations, linear_image, linear_space, offset_untrusted, state_add, weighted_mean, weighted_moments
 from .update import JosephForm
 
 __all__ = ["ColoredNoiseUKF"]
@@ -105,12 +107,23 @@ class ColoredNoiseUKF(UKF):
         mean, cov = belief["mean"], belief["cov"]
         n = mean.shape[-1]
         wm, wc = self._weights(n, mean)
-        chi = self._points(mean, cov)
-        prop = self.model.dynamics(chi, expand_controls(u))
         dyn = self.model.dynamics
-        xm, dev, pf = weighted_moments(prop, wm, wc, dyn)
+        # chi_i - x straight from the square root: subtracting a mean of size |x| from points
+        # spread by sigma keeps only eps |x| / sigma of the deviations, and the cross-covariance
+        # built from them is then inconsistent with P- and P_k (the joint of the update turned
+        # indefinite at P0 = Q = 1e-30 and its factor fell back to the identity)
+        dchi = centred_points(self.sigma_points, psd_sqrt(cov).factor)
+        lin = linear_space(dyn, u)
+        if lin is not None:
+            xm, dev = linear_image(dyn, mean, dchi, u, lin)
+            pf = (dev * wc[:, None]).mT @ dev
+        else:
+            chi = mean[..., None, :] + dchi
+            xm, dev, pf = weighted_moments(dyn(chi, expand_controls(u)), wm, wc, dyn)
+            if dyn.angular:
+                dchi = deviations(chi, mean, dyn)
         q, _ = self._noise_matrices(mean, u)
-        cross = (dev * wc[:, None]).mT @ deviations(chi, mean, dyn)
+        cross = (dev * wc[:, None]).mT @ dchi
         out = {**belief, "mean": xm, "cov": symmetrize(pf + q), "cross_cov": cross, "prev_mean": mean, "prev_cov": cov}
         if DIFFUSE_COV in belief:
             jac = transition_matrix(self.model.dynamics, mean, u)
@@ -135,33 +148,58 @@ class ColoredNoiseUKF(UKF):
             return {_PREV_U: u}
         return {f"{_PREV_U}.{k}": v for k, v in u.items()}
 
-    def _joint_points(self, mean_a: Tensor, mean_b: Tensor, cov_a: Tensor, cross: Tensor, cov_b: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """Points ``[B, 4n+1, 2n]`` of the joint ``[a; b]`` and their weights (see class doc)."""
+    def _joint_points(
+        self, mean_a: Tensor, mean_b: Tensor, cov_a: Tensor, cross: Tensor, cov_b: Tensor
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+        """Points ``[B, 4n+1, 2n]`` of the joint ``[a; b]``, their deviations from the centre
+        (formed directly, no digits lost to a large mean), their weights (see class doc), and
+        ``[B]`` whether the joint needed more than its exact semi-definite factor."""
         n = mean_a.shape[-1]
         joint = symmetrize(torch.cat([torch.cat([cov_a, cross], -1), torch.cat([cross.mT, cov_b], -1)], -2))
-        offsets = self.sigma_points.gamma(n) * psd_sqrt(joint).factor.mT
-        centre = torch.cat([mean_a, mean_b], -1)[..., None, :]
-        points = torch.cat([centre, centre + offsets, centre - offsets], -2)
+        root = psd_sqrt(joint)
+        offsets = self.sigma_points.gamma(n) * root.factor.mT
+        dev = torch.cat([torch.zeros_like(offsets[..., :1, :]), offsets, -offsets], -2)
+        points = torch.cat([mean_a, mean_b], -1)[..., None, :] + dev
         wm_n, wc_n = self._weights(n, mean_a)
         wi = wm_n[-1]
         wm0 = 1.0 - 4 * n * wi
         wc0 = wm0 + (wc_n[0] - wm_n[0] if self.sigma_points.has_center else 0.0)
         rest = wi.expand(4 * n)
-        return points, torch.cat([wm0[None], rest]), torch.cat([wc0[None], rest])
+        return points, dev, torch.cat([wm0[None], rest]), torch.cat([wc0[None], rest]), root.jitter != 0
+
+    def _differenced_moments(
+        self, belief: Belief, points: Tensor, dev: Tensor, wm: Tensor, coef: Tensor, u: Controls
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor, bool]:
+        """``(za_hat, zb_hat, dg [B, S, m], dx [B, S, n], exact)`` of ``g(a, b) = h(a, u) -
+        coef h(b, u_prev)`` over the joint points; a measurement linear at both steps' controls
+        maps the deviations (``exact`` when the dynamics are linear too: no digits lost to the
+        size of ``f``'s or ``h``'s values)."""
+        hm, dyn = self.model.measurement, self.model.dynamics
+        mean, n = belief["mean"], belief["mean"].shape[-1]
+        u_prev = self._previous_controls(belief, u)
+        h_a = linear_space(hm, u)
+        h_b = linear_space(hm, u_prev) if h_a is not None else None
+        dx = deviations(points[..., :n], mean, dyn) if dyn.angular else dev[..., :n]
+        if h_a is not None and h_b is not None:
+            # exact only where the prediction's deviations were too (linear dynamics)
+            exact = linear_space(dyn, u) is not None
+            za_hat, dza = linear_image(hm, mean, dev[..., :n], u, h_a)
+            zb_hat, dzb = linear_image(hm, belief["prev_mean"], dev[..., n:], u_prev, h_b)
+            return za_hat, zb_hat, dza - coef[..., None, :] * dzb, dx, exact
+        za = hm(points[..., :n], expand_controls(u))
+        zb = hm(points[..., n:], expand_controls(u_prev))
+        za_hat, zb_hat = weighted_mean(za, wm, hm), weighted_mean(zb, wm, hm)
+        dg = hm.residual(za, za_hat[..., None, :]) - coef[..., None, :] * hm.residual(zb, zb_hat[..., None, :])
+        return za_hat, zb_hat, dg, dx, False
 
     def update(self, belief: Belief, z: Tensor, mask: Tensor | None, u: Controls) -> tuple[Belief, StepInfo]:
         mean, cov = belief["mean"], belief["cov"]
-        n = mean.shape[-1]
         hm = self.model.measurement
-        points, wm, wc = self._joint_points(mean, belief["prev_mean"], cov, belief["cross_cov"], belief["prev_cov"])
-        pts_a, pts_b = points[..., :n], points[..., n:]
-        za = hm(pts_a, expand_controls(u))
-        zb = hm(pts_b, expand_controls(self._previous_controls(belief, u)))
-        za_hat, zb_hat = weighted_mean(za, wm, hm), weighted_mean(zb, wm, hm)
+        points, dev, wm, wc, repaired = self._joint_points(mean, belief["prev_mean"], cov, belief["cross_cov"], belief["prev_cov"])
         diff = belief["prev_observed"].to(mean.dtype)
         psi = self.ar_coefficients(u)
         coef = diff * psi  # [B, m], zero for undifferenced components
-        dg = hm.residual(za, za_hat[..., None, :]) - coef[..., None, :] * hm.residual(zb, zb_hat[..., None, :])
+        za_hat, zb_hat, dg, dx, exact = self._differenced_moments(belief, points, dev, wm, coef, u)
         innovation = hm.residual(z, za_hat) - coef * hm.residual(belief["prev_measurement"], zb_hat)
         r = hm.measurement_noise(mean, u)
         undiff = 1.0 - diff
@@ -169,16 +207,30 @@ class ColoredNoiseUKF(UKF):
         r_eff = r / (1.0 - undiff[..., :, None] * undiff[..., None, :] * pp)
         pzz = (dg * wc[:, None]).mT @ dg + r_eff
         dyn = self.model.dynamics
-        dx = deviations(pts_a, mean, dyn)
         pxz = (wc[:, None] * dx).mT @ dg
         r_full = r_eff.expand(*mean.shape[:-1], *r_eff.shape[-2:])
         if DIFFUSE_COV in belief:
             post, info = self._diffuse_update(belief, innovation, (dx, dg, wc, r_full), coef, mask, u)
         else:
             new_mean, new_cov, info = gaussian_update(
-                mean, cov, innovation, pzz, pxz, mask, joseph=JosephForm.sigma_points(dx, dg, wc, r_full), add=state_add(dyn)
+                mean,
+                cov,
+                innovation,
+                pzz,
+                pxz,
+                mask,
+                joseph=JosephForm.sigma_points(dx, dg, wc, r_full),
+                add=state_add(dyn),
+                prediction=za_hat.abs() + (coef * zb_hat).abs(),
             )
             post = {"mean": new_mean, "cov": new_cov}
+        # a joint that needed jitter (its points no longer have the belief's moments), or a
+        # nonlinear measurement of points whose deviations lost digits to a large mean
+        flag = repaired
+        if not exact:
+            flag = flag | offset_untrusted(mean, cov, za_hat, pzz, info.nis)
+            flag = flag | offset_untrusted(belief["prev_mean"], belief["prev_cov"], coef * zb_hat, pzz, info.nis)
+        info = replace(info, untrusted=flag if info.untrusted is None else info.untrusted | flag)
         drop = ("cross_cov", "prev_mean", "prev_cov", "prev_measurement", "prev_observed", "prev_diffuse_cov", "diffuse_cross")
         out = {k: v for k, v in belief.items() if k not in drop and not k.startswith(_PREV_U) and not k.startswith("sigma_")}
         observed = torch.ones_like(z, dtype=torch.bool) if mask is None else mask

@@ -90,5 +90,6 @@ class EKF(RecursiveFilter):
             post, info = diffuse_gaussian_update(belief, e, (*square_root_deviations(cov, h), r), mask, obs_matrix=h, add=add)
             return {**belief, **post}, info
         joseph = JosephForm.linear(h, r, always=self.joseph)
-        new_mean, new_cov, info = gaussian_update(mean, cov, e, s, pht, mask, joseph=joseph, add=state_add(self.model.dynamics))
+        add = state_add(self.model.dynamics)
+        new_mean, new_cov, info = gaussian_update(mean, cov, e, s, pht, mask, joseph=joseph, add=add, prediction=zhat)
         return {**belief, "mean": new_mean, "cov": new_cov}, info

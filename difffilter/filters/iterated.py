@@ -56,7 +56,10 @@ class IteratedEKF(EKF):
             h = self.measurement_jacobian(x, u)
             r = self.measurement_noise_cov(x, u)
             pht = cov @ h.mT
-            e = hm.residual(z, hm(x, u)) + (h @ self.model.dynamics.residual(x, mean)[..., None])[..., 0]
+            zhat = hm(x, u)
+            e = hm.residual(z, zhat) + (h @ self.model.dynamics.residual(x, mean)[..., None])[..., 0]
             joseph = JosephForm.linear(h, r, always=self.joseph)
-            x, new_cov, info = gaussian_update(mean, cov, e, h @ pht + r, pht, mask, joseph=joseph, add=state_add(self.model.dynamics))
+            x, new_cov, info = gaussian_update(
+                mean, cov, e, h @ pht + r, pht, mask, joseph=joseph, add=state_add(self.model.dynamics), prediction=zhat
+            )
         return {**belief, "mean": x, "cov": new_cov}, info

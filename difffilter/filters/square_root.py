@@ -13,6 +13,7 @@ from .diffuse import DIFFUSE_COV, propagate_diffuse
 from .jacobians import measurement_matrix
 from .sigma_points import SigmaPoints
 from .ukf import UKF, centred_points, deviations, linear_image, linear_space, offset_untrusted, state_add, weighted_mean
+from .update import rounding_untrusted
 
 __all__ = ["SquareRootUKF"]
 
@@ -107,6 +108,9 @@ class SquareRootUKF(UKF):
         # Missing components contribute log N(0; 0, 1) each in the padded system: remove it.
         loglik = loglik + 0.5 * (m - num_obs) * torch.log(torch.tensor(2.0 * torch.pi, dtype=e.dtype))
         pzz = szz @ szz.mT
-        info = StepInfo(loglik, maha, num_obs, e, pzz, None if exact else offset_untrusted(mean, s @ s.mT, zhat, pzz, maha))
+        # the gain's weak directions: P_xz and S are rounded apart, so K e keeps ~eps cond(S)
+        whitened = torch.linalg.solve_triangular(szz.detach(), e.detach()[..., None], upper=False)[..., 0]
+        flag = rounding_untrusted(szz, whitened, pzz, zhat, mask)
+        info = StepInfo(loglik, maha, num_obs, e, pzz, flag if exact else flag | offset_untrusted(mean, s @ s.mT, zhat, pzz, maha))
         out = {k: v for k, v in belief.items() if k not in ("mean", "cov", "scale_tril")}
         return {**out, "mean": new_mean, "cov": s_new @ s_new.mT, "scale_tril": s_new}, info

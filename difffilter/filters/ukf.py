@@ -266,7 +266,7 @@ class UKF(RecursiveFilter):
             post, info = diffuse_gaussian_update(belief, e, (dx, dz, wc, r), mask, obs_matrix=h, add=state_add(dyn))
             return {**self._carry(belief), **post}, info
         joseph = JosephForm.sigma_points(dx, dz, wc, r)
-        new_mean, new_cov, info = gaussian_update(mean, cov, e, pzz, pxz, mask, joseph=joseph, add=state_add(dyn))
+        new_mean, new_cov, info = gaussian_update(mean, cov, e, pzz, pxz, mask, joseph=joseph, add=state_add(dyn), prediction=zhat)
         if not exact:
             lossy = offset_untrusted(mean, cov, zhat, pzz, info.nis)
             info = replace(info, untrusted=lossy if info.untrusted is None else info.untrusted | lossy)

@@ -24,6 +24,7 @@ __all__ = [
     "JosephForm",
     "diffuse_gaussian_update",
     "gaussian_update",
+    "rounding_untrusted",
     "square_root_deviations",
     "untrusted_steps",
 ]
@@ -37,6 +38,43 @@ def _trust_limits(dtype: torch.dtype) -> tuple[float, float, float]:
     exceeds ``1e-2``."""
     eps = torch.finfo(dtype).eps
     return 64.0 * eps**0.5, eps / 1e-2, eps * eps / 1e-2
+
+
+def rounding_untrusted(chol: Tensor, whitened: Tensor, innovation_cov: Tensor, prediction: Tensor | None, mask: Tensor | None) -> Tensor:
+    """``[B]`` steps whose log-likelihood, gain or innovation the working precision cannot resolve.
+
+    * A nearly singular ``S``: forming ``S`` (and factorising it) perturbs it by ``dS`` with
+      ``||dS|| <~ m eps max_j S_jj``, which moves ``log det S`` by ``tr(S^-1 dS)`` and the
+      Mahalanobis term ``d`` by ``e^T S^-1 dS S^-1 e``: to first order at most
+      ``0.5 m eps max_j S_jj (tr(S^-1) + |S^-1 e|^2)`` nats (``S^-1 e = L^-T v``), with
+      ``tr(S^-1)`` estimated by ``sum_i 1 / L_ii^2`` (the diagonal of ``L^-1``: a lower bound,
+      within a factor ``m`` where the factor reveals the small pivots, as it does for these small
+      systems).  Flagged where
+      that exceeds ``1e-2 + 1e-4 d`` (a huge innovation is only resolved relatively).  The same
+      bound covers the gain's error in ``S``'s weak directions (``P_xz`` and ``S`` are rounded
+      apart, so ``K e`` keeps about ``eps cond(S)``), which is why the square-root UKF, whose
+      ``S`` itself is accurate, uses it too.
+    * ``prediction`` ``z_hat [B, m]``: the innovation ``z - z_hat`` carries an absolute rounding
+      error ``eps |z_hat|`` (and so does ``z_hat`` itself, e.g. a range of 2e7 m in float32 keeps
+      ~2 m); the correction of the mean then moves by that error in units of ``sqrt(S_jj)``.
+      Flagged where ``eps |z_hat_j| > 1e-2 sqrt(S_jj)`` for an observed component.
+
+    ``chol`` ``[B, m, m]``, ``whitened`` ``v = L^-1 e [B, m]`` and ``innovation_cov`` are those of the masked system
+    (:func:`gaussian_update`).  A handful of elementwise operations per step, not differentiated
+    (a flag).
+    """
+    eps = torch.finfo(chol.dtype).eps
+    with torch.no_grad():
+        pivots = torch.diagonal(chol, dim1=-2, dim2=-1).detach().square()
+        var = torch.diagonal(innovation_cov, dim1=-2, dim2=-1).detach()
+        v = whitened.detach()
+        s_inv_e = torch.linalg.solve_triangular(chol.detach().mT, v[..., None], upper=True)[..., 0]
+        spread = pivots.reciprocal().sum(-1) + s_inv_e.square().sum(-1)
+        bad = ~((0.5 * chol.shape[-1] * eps) * var.amax(-1) * spread <= 1e-2 + 1e-4 * v.square().sum(-1))
+        if prediction is not None:
+            lost = ~((eps / 1e-2) ** 2 * prediction.detach().square() <= var)
+            bad = bad | (lost if mask is None else lost & mask).any(-1)
+    return bad
 
 
 class JosephForm(NamedTuple):
@@ -86,6 +124,7 @@ def gaussian_update(
     *,
     joseph: JosephForm | None = None,
     add: Callable[[Tensor, Tensor], Tensor] | None = None,
+    prediction: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, StepInfo]:
     """Linear-Gaussian measurement update shared by every Kalman-family filter.
 
@@ -100,6 +139,8 @@ def gaussian_update(
             ``P - K S K^T`` cancels (below); ``None``: ``P - K S K^T`` only.
         add: ``add(x, dx)``, the state addition (e.g. ``DynamicsModel.add`` wrapping angular
             states) for the mean correction; None adds plainly.
+        prediction: the predicted measurement ``z_hat [B, m]``, whose size sets the rounding
+            of the innovation (:func:`rounding_untrusted`).
 
     Returns the posterior mean and covariance and the :class:`StepInfo`.  The gain is never
     formed through an inverse: with ``S = L L^T``, ``W = L^{-1} P_xz^T`` gives
@@ -112,7 +153,9 @@ def gaussian_update(
     and a fallback is given, those batch elements are recomputed in the fallback's Joseph form;
     ``StepInfo.jitter`` is ``S``'s repair (0 if none); without a Joseph form or a fallback,
     ``StepInfo.untrusted`` marks elements whose reduction ``P - K S K^T`` cannot resolve to
-    ``1e-2``.  The time loop flags the rest over the whole run at once
+    ``1e-2``; it also marks the steps :func:`rounding_untrusted` finds unresolved (a nearly
+    singular ``S``, an innovation below the rounding of ``z_hat``).  The time loop flags the rest
+    over the whole run at once
     (:func:`untrusted_steps`), so this function adds no per-step work for it.
     """
     innovation, innovation_cov, cross_cov, num_obs = mask_measurement_system(innovation, innovation_cov, cross_cov, mask)
@@ -138,6 +181,8 @@ def gaussian_update(
         gain = torch.linalg.solve_triangular(chol.mT, w, upper=True).mT  # K = W^T L^{-1}
         new_cov = joseph.covariance(cov, gain, mask)
     loglik, maha = gaussian_log_density(innovation, chol, num_obs, whitened=v)
+    rounding = rounding_untrusted(chol, v, innovation_cov, prediction, mask)
+    untrusted = rounding if untrusted is None else untrusted | rounding
     info = StepInfo(loglik, maha, num_obs, innovation, innovation_cov, untrusted, jitter)
     return new_mean, new_cov, info
 

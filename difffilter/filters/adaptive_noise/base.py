@@ -164,8 +164,10 @@ class AdaptiveNoiseFilter(RecursiveFilter):
         s = mo.spread + r
         add = state_add(self.model.dynamics)
         if self.unscented:
-            return gaussian_update(mean, cov, e, s, mo.pxz, mask, joseph=JosephForm.sigma_points(mo.dx, mo.dz, mo.wc, r), add=add)
-        return gaussian_update(mean, cov, e, s, mo.pxz, mask, joseph=JosephForm.linear(mo.h, r, always=self.inner.joseph), add=add)
+            joseph = JosephForm.sigma_points(mo.dx, mo.dz, mo.wc, r)
+            return gaussian_update(mean, cov, e, s, mo.pxz, mask, joseph=joseph, add=add, prediction=mo.zhat)
+        joseph = JosephForm.linear(mo.h, r, always=self.inner.joseph)
+        return gaussian_update(mean, cov, e, s, mo.pxz, mask, joseph=joseph, add=add, prediction=mo.zhat)
 
     @staticmethod
     def predictive_info(innovation: Tensor, innovation_cov: Tensor, mask: Tensor | None) -> StepInfo:

@@ -245,6 +245,35 @@ JOBS: tuple[Job, ...] = (
             "python -m experiments.practitioners outputs/practitioners/p002_pdr_rcukf",
         ),
     ),
+    # issue 25: data efficiency (N = 1, 4, 16 training trajectories) and transfer across p002's
+    # families (results/p00_efficiency_transfer.md); the transfer pairs read all three p002 sweeps
+    Job(
+        "p002_efficiency_transfer",
+        "p00_efficiency_transfer.md",
+        1500,
+        (
+            "python experiments/train.py -m experiment=p002_pdr_efficiency data.train_size=1,4,16 seed=0,1,2,3,4 logger=csv "
+            "hydra.sweep.dir=outputs/efficiency/p002_pdr",
+            "python experiments/train.py -m experiment=p002_disturbed_transfer seed=0,1,2,3,4 logger=csv "
+            "hydra.sweep.dir=outputs/transfer/p002_disturbed",
+            "python experiments/train.py -m experiment=p002_infamily_transfer seed=0,1,2,3,4 logger=csv "
+            "hydra.sweep.dir=outputs/transfer/p002_infamily",
+            "python -m experiments.efficiency_transfer efficiency outputs/efficiency/p002_pdr --select test=pdr-P0.4 "
+            "--out outputs/efficiency/p002_pdr/efficiency.csv",
+            "python -m experiments.efficiency_transfer transfer --root outputs --out outputs/transfer/p002_transfer.csv",
+        ),
+    ),
+    Job(
+        "p000_infamily_efficiency",
+        "p00_efficiency_transfer.md",
+        600,
+        (
+            "python experiments/train.py -m experiment=p000_infamily_efficiency data.train_size=1,4,16 seed=0,1,2,3,4 logger=csv "
+            "hydra.sweep.dir=outputs/efficiency/p000_infamily",
+            "python -m experiments.efficiency_transfer efficiency outputs/efficiency/p000_infamily "
+            "--out outputs/efficiency/p000_infamily/efficiency.csv",
+        ),
+    ),
 )
 
 

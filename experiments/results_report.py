@@ -25,6 +25,7 @@ import shutil  # noqa: E402
 from collections.abc import Sequence  # noqa: E402
 from dataclasses import dataclass, replace  # noqa: E402
 
+from experiments.efficiency_transfer import DATA_FILES  # noqa: E402
 from experiments.results_tables import (  # noqa: E402
     ROOT,
     Row,
@@ -446,7 +447,8 @@ def render(root: Path = ROOT) -> list[Path]:
 
 def collect(root: Path = ROOT) -> list[Path]:
     """Copy each family's ``<sweep>/summary.csv``, where a run of ``experiments/reproduce.py`` left
-    one, over its data file (the committed numbers then come from the run); returns those copied."""
+    one, over its data file (the committed numbers then come from the run), and each summary of
+    :data:`experiments.efficiency_transfer.DATA_FILES` over its data file; returns those copied."""
     copied = []
     for fam in (f for g in FAMILIES for f in _with_practitioners(g)):
         src = root / fam.sweep / "summary.csv"
@@ -455,6 +457,10 @@ def collect(root: Path = ROOT) -> list[Path]:
             if rows:
                 shutil.copyfile(src, _source(fam, root))
                 copied.append(src)
+    for source, data in DATA_FILES:  # issue 25's efficiency and transfer summaries
+        if (root / source).exists() and read_rows(root / source):
+            shutil.copyfile(root / source, root / data)
+            copied.append(root / source)
     return copied
 
 

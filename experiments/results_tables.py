@@ -52,6 +52,7 @@ __all__ = [
     "read_rows",
     "render_anees",
     "render_metric",
+    "render_paired",
     "render_table",
     "render_text",
     "unmarked_tables",
@@ -261,7 +262,34 @@ def render_anees(rows: Sequence[Row], opts: dict[str, str]) -> str:
     return _table(header, lines)
 
 
-RENDERERS = {"metric": render_metric, "anees": render_anees}
+def render_paired(rows: Sequence[Row], opts: dict[str, str]) -> str:
+    """Per group (a training size, a transfer pair), each filter's metric [interval] and its tuning
+    CPU seconds (mean over seeds, where the data has them), then one line per paired difference
+    against a *named* reference (rows whose ``reference`` is a filter name:
+    :mod:`experiments.efficiency_transfer`): the difference in the metric's unit and in %, and the
+    verdict of :func:`paired_verdict`."""
+    metric, unit = opts.get("metric", "rmse_pos"), opts.get("unit", "m")
+    header = [opts.get("group_title", "group"), "filter", "seeds x runs", f"{metric} ({unit})", "tuning CPU-s"]
+    header += ["paired against", f"difference ({unit})", "in %", "verdict"]
+    lines = []
+    for g in _groups(rows, opts):
+        for name in _filters(rows, g, opts, metric):
+            m = _pick(rows, g, name, metric)
+            cpu = _pick(rows, g, name, "tuning_cpu_s")
+            first = [g, name, f"{m.seeds or '?'} x {m.runs or '?'}" if m else "", fmt_ci(m.estimate, m.lo, m.hi) if m else "-"]
+            first.append(fmt(cpu.estimate) if cpu else "")
+            paired = [r for r in rows if r.group == g and r.filter == name and r.quantity == "diff_pct" and r.reference]
+            if not paired:
+                lines.append([*first, "", "", "", ""])
+            for k, p in enumerate(paired):
+                d = next((r for r in rows if (r.group, r.filter, r.quantity, r.reference) == (g, name, "diff", p.reference)), None)
+                diff = fmt_ci(d.estimate, d.lo, d.hi) if d else ""
+                cells = [p.reference, diff, fmt_ci(p.estimate, p.lo, p.hi), paired_verdict(p.lo, p.hi)]
+                lines.append([*(first if k == 0 else [g, name, "", "", ""]), *cells])
+    return _table(header, lines)
+
+
+RENDERERS = {"metric": render_metric, "anees": render_anees, "paired": render_paired}
 
 
 def parse_args(args: str) -> tuple[list[str], dict[str, str]]:

@@ -97,7 +97,8 @@ def test_renderer_is_deterministic(tmp_path):
 def test_marker_errors_are_reported_not_raised(tmp_path):
     _write(tmp_path / "d.csv", [{"filter": "hand-tuned", "quantity": "rmse_pos", "estimate": 1.0}])
     bad = "<!-- table: t renderer=nope source=d.csv -->\n| x |\n|---|\n<!-- /table -->\n"
-    assert check_text(bad, tmp_path) == ["table t: marker 'renderer=nope source=d.csv': renderer must be one of ['anees', 'metric']"]
+    want = "table t: marker 'renderer=nope source=d.csv': renderer must be one of ['anees', 'metric', 'paired']"
+    assert check_text(bad, tmp_path) == [want]
     missing = "<!-- table: t renderer=metric source=gone.csv -->\n<!-- /table -->\n"
     assert check_text(missing, tmp_path)[0].startswith("table t: [Errno 2]")
     with pytest.raises(ValueError, match="columns must be"):

@@ -163,6 +163,7 @@ def test_extra_test_sets_get_their_own_results(tmp_path):
     with open_dict(cfg):
         cfg.experiment.extra_tests = {"same": OmegaConf.to_container(cfg.scenario), "masked": {**OmegaConf.to_container(cfg.scenario)}}
         cfg.experiment.extra_tests.masked.missing_prob = 0.3
+        cfg.experiment.extra_tests.dropped = None  # an overlay dropping a test set of its base: skipped
     run_experiment(cfg)
     main_runs = read_per_run(tmp_path / "per_run.csv")
     same = read_per_run(tmp_path / EXTRA_TESTS_DIR / "same" / PER_RUN_FILE)
@@ -172,3 +173,4 @@ def test_extra_test_sets_get_their_own_results(tmp_path):
         torch.testing.assert_close(same[name]["rmse_pos"], main_runs[name]["rmse_pos"], rtol=0, atol=0)
     assert not torch.equal(other["hand-tuned"]["nll"], main_runs["hand-tuned"]["nll"])
     assert "test set `masked`" in (tmp_path / EXTRA_TESTS_DIR / "masked" / "results.md").read_text()
+    assert not (tmp_path / EXTRA_TESTS_DIR / "dropped").exists()

@@ -41,7 +41,8 @@ The ``experiment`` config node (per-paper overlays set it)::
       extra_tests: {}             # {name: simulator config}: more held-out test sets (another scenario
                                   # family), drawn with the test set's size and seed; each gets the same
                                   # filters and files in <output_dir>/extra_tests/<name>/ (the oracle row
-                                  # keeps the main test set's true parameters)
+                                  # keeps the main test set's true parameters); an entry set to null is
+                                  # skipped (an overlay dropping a test set of the experiment it extends)
 
 With a smoother configured (``smoother=rts``, ``cfg.smoother.evaluate``), every filter that a
 smoother supports gets a second row ``"<name> (smoothed)"``: the same metrics of the smoothed
@@ -344,6 +345,8 @@ def _run(cfg: DictConfig, train: bool) -> dict[str, Any]:
     output_dir = Path(cfg.paths.output_dir)
     write_results(rows, output_dir, title=title, note=note)
     for test_name, sim_cfg in (_plain(exp.get("extra_tests")) or {}).items():
+        if sim_cfg is None:  # an overlay's way to drop a test set of the experiment it extends
+            continue
         log.info("extra test set %s", test_name)
         extra = datamodule.simulate(instantiate(sim_cfg, _convert_="all"), "test")
         extra_dir = output_dir / EXTRA_TESTS_DIR / str(test_name)

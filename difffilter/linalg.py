@@ -51,7 +51,12 @@ _FAILURES = [0]
 @contextlib.contextmanager
 def jitter_bound(max_jitter: float | None) -> Iterator[None]:
     """Inside the block, :func:`safe_cholesky` adds at most ``max_jitter`` (relative to the mean
-    diagonal) unless a call passes its own bound.  ``None`` keeps the current bound."""
+    diagonal) unless a call passes its own bound.  ``None`` keeps the current bound.
+
+    A smaller bound keeps an ill-conditioned covariance from being silently regularised by a large
+    jitter (up to 1e-2 of its mean diagonal by default); a matrix that still fails then follows
+    ``safe_cholesky``'s rule, so bound it only where the covariances are known to be well
+    conditioned.  Restored on exit; process-wide (not thread-safe)."""
     saved = _MAX_JITTER[0]
     if max_jitter is not None:
         if max_jitter < 0:

@@ -518,12 +518,11 @@ def test_reevaluating_a_window_starts_from_the_previous_window():
         FilterLearner(KalmanFilter(cv_model(q=2.0)), "nll", learn=["q"]).training_step(second, 1)
 
 
-def test_bounded_jitter_caps_the_ladder_and_restores_it():
+def test_jitter_bound_caps_the_ladder_and_restores_it():
     from difffilter import linalg
-    from difffilter.evaluate.stability import bounded_jitter
 
     a = torch.tensor([[1.0, 1.0], [1.0, 1.0 - 1e-7]], dtype=f64)  # needs ~1e-7 relative jitter
     assert float(linalg.safe_cholesky(a).jitter) == pytest.approx(1e-6)
-    with bounded_jitter(1e-8):
+    with linalg.jitter_bound(1e-8):
         assert math.isinf(float(linalg.safe_cholesky(a).jitter))
     assert float(linalg.safe_cholesky(a).jitter) == pytest.approx(1e-6)

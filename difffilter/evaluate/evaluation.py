@@ -38,11 +38,11 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from .. import linalg
 from ..filters.protocol import Filter, FilterResult
 from ..smoothers import Smoother
 from .consistency import Consistency, block_truth_indices, consistency, nees_by_block, nis_per_step, run_average
 from .metrics import component_error, finalize_metrics, metric_sums, nees, nll_per_step
-from .stability import bounded_jitter
 
 __all__ = [
     "EXTRA_TESTS_DIR",
@@ -181,7 +181,7 @@ def evaluate_runs(
         if mean0 is None or cov0 is None:
             raise ValueError("no initial belief: the data carries none and none was given")
         tic = time.perf_counter()
-        with bounded_jitter(max_jitter):
+        with linalg.jitter_bound(max_jitter):
             res = filt(batch["measurements"], mean0, cov0, mask=batch["mask"], controls=batch["controls"])
             if smoother is not None:
                 start = smoother.initial_belief(batch["measurements"], mean0, cov0, None)

@@ -22,7 +22,7 @@ What the learner is given, and what it is not:
   :func:`~difffilter.learn.replicates.perturb_initial_values` (both called by the runner).
 
 Stability: ``options.max_jitter`` bounds the Cholesky jitter
-(:func:`~difffilter.evaluate.stability.bounded_jitter`); trajectories with a non-finite loss are
+(:func:`~difffilter.linalg.jitter_bound`); trajectories with a non-finite loss are
 left out of the batch mean and counted (``stability/nonfinite_trajectories``); a step whose loss
 or gradient is not finite is skipped (gradients cleared, so the optimiser leaves the parameters
 and its state alone) and counted (``stability/skipped_steps``).  Each kind warns once.
@@ -59,7 +59,7 @@ from torch import Tensor, nn
 
 from .. import linalg
 from ..engines import FusedFilter
-from ..evaluate.stability import OnceWarner, bounded_jitter
+from ..evaluate.stability import OnceWarner
 from ..filters.base import detach_belief
 from ..filters.protocol import Belief, Filter, FilterResult
 from ..selection import learnable_values, match_parameters, parameter_owners, select_parameters
@@ -207,7 +207,7 @@ class FilterLearner(EvaluationSteps, pl.LightningModule):
     def run_filter(self, batch: Mapping[str, Any], belief: Belief | None = None) -> FilterResult:
         """The filter's result on a batch dict (from ``belief`` if given, else the initial belief)."""
         mean, cov = self.initial_belief(batch)
-        with bounded_jitter(self.options.max_jitter):
+        with linalg.jitter_bound(self.options.max_jitter):
             return (self._engine or self.filter)(
                 batch["measurements"],
                 None if belief is not None else mean,
@@ -229,7 +229,7 @@ class FilterLearner(EvaluationSteps, pl.LightningModule):
         if belief is None:
             mean, cov = self.initial_belief(batch)
             belief = self.filter.initial_belief(mean, cov, batch_size=int(batch["measurements"].shape[0]))
-        with bounded_jitter(self.options.max_jitter):
+        with linalg.jitter_bound(self.options.max_jitter):
             return self._smoother.smooth(result, belief, batch.get("controls"))
 
     def log_prior(self) -> Tensor | None:

@@ -65,6 +65,7 @@ import csv
 import logging
 import math
 import time
+import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -93,6 +94,10 @@ from .config_check import check_config
 from .learner_config import figure_callback, finish_learner, split_learner_config
 from .reporting import log_results, parameter_summary, parameter_values
 from .runs import checkpoint_config, resume_checkpoint, run_status
+
+# pytorch_lightning 2.6's pytree helper still builds torch's deprecated LeafSpec, a FutureWarning printed
+# on every fit that nobody running these scripts can act on (the library itself does not filter it)
+warnings.filterwarnings("ignore", message=r"`isinstance\(treespec, LeafSpec\)` is deprecated", category=FutureWarning)
 
 __all__ = [
     "apply_model_defaults",

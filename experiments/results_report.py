@@ -155,7 +155,15 @@ FAMILIES: tuple[Family, ...] = (
     ),
     Family("p003_imm_sins", "p003", "paper's own", "paper-faithful IMM", "p003_imm_sins.md", "outputs/p003_final/p003_imm_sins"),
     Family("p004_blend", "p004", "paper's own", "the paper's blend and values", "p004_blend.md", f"{_R}/p004_blend", practitioners=True),
-    Family("p004_outage", "p004", "paper's own", "cold start (no GNSS 0-30 s)", "p004_blend.md", f"{_R}/p004_outage"),
+    Family(
+        "p004_outage",
+        "p004",
+        "paper's own",
+        "cold start (no GNSS 0-30 s)",
+        "p004_blend.md",
+        f"{_R}/p004_outage",
+        practitioners=True,
+    ),
     Family(
         "p000_infamily", "p000", "in-family", "CA truth, q and R off", "p000_gpsdr.md", "outputs/final/p000_infamily", practitioners=True
     ),

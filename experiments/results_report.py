@@ -99,7 +99,9 @@ _R = "outputs/rerun_logit"
 #: Where the practitioners sweeps (``experiments/reproduce.py`` jobs ``<family>_practitioners``) write.
 PRACTITIONERS_ROOT = "outputs/practitioners"
 FAMILIES: tuple[Family, ...] = (
-    Family("p000_gyro", "p000", "mis-specified", "MEMS gyro bias", "p000_gpsdr.md", "outputs/final/p000_gyro", "test=scripted"),
+    Family(
+        "p000_gyro", "p000", "mis-specified", "MEMS gyro bias", "p000_gpsdr.md", "outputs/final/p000_gyro", "test=scripted", practitioners=True
+    ),
     Family("p000_gps", "p000", "mis-specified", "GPS multipath/NLOS/outages", "p000_gpsdr.md", "outputs/final/p000_gps", "test=scripted"),
     Family(
         "p000_odometer", "p000", "mis-specified", "odometer scale/slip", "p000_gpsdr.md", "outputs/final/p000_odometer", "test=scripted"

@@ -100,7 +100,14 @@ _R = "outputs/rerun_logit"
 PRACTITIONERS_ROOT = "outputs/practitioners"
 FAMILIES: tuple[Family, ...] = (
     Family(
-        "p000_gyro", "p000", "mis-specified", "MEMS gyro bias", "p000_gpsdr.md", "outputs/final/p000_gyro", "test=scripted", practitioners=True
+        "p000_gyro",
+        "p000",
+        "mis-specified",
+        "MEMS gyro bias",
+        "p000_gpsdr.md",
+        "outputs/final/p000_gyro",
+        "test=scripted",
+        practitioners=True,
     ),
     Family("p000_gps", "p000", "mis-specified", "GPS multipath/NLOS/outages", "p000_gpsdr.md", "outputs/final/p000_gps", "test=scripted"),
     Family(

@@ -14,14 +14,14 @@ import numpy as np
 import pytest
 import torch
 from torch import Tensor
-from torch.fx.experimental.proxy_tensor import make_fx
 
 from difffilter.engines import FusedFilter
 from difffilter.engines.adjoint import backprop
-from difffilter.engines.graph import LANE, ScalarGraph, UnsupportedOp, evaluate
-from difffilter.engines.lower import lower
+from difffilter.engines.graph import LANE, UnsupportedOp, evaluate
 from difffilter.filters import UKF, MerweScaled
 from difffilter.models import FunctionalModel
+
+from .test_fused_generated import lowered_graph
 
 F64 = torch.float64
 README = Path(__file__).resolve().parents[1] / "README.md"
@@ -30,14 +30,8 @@ README = Path(__file__).resolve().parents[1] / "README.md"
 def _lowered_with_grads(fn, *examples: Tensor) -> tuple[np.ndarray, list[np.ndarray]]:  # type: ignore[no-untyped-def]
     """``fn``'s output and the gradient of ``sum(w * fn(...))`` (fixed weights ``w``) w.r.t. every
     floating example, both computed from the lowered scalar graph."""
-    gm = make_fx(torch.func.functionalize(fn), tracing_mode="fake", _allow_non_fake_inputs=True)(*examples)
-    g = ScalarGraph()
-    arrays, values = [], {}
-    for k, ex in enumerate(examples):
-        arr = np.array([g.input(f"x{k}", i) for i in range(ex.numel())], dtype=object).reshape(ex.shape)
-        arrays.append(arr)
-        values.update(zip(arr.reshape(-1).tolist(), ex.reshape(-1).tolist(), strict=True))
-    out = np.asarray(lower(gm, g, F64, arrays))
+    g, arrays, values, out = lowered_graph(fn, *examples)
+    out = np.asarray(out)
     weights = np.linspace(0.5, 1.5, out.size)
     adjoint, _ = backprop(g, {int(o): g.const(float(w)) for o, w in zip(out.reshape(-1), weights, strict=True)}, LANE)
     zero = g.const(0.0)

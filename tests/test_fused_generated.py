@@ -220,7 +220,9 @@ def test_untraceable_filter_falls_back_with_a_warning() -> None:
 
 
 # -- the lowering against torch -----------------------------------------------------------------
-def _lowered(fn, *examples: Tensor) -> list[np.ndarray]:  # type: ignore[no-untyped-def]
+def lowered_graph(fn, *examples: Tensor):  # type: ignore[no-untyped-def]
+    """``fn`` traced and lowered to a scalar graph with one input node per element of each example:
+    ``(graph, input node arrays, {input node: example value}, lowered outputs)``."""
     gm = make_fx(torch.func.functionalize(fn), tracing_mode="fake", _allow_non_fake_inputs=True)(*examples)
     g = ScalarGraph()
     arrays, values = [], {}
@@ -228,7 +230,11 @@ def _lowered(fn, *examples: Tensor) -> list[np.ndarray]:  # type: ignore[no-unty
         arr = np.array([g.input(f"x{k}", i) for i in range(ex.numel())], dtype=object).reshape(ex.shape)
         arrays.append(arr)
         values.update(zip(arr.reshape(-1).tolist(), ex.reshape(-1).tolist(), strict=True))
-    outs = lower(gm, g, F64, arrays)
+    return g, arrays, values, lower(gm, g, F64, arrays)
+
+
+def _lowered(fn, *examples: Tensor) -> list[np.ndarray]:  # type: ignore[no-untyped-def]
+    g, _, values, outs = lowered_graph(fn, *examples)
     outs = [outs] if isinstance(outs, np.ndarray) else list(outs)
     return [np.array(evaluate(g, [int(x) for x in np.asarray(o).reshape(-1)], values), dtype=float).reshape(np.shape(o)) for o in outs]
 

@@ -20,7 +20,7 @@ from experiments.papers.smartloc.report import resolve_config, run_evaluation, r
 
 from .librsf_fixture import HAVE_DATA, write_drive
 
-pytestmark = pytest.mark.skipif(not HAVE_DATA, reason="smartLoc data folder ../shared/data/real not present")
+pytestmark = pytest.mark.skipif(not HAVE_DATA, reason="the smartLoc excerpt tests/assets/librsf/smartlocx_* is missing")
 ROOT = Path(__file__).resolve().parents[1]
 SMALL = {
     "epochs": 1,

@@ -185,16 +185,26 @@ def _markdown(results: Mapping[str, ProtocolResult]) -> str:
 
 
 def run_ranging(
-    folder: str | Path, cfg: Mapping[str, Any], output_dir: str | Path, *, only: Sequence[str] | None = None
+    folder: str | Path | Sequence[str | Path], cfg: Mapping[str, Any], output_dir: str | Path, *, only: Sequence[str] | None = None
 ) -> dict[str, ProtocolResult]:
-    """Every fold of :func:`fold_specs` on the recordings of ``folder`` (``only``: these names);
-    writes the report (module docstring) and returns ``{fold: result}``."""
+    """Every fold of :func:`fold_specs` on the recordings of ``folder`` (one folder or several;
+    ``only``: these names); writes the report (module docstring) and returns ``{fold: result}``.
+
+    Raises:
+        ValueError: two folders hold recordings of the same name (the folds are named by them).
+    """
     t0 = time.time()
     out = Path(output_dir)
     out.mkdir(parents=True, exist_ok=True)
-    found = [f for f in find_recordings(folder) if only is None or f[0] in only]
+    folders = [folder] if isinstance(folder, (str, Path)) else list(folder)
+    found = [f for d in folders for f in find_recordings(d) if only is None or f[0] in only]
     if not found:
         raise ValueError(f"{folder}: no recording named {list(only or [])}")
+    names = [f[0] for f in found]
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:
+        where = {n: [str(f[1]) for f in found if f[0] == n] for n in twice}
+        raise ValueError(f"recordings of the same name in several folders: {where}; rename one (<name>_Input.txt)")
     recordings = [load_ranging(inp, gt, min_ranges=int(cfg.get("min_ranges", 1))) for _name, inp, gt in found]
     missing = [r.name for r in recordings if not bool((~torch.as_tensor(r.truth).isnan()).any())]
     if missing:
@@ -215,7 +225,7 @@ def run_ranging(
     writer.close()
     (out / "results.md").write_text(_markdown(results))
     summary = {
-        "folder": str(folder),
+        "folder": [str(d) for d in folders] if len(folders) > 1 else str(folders[0]),
         "recordings": [r.name for r in recordings],
         "issues": {r.name: r.issues for r in recordings},
         "config": json.loads(json.dumps(dict(cfg))),

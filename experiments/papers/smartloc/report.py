@@ -57,12 +57,13 @@ from .protocol import (
 __all__ = ["format_tables", "resolve_config", "run_evaluation", "run_protocol", "run_transfer", "untrained_filter", "write_fold_csv"]
 
 
-def resolve_config(cfg: Mapping[str, Any], folder: str | None = None) -> dict[str, Any]:
-    """A plain, JSON-able configuration: ``folder`` (if given) replaces the drives by every drive of
-    that folder; a drive folder ``null`` is the smartLoc default folder."""
+def resolve_config(cfg: Mapping[str, Any], folder: str | Path | Sequence[str | Path] | None = None) -> dict[str, Any]:
+    """A plain, JSON-able configuration: ``folder`` (one folder or several, if given) replaces the
+    drives by every drive of those folders; a drive folder ``null`` is the smartLoc default folder."""
     out = json.loads(json.dumps(dict(cfg)))
     if folder is not None:
-        out["drives"] = [{"folder": str(folder), "input_file": None, "truth_file": None}]
+        folders = [folder] if isinstance(folder, (str, Path)) else list(folder)
+        out["drives"] = [{"folder": str(f), "input_file": None, "truth_file": None} for f in folders]
     for spec in out["drives"]:
         if spec.get("folder") is None:
             spec["folder"] = str(default_smartloc_path())

@@ -86,6 +86,14 @@ def test_protocol_on_a_folder_and_transfer_to_a_second_processing(tmp_path) -> N
                 assert float(r[col]) == pytest.approx(t[stat], rel=1e-5)
         assert rows[0]["d_rms"] == "" and rows[2]["u_rms"] == "" and rows[1]["u_rms"] != ""
     assert any((run / "tb").rglob("events.out.tfevents.*"))
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    tb = EventAccumulator(str(run / "tb" / "noise_models"))
+    tb.Reload()
+    tags = set(tb.Tags()["scalars"])
+    if summary["folds"]["A"]["selection"]["learned-elev_cn0"]["values"]:  # a learned selection: its gate and noise values
+        assert {f"extras/fold_A/learned-elev_cn0/measurement.robust_gate.gate_{k}" for k in ("threshold", "floor", "softness")} <= tags
+    assert "noise_model/fold_A" in tb.Tags()["images"]
     again = run_evaluation(run, tmp_path / "eval")  # rebuilt from the saved selections: the same test tables
     for fold, fs in summary["folds"].items():
         assert again["folds"][fold]["tables"]["hand-tuned"] == fs["test"]

@@ -24,7 +24,7 @@ from difffilter.datasets.ranging import RangingRecording, find_recordings, load_
 
 from .protocol import ProtocolResult, fold_pieces, run_fold
 
-__all__ = ["extras", "fold_specs", "plot_extras", "run_ranging", "write_csv"]
+__all__ = ["extras", "fold_specs", "gate_curve", "plot_extras", "run_ranging", "write_csv"]
 
 COLUMNS = (
     "filter",
@@ -85,7 +85,7 @@ def extras(filt: torch.nn.Module) -> dict[str, list[float]]:
     return out
 
 
-def _gate_curve(ex: Mapping[str, list[float]], n: torch.Tensor) -> torch.Tensor:
+def gate_curve(ex: Mapping[str, list[float]], n: torch.Tensor) -> torch.Tensor:
     """Variance factor ``f`` of a reject gate with the extras' threshold / softness against the
     normalised innovation ``n = |e| / sqrt(S + floor^2)``."""
     soft = ex.get("gate_softness", [0.0])[0]
@@ -109,7 +109,7 @@ def plot_extras(results: Mapping[str, ProtocolResult]) -> Figure:
         if "noise_scale" in ex:
             ax[1].semilogy(range(1, len(ex["noise_scale"]) + 1), ex["noise_scale"], "o-", color=color)
         if "gate_threshold" in ex:
-            ax[2].semilogy(res, 1.0 / _gate_curve(ex, res), color=color)
+            ax[2].semilogy(res, 1.0 / gate_curve(ex, res), color=color)
         for row, style in (("hand-tuned", ":"), ("learned", "-")):
             e = torch.sort(r.errors[row]).values
             ax[3].plot(e, torch.linspace(0, 1, len(e)), style, color=color, label=label if row == "learned" else None)
@@ -124,7 +124,7 @@ def plot_extras(results: Mapping[str, ProtocolResult]) -> Figure:
             va="bottom",
         )
     first = next(iter(results.values()))
-    ax[2].semilogy(res, 1.0 / _gate_curve(extras(first.start), res), "k--", label="untrained gate")
+    ax[2].semilogy(res, 1.0 / gate_curve(extras(first.start), res), "k--", label="untrained gate")
     ax[0].axhline(0.0, color="k", ls="--", lw=0.8)
     ax[1].axhline(1.0, color="k", ls="--", lw=0.8)
     ax[0].set(xlabel="anchor", ylabel="m")

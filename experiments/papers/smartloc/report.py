@@ -216,8 +216,15 @@ def run_protocol(cfg: Mapping[str, Any], output_dir: str | Path, *, workers: int
         fold_sum["test_epochs"] = int(errors["hand-tuned"].numel())
         summary["folds"][fold] = fold_sum
         fig = plot_noise_models(
-            {k: v for k, v in filters.items() if k.startswith("learned-") and "x epochs" not in k}, drives, title=f"fold {fold}"
+            {k: v for k, v in filters.items() if k.startswith("learned-") and "x epochs" not in k},
+            drives,
+            title=f"fold {fold}",
+            gates={k: filters[k] for k in ("hand-tuned", "untrained-gate")},
         )
+        for name, sel in fold_sum["selection"].items():  # the selected learned values as scalars (TensorBoard)
+            for key, vals in sel["values"].items():
+                for j, v in enumerate(vals):
+                    writer.add_scalar(f"extras/fold_{fold}/{name}/{key}{'' if len(vals) == 1 else f'_{j + 1}'}", float(v), 0)
         writer.add_figure(f"noise_model/fold_{fold}", fig, close=False)
         fig.savefig(out_dir / f"noise_model_fold_{fold}.png", dpi=110)
     writer.close()

@@ -298,3 +298,21 @@ def test_several_folders_pool_their_data_sets_and_kinds_must_agree(tmp_path) -> 
     (gnss / "D_Input.txt").write_text("pseudorange3 0 2e7 25 1 2 3 5 1 40 45\n")
     with pytest.raises(ValueError, match="different kinds"):
         data_kind([str(one), str(gnss)])
+
+
+def test_a_folder_without_truth_or_inputs_is_refused_before_training(tmp_path) -> None:
+    """A data set without ``point2`` truth cannot be scored, a folder without ``<name>_Input.txt``
+    holds no data set: both are errors naming what is missing (nothing trains)."""
+    import shutil
+
+    shutil.copy(ASSETS / "W3500x_skewed_Input.txt", tmp_path)
+    with pytest.raises(ValueError, match=r"without point2 ground truth cannot be scored: \['W3500x_skewed'\]"):
+        run_ranging(tmp_path, CFG, tmp_path / "run")
+    (tmp_path / "W3500x_GT.txt").write_text("angle 0 0.5\n")  # a truth file without point2 records
+    with pytest.raises(ValueError, match=r"W3500x_GT.txt: no point2 records"):
+        run_ranging(tmp_path, CFG, tmp_path / "run")
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    shutil.copy(ASSETS / "W3500x_GT.txt", empty)
+    with pytest.raises(FileNotFoundError, match="empty: no data set found"):
+        run_ranging(empty, CFG, tmp_path / "run")

@@ -94,7 +94,8 @@ def plot_noise_models(
         if g:
             soft = f", t {g['gate_softness'][0]:.3g}" if "gate_softness" in g else " (hard)"
             label = f"{name}: {g['gate_threshold'][0]:.2f} sigma, floor {g['gate_floor'][0]:.1f} m{soft}"
-            axes[2].semilogy(res, 1.0 / gate_curve(g, res), styles.get(name, "-"), color=None if name in styles else f"C{i}", label=label)
+            kw = {"label": label} if name in styles else {"label": label, "color": f"C{i}"}
+            axes[2].semilogy(res, 1.0 / gate_curve(g, res), styles.get(name, "-"), **kw)
     axes[2].set(xlabel="normalised innovation |e| / sqrt(R + floor²)", ylabel="gate weight 1/f", ylim=(1e-6, 2))
     axes[2].set_title("reject gate (weight of a range in the update)", fontsize=9)
     axes[2].legend(fontsize=6)

@@ -292,3 +292,9 @@ def test_v3_trains_on_position_and_never_selects_a_model_that_validates_worse_th
             assert sel["seed"] not in ("hand-tuned", "start")
         else:
             assert sel["seed"] == ("start" if start < hand else "hand-tuned")
+    from experiments.realdata_tables import tables
+
+    md = tables(tmp_path / "run")  # the run's own numbers as markdown (learned vs hand-tuned and vs the untrained gate)
+    rows = {r["filter"]: r for r in summary["folds"]["A"]["test"]}
+    assert f"| A | learned-elev_cn0 | {rows['learned-elev_cn0']['median']:.2f} | {rows['learned-elev_cn0']['rms']:.2f} |" in md
+    assert "| B | untrained-gate |" in md and "| A | learned-elev_cn0 | " in md.split("best learned")[1]

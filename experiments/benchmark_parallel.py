@@ -11,7 +11,7 @@ engine that ran is named) and forced eager, of :class:`~difffilter.filters.Paral
 and of dynamax's ``parallel_inference`` (forward; forward + backward of the log-likelihood to Q
 and R; the RTS smoothers with ``--smoother``), the parallel filter's ratios to each and the
 log-likelihood differences.  The dynamax columns need JAX and dynamax (optional; ``--no-peer``
-skips them).  On the CPU, JAX gets as many threads as torch (``XLA_FLAGS``, unless set).
+skips them).  JAX keeps XLA's own thread pool unless ``XLA_FLAGS`` says otherwise.
 Helpers: ``experiments/benchmarks/parallel.py``.
 """
 
@@ -56,7 +56,7 @@ def main(argv: list[str] | None = None) -> str:
     if args.no_peer:
         peer = "skipped (--no-peer)"
     elif dynamax_available():
-        peer = jax_setup(args.device, torch.get_num_threads())
+        peer = jax_setup(args.device)
     start = time.perf_counter()
     rows = run_grid(
         args.steps,

@@ -94,20 +94,21 @@ def dynamax_available() -> bool:
     return importlib.util.find_spec("jax") is not None and importlib.util.find_spec("dynamax") is not None
 
 
-def jax_setup(device: str, threads: int) -> str:
-    """Configure JAX before its first import: on the CPU, as many XLA threads as torch uses (unless
-    ``XLA_FLAGS`` is set already); returns a description for the table's header."""
-    if device == "cpu" and "XLA_FLAGS" not in os.environ:
-        flags = f"--xla_cpu_multi_thread_eigen={'false' if threads == 1 else 'true'} intra_op_parallelism_threads={threads}"
-        os.environ["XLA_FLAGS"] = flags
+def jax_setup(device: str) -> str:
+    """Import JAX for the peer (on the CPU: its CPU backend) and describe it for the table's header.
+
+    XLA keeps its own thread pool (``XLA_FLAGS`` as set by the caller): the single-thread flags
+    ``--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1`` deadlocked this
+    benchmark with jax 0.10.2 (as they did ``experiments/benchmark.py``'s, conf/benchmark/full.yaml)."""
     import jax  # optional peer
 
     if device == "cpu":
         jax.config.update("jax_platforms", "cpu")
     import dynamax
 
-    backend = jax.default_backend()
-    return f"jax {jax.__version__} on {backend} ({jax.devices()[0].device_kind}), dynamax {dynamax.__version__}, XLA_FLAGS={os.environ.get('XLA_FLAGS', '')!r}"
+    flags = os.environ.get("XLA_FLAGS", "")
+    pool = f"XLA_FLAGS={flags!r}" if flags else "XLA's default thread pool"
+    return f"jax {jax.__version__} on {jax.default_backend()} ({jax.devices()[0].device_kind}), dynamax {dynamax.__version__}, {pool}"
 
 
 class _Dynamax:

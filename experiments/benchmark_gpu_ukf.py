@@ -107,7 +107,15 @@ def main(argv: list[str] | None = None) -> str:
         run()
         first = time.perf_counter() - start
         best, ll = _best(run, args.repeats, "cpu")
-        rows.append((f"difffilter UKF on cpu ({torch.get_num_threads()} threads)", str(last_engine(cpu_case.filter)), first, best, float(np.abs(ll - ref).max())))
+        rows.append(
+            (
+                f"difffilter UKF on cpu ({torch.get_num_threads()} threads)",
+                str(last_engine(cpu_case.filter)),
+                first,
+                best,
+                float(np.abs(ll - ref).max()),
+            )
+        )
     peer = "skipped (--no-peer)" if args.no_peer else dynamax_available()
     if peer is None:
         import jax

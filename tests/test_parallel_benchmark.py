@@ -24,7 +24,7 @@ def test_benchmark_parallel_smoke(tmp_path, monkeypatch):
     args = ["--steps", "8", "--batches", "1", "2", "--repeats", "1", "--smoother", "--no-peer", "--out", str(out)]
     rows = _rows(main(args))
     assert len(rows) == 2 * 3  # (T, B) x (filter, fwd+bwd, smoother)
-    for t, b, what, default, engine, eager, par, peer, *_, diff, peer_diff in rows:
+    for _t, _b, _what, default, engine, eager, par, peer, *_, diff, peer_diff in rows:
         assert float(default) > 0 and float(eager) > 0 and float(par) > 0 and peer == "-" and peer_diff == "-"
         assert engine == "eager"  # B * T below the auto threshold: the default path is the eager loop
         assert float(diff) < 1e-9

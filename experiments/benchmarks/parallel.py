@@ -185,7 +185,9 @@ def _call(what: str, filt: KalmanFilter) -> Callable[[torch.Tensor, torch.Tensor
     return filt
 
 
-def _default_path(what: str, model: LinearModel, z: torch.Tensor, m0: torch.Tensor, p0: torch.Tensor, reps: int, device: str) -> tuple[float, str]:
+def _default_path(
+    what: str, model: LinearModel, z: torch.Tensor, m0: torch.Tensor, p0: torch.Tensor, reps: int, device: str
+) -> tuple[float, str]:
     """The sequential filter as a plain call runs it (engine policy in force): a fresh filter (the
     ``auto`` policy counts each filter's calls), one warm-up call (a kernel build, if any, is not
     timed), then the repeats; the engine of the best repeat, ``*`` when it changed between them."""

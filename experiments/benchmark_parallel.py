@@ -11,7 +11,8 @@ engine that ran is named) and forced eager, of :class:`~difffilter.filters.Paral
 and of dynamax's ``parallel_inference`` (forward; forward + backward of the log-likelihood to Q
 and R; the RTS smoothers with ``--smoother``), the parallel filter's ratios to each and the
 log-likelihood differences.  The dynamax columns need JAX and dynamax (optional; ``--no-peer``
-skips them).  JAX keeps XLA's own thread pool unless ``XLA_FLAGS`` says otherwise.
+skips them); dynamax runs after the torch rows in a process of its own
+(JAX deadlocked beside torch in one process), with XLA's own thread pool unless ``XLA_FLAGS`` says otherwise.
 Helpers: ``experiments/benchmarks/parallel.py``.
 """
 
@@ -30,7 +31,7 @@ import time  # noqa: E402
 import torch  # noqa: E402
 
 from difffilter.engines.policy import chosen_engine  # noqa: E402
-from experiments.benchmarks.parallel import dynamax_available, jax_setup, markdown, run_grid  # noqa: E402
+from experiments.benchmarks.parallel import markdown, run_grid  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> str:
@@ -41,6 +42,7 @@ def main(argv: list[str] | None = None) -> str:
     parser.add_argument("--max-sequential", type=int, default=100_000, help="time the sequential filter's default path only up to this B*T")
     parser.add_argument("--max-eager", type=int, default=20_000, help="time the sequential filter forced eager only up to this B*T (CPU)")
     parser.add_argument("--no-peer", action="store_true", help="skip dynamax even where it is installed")
+    parser.add_argument("--peer-timeout-s", type=float, default=1800.0, help="bound on the dynamax process (finished cells are kept)")
     parser.add_argument("--peer-all", action="store_true", help="dynamax also on the fwd+bwd and smoother rows (a JIT build each)")
     parser.add_argument("--device", default="cpu", help="cpu or cuda")
     parser.add_argument("--dtype", choices=["float32", "float64"], default="float64")
@@ -52,13 +54,8 @@ def main(argv: list[str] | None = None) -> str:
     if args.device.startswith("cuda") and not torch.cuda.is_available():
         parser.error("--device cuda needs a CUDA build of torch and a GPU")
     torch.manual_seed(0)
-    peer = "not installed (no peer columns)"
-    if args.no_peer:
-        peer = "skipped (--no-peer)"
-    elif dynamax_available():
-        peer = jax_setup(args.device)
     start = time.perf_counter()
-    rows = run_grid(
+    rows, peer = run_grid(
         args.steps,
         args.batches,
         dtype=getattr(torch, args.dtype),
@@ -67,9 +64,11 @@ def main(argv: list[str] | None = None) -> str:
         max_sequential=args.max_sequential,
         max_eager=args.max_eager,
         peer=not args.no_peer,
+        peer_timeout_s=args.peer_timeout_s,
         peer_rows=("filter", "filter fwd+bwd", "smoother") if args.peer_all else ("filter",),
         backward=not args.no_backward,
         smoother=args.smoother,
+        progress=lambda line: print(line, file=sys.stderr, flush=True),
         repeats=lambda elements: args.repeats if elements <= 2_000 else (2 if elements <= 20_000 else 1),
     )
     device = torch.cuda.get_device_name() if args.device.startswith("cuda") else platform.processor() or platform.machine()

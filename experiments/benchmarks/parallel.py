@@ -13,12 +13,18 @@ figure never stands without the check that they computed the same thing.
 from __future__ import annotations
 
 import importlib.util
-import os
+import json
+import shutil
+import subprocess
+import sys
+import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
+from pathlib import Path
 
+import numpy as np
 import torch
 
 from difffilter.engines.policy import last_engine, set_engine
@@ -26,7 +32,7 @@ from difffilter.filters import KalmanFilter, ParallelKalmanFilter
 from difffilter.models import LinearModel
 from difffilter.smoothers import ParallelRTSSmoother, RTSSmoother
 
-__all__ = ["Row", "constant_velocity", "dynamax_available", "jax_setup", "markdown", "measurements", "run_grid"]
+__all__ = ["Row", "constant_velocity", "dynamax_available", "markdown", "measurements", "run_grid"]
 
 
 @dataclass
@@ -94,83 +100,6 @@ def dynamax_available() -> bool:
     return importlib.util.find_spec("jax") is not None and importlib.util.find_spec("dynamax") is not None
 
 
-def jax_setup(device: str) -> str:
-    """Import JAX for the peer (on the CPU: its CPU backend) and describe it for the table's header.
-
-    XLA keeps its own thread pool (``XLA_FLAGS`` as set by the caller): the single-thread flags
-    ``--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1`` deadlocked this
-    benchmark with jax 0.10.2 (as they did ``experiments/benchmark.py``'s, conf/benchmark/full.yaml)."""
-    import jax  # optional peer
-
-    if device == "cpu":
-        jax.config.update("jax_platforms", "cpu")
-    import dynamax
-
-    flags = os.environ.get("XLA_FLAGS", "")
-    pool = f"XLA_FLAGS={flags!r}" if flags else "XLA's default thread pool"
-    return f"jax {jax.__version__} on {jax.default_backend()} ({jax.devices()[0].device_kind}), dynamax {dynamax.__version__}, {pool}"
-
-
-class _Dynamax:
-    """dynamax's associative-scan filter and smoother (``parallel_inference.lgssm_filter`` /
-    ``lgssm_smoother``) on the same model and data, vmapped over the batch and jitted (compile time
-    excluded by a warm-up); ``fwd+bwd`` is ``jax.grad`` of the summed log-likelihood with
-    respect to ``Q`` and ``R``, as the torch rows differentiate with respect to their parameters."""
-
-    def __init__(self, model: LinearModel, dtype: torch.dtype) -> None:
-        import jax  # optional peer
-        import jax.numpy as jnp
-        from dynamax.linear_gaussian_ssm import parallel_inference
-        from dynamax.linear_gaussian_ssm.inference import ParamsLGSSM, ParamsLGSSMDynamics, ParamsLGSSMEmissions, ParamsLGSSMInitial
-
-        jax.config.update("jax_enable_x64", dtype == torch.float64)
-        self.jax = jax
-        a = lambda t: jnp.asarray(t.detach().cpu().numpy())  # noqa: E731
-        f, h, q, r = (a(x) for x in (model.dynamics.F, model.measurement.H, model.dynamics.Q, model.measurement.R))
-        n, m = f.shape[0], h.shape[0]
-
-        def params(q: object, r: object) -> ParamsLGSSM:
-            # dynamax's initial state is x_0 (updated by the first measurement); difffilter's
-            # x_{-1} is predicted first: N(F m0, F P0 F^T + Q) with m0 = 0, P0 = I
-            return ParamsLGSSM(
-                initial=ParamsLGSSMInitial(mean=jnp.zeros(n), cov=f @ f.T + q),
-                dynamics=ParamsLGSSMDynamics(weights=f, bias=jnp.zeros(n), input_weights=jnp.zeros((n, 0)), cov=q),
-                emissions=ParamsLGSSMEmissions(weights=h, bias=jnp.zeros(m), input_weights=jnp.zeros((m, 0)), cov=r),
-            )
-
-        def loglik(q: object, r: object, ys: object) -> object:
-            return jax.vmap(lambda y: parallel_inference.lgssm_filter(params(q, r), y).marginal_loglik)(ys)
-
-        def filtered(ys: object) -> object:
-            post = jax.vmap(lambda y: parallel_inference.lgssm_filter(params(q, r), y))(ys)
-            return post.marginal_loglik, post.filtered_means
-
-        self.q, self.r = q, r
-        self.filter = jax.jit(filtered)
-        self.grad = jax.jit(jax.grad(lambda q, r, ys: loglik(q, r, ys).sum(), argnums=(0, 1)))
-        self.smoother = jax.jit(jax.vmap(lambda y: parallel_inference.lgssm_smoother(params(q, r), y).smoothed_means))
-
-    def time(self, what: str, z: torch.Tensor, repeats: int) -> tuple[float, tuple[torch.Tensor, torch.Tensor] | None]:
-        """Best time of ``what`` on ``z [B, T, m]``; for ``"filter"`` also the log-likelihoods
-        ``[B]`` and the filtered means ``[B, T, n]``."""
-        ys = self.jax.device_put(z.detach().cpu().numpy())
-        fn = {
-            "filter": lambda: self.filter(ys),
-            "filter fwd+bwd": lambda: self.grad(self.q, self.r, ys),
-            "smoother": lambda: self.smoother(ys),
-        }[what]
-        out = self.jax.block_until_ready(fn())  # compiles
-        best = float("inf")
-        for _ in range(repeats):
-            start = time.perf_counter()
-            self.jax.block_until_ready(fn())
-            best = min(best, time.perf_counter() - start)
-        if what != "filter":
-            return best, None
-        ll, means = (torch.as_tensor(self.jax.device_get(x).copy()) for x in out)
-        return best, (ll, means)
-
-
 def _fwd_bwd(filt: KalmanFilter, z: torch.Tensor, m0: torch.Tensor, p0: torch.Tensor) -> None:
     """Forward, then the gradient of the negative log-likelihood with respect to Q and R."""
     loss = -filt(z, m0, p0).total_log_likelihood.sum()
@@ -228,20 +157,26 @@ def run_grid(
     repeats: Callable[[int], int],
     peer: bool = True,
     peer_rows: tuple[str, ...] = ("filter",),
-) -> list[Row]:
+    peer_timeout_s: float = 1800.0,
+    progress: Callable[[str], None] | None = None,
+) -> tuple[list[Row], str]:
     """Rows for every ``(T, B)`` with ``B T <= max_elements``: the sequential filter on the default
     path up to ``B T <= max_sequential`` and forced eager up to ``B T <= max_eager`` (a Python loop
     over ``T``; not timed on another device than the CPU, where the default path is eager), the
-    parallel filter, and dynamax's parallel filter when ``peer`` and it is importable (on the
-    rows named in ``peer_rows``: each shape costs dynamax a JIT compilation, tens of seconds on
-    a loaded CPU)."""
+    parallel filter, and dynamax's parallel filter when ``peer`` and it is importable (on the rows
+    named in ``peer_rows``; each shape costs dynamax a JIT compilation, tens of seconds on a loaded
+    CPU).  dynamax runs after the torch rows in a process of its own
+    (:mod:`experiments.benchmarks.parallel_peer`), bounded by ``peer_timeout_s``.  Returns the rows
+    and a description of the peer for the header."""
     rows: list[Row] = []
     model = constant_velocity(dtype, device)
     par = ParallelKalmanFilter(model)
     m0 = torch.zeros(4, dtype=dtype, device=device)
     p0 = torch.eye(4, dtype=dtype, device=device)
     whats = ["filter"] + (["filter fwd+bwd"] if backward else []) + (["smoother"] if smoother else [])
-    peer_runner = _Dynamax(model, dtype) if peer and dynamax_available() else None
+    use_peer = peer and dynamax_available()
+    folder = Path(tempfile.mkdtemp(prefix="benchmark-parallel-peer-"))
+    cells, means = [], {}
     for steps in steps_list:
         for batch in batches:
             elements = batch * steps
@@ -254,6 +189,11 @@ def run_grid(
                 ll_p = out_p.log_likelihood.sum(1)
                 ll_s = KalmanFilter(model)(z, m0, p0).log_likelihood.sum(1) if elements <= max_sequential else None
             diff = None if ll_s is None else float((ll_s - ll_p).abs().max())
+            name = f"z_{steps}_{batch}.npy"
+            if use_peer:
+                np.save(folder / name, z.cpu().numpy())
+                cells.append({"file": name, "repeats": reps, "whats": [w for w in whats if w in peer_rows]})
+                means[name] = (ll_p.cpu(), out_p.mean.detach().cpu())
             for what in whats:
                 with torch.set_grad_enabled(what == "filter fwd+bwd"):
                     fn = partial(_call(what, par), z, m0, p0)
@@ -263,13 +203,50 @@ def run_grid(
                 if elements <= max_sequential:
                     t_d, engine = _default_path(what, model, z, m0, p0, reps, device)
                 t_e = _eager(what, model, z, m0, p0, reps, device) if elements <= max_eager and device == "cpu" else None
-                t_x, dx = None, None
-                if peer_runner is not None and what in peer_rows:
-                    t_x, check = peer_runner.time(what, z, reps)
-                    if check is not None:
-                        dx = (float((check[0].to(ll_p.dtype) - ll_p.cpu()).abs().max()), float((check[1] - out_p.mean.cpu()).abs().max()))
-                rows.append(Row(steps, batch, what, t_d, engine, t_e, t_p, t_x, diff, dx))
-    return rows
+                rows.append(Row(steps, batch, what, t_d, engine, t_e, t_p, None, diff, None))
+                if progress is not None:
+                    progress(markdown(rows[-1:]).splitlines()[-1])
+    about = "skipped (--no-peer)" if not peer else "not installed (no peer columns)"
+    if use_peer:
+        about = _run_peer(folder, model, dtype, device, cells, rows, means, peer_timeout_s)
+    shutil.rmtree(folder, ignore_errors=True)
+    return rows, about
+
+
+def _run_peer(
+    folder: Path, model: LinearModel, dtype: torch.dtype, device: str, cells: list, rows: list[Row], means: dict, timeout_s: float
+) -> str:
+    """dynamax in its own process over ``cells``; fills the rows' peer columns; the header text."""
+    mats = {"F": model.dynamics.F, "H": model.measurement.H, "Q": model.dynamics.Q, "R": model.measurement.R}
+    spec = {
+        "device": device,
+        "dtype": str(dtype).removeprefix("torch."),
+        "cells": cells,
+        "model": {k: v.detach().cpu().tolist() for k, v in mats.items()},
+    }
+    (folder / "spec.json").write_text(json.dumps(spec))
+    script = Path(__file__).with_name("parallel_peer.py")
+    note = ""
+    try:
+        done = subprocess.run([sys.executable, str(script), str(folder)], timeout=timeout_s, capture_output=True, text=True)
+        if done.returncode != 0:
+            note = f"; the peer process failed: {done.stderr.strip().splitlines()[-1][:200] if done.stderr.strip() else done.returncode}"
+    except subprocess.TimeoutExpired:
+        note = f"; the peer process stopped at its {timeout_s:.0f} s limit (rows without a dynamax time did not finish)"
+    about_file = folder / "about.txt"
+    about = (about_file.read_text() if about_file.exists() else "dynamax") + " (in a process of its own)" + note
+    results = folder / "out.jsonl"
+    for line in results.read_text().splitlines() if results.exists() else []:
+        rec = json.loads(line)
+        steps, batch = (int(x) for x in rec["cell"].removesuffix(".npy").split("_")[1:])
+        row = next(r for r in rows if (r.steps, r.batch, r.what) == (steps, batch, rec["what"]))
+        row.dynamax_s = rec["seconds"]
+        if rec["what"] == "filter":
+            ll_p, mean_p = means[rec["cell"]]
+            ll_x = torch.as_tensor(np.load(folder / f"{rec['cell']}.ll.npy")).to(ll_p.dtype)
+            mean_x = torch.as_tensor(np.load(folder / f"{rec['cell']}.mean.npy")).to(mean_p.dtype)
+            row.dynamax_diff = (float((ll_x - ll_p).abs().max()), float((mean_x - mean_p).abs().max()))
+    return about
 
 
 def _s(x: float | None) -> str:

@@ -1,7 +1,7 @@
 """Sequential vs parallel-in-time (associative-scan) Kalman filter and RTS smoother, and
 dynamax's parallel filter and smoother as the peer.
 
-    python experiments/benchmark_parallel.py --smoother                    # the default grid (~10 min on a loaded 2-core CPU)
+    python experiments/benchmark_parallel.py --smoother                    # the default grid (~20 min on a loaded 2-core CPU)
     python experiments/benchmark_parallel.py --steps 100 1000 --batches 1 16 --out results/benchmark_parallel.md
     python experiments/benchmark_parallel.py --device cuda --steps 10000 --batches 1 64   # on a GPU machine
 

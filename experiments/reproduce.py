@@ -229,6 +229,8 @@ JOBS: tuple[Job, ...] = (
     Job("p004_blend_practitioners", "p00_practitioners.md", 435, _practitioners("p004_blend")),
     # cpu_s not measured for this one (10.5 min wall on the loaded 2-core machine, compiled engine); it orders the queue only
     Job("p004_outage_practitioners", "p00_practitioners.md", 300, _practitioners("p004_outage")),
+    # p003_physical: 973 CPU-s measured (/usr/bin/time, 5 seeds, 51 min wall on the loaded machine; eager engine)
+    Job("p003_physical_practitioners", "p00_practitioners.md", 973, _practitioners("p003_physical")),
     Job(
         "p002_disturbed_practitioners",
         "p00_practitioners.md",

@@ -132,7 +132,15 @@ FAMILIES: tuple[Family, ...] = (
         "test=P=0.4",
         practitioners=True,
     ),
-    Family("p003_physical", "p003", "mis-specified", "vibration, C/N0 shading", "p003_imm_sins.md", "outputs/p003_final/p003_physical"),
+    Family(
+        "p003_physical",
+        "p003",
+        "mis-specified",
+        "vibration, C/N0 shading",
+        "p003_imm_sins.md",
+        "outputs/p003_final/p003_physical",
+        practitioners=True,
+    ),
     Family("p004_urban", "p004", "mis-specified", "urban-canyon GNSS", "p004_urban.md", f"{_R}/p004_urban", practitioners=True),
     Family(
         "p000_nominal",

@@ -32,6 +32,10 @@ FAMILY_OF = {
     "p000_gps_practitioners": ("p000_gpsdr", "scenario=p000_gps"),
     "p000_odometer_practitioners": ("p000_gpsdr", "scenario=p000_odometer"),
     "p000_nominal_practitioners": ("p000_gpsdr", "scenario=p000_random"),
+    # p003's family sweeps start every replicate from perturbed values (experiments/reproduce.py)
+    "p003_physical_practitioners": ("p003_physical", "learner.init_perturbation=0.3"),
+    "p003_modes_practitioners": ("p003_modes", "learner.init_perturbation=0.3"),
+    "p003_imm_sins_practitioners": ("p003_imm_sins", "learner.init_perturbation=0.3"),
 }
 
 

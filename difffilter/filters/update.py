@@ -15,7 +15,16 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from ..linalg import any_set, gaussian_log_density, joseph_update, psd_sqrt, safe_cholesky, symmetrize, vmapped
+from ..linalg import (
+    any_set,
+    gaussian_log_density,
+    joseph_update,
+    nonfinite_rows,
+    psd_sqrt,
+    safe_cholesky,
+    symmetrize,
+    vmapped,
+)
 from ._common import StepInfo, mask_measurement_system
 from .diffuse import DIFFUSE_COV, DIFFUSE_SCALE, diffuse_update
 from .protocol import Belief
@@ -197,15 +206,17 @@ def untrusted_steps(mean: Tensor, cov: Tensor, prior_cov: Tensor, log_likelihood
     post_var = torch.diagonal(cov, dim1=-2, dim2=-1)
     prior_var = torch.diagonal(prior_cov, dim1=-2, dim2=-1)
     # a NaN compares False, so non-finite variances are flagged too; whole-run checks first
-    # (one reduction each), per-step reductions only when one fails
-    bad = ~torch.isfinite(log_likelihood)
-    low = ~(post_var >= limit * prior_var)
+    # (one reduction each: nonfinite_rows' sum), per-step reductions only when one fails
     # (inside vmap, where values cannot be read, the per-step reductions always run: same value)
+    if vmapped(log_likelihood) or bool(nonfinite_rows(log_likelihood, 0)):
+        bad = ~torch.isfinite(log_likelihood)
+    else:
+        bad = torch.zeros(log_likelihood.shape, dtype=torch.bool, device=log_likelihood.device)
+    low = ~(post_var >= limit * prior_var)
     if vmapped(low) or bool(low.any()):
         bad = bad | low.any(-1)
-    finite = torch.isfinite(mean)
-    if vmapped(finite) or not bool(finite.all()):
-        bad = bad | ~finite.all(-1)
+    if vmapped(mean) or bool(nonfinite_rows(mean, 0)):
+        bad = bad | nonfinite_rows(mean, mean.dim() - 1)
     if exact is not None:
         bad = bad & ~exact
     return bad

@@ -142,6 +142,7 @@ FAMILIES: tuple[Family, ...] = (
         "p000_gpsdr.md",
         "outputs/final/p000_nominal",
         "test=scripted",
+        practitioners=True,
     ),
     Family(
         "p001_colored",

@@ -109,7 +109,16 @@ FAMILIES: tuple[Family, ...] = (
         "test=scripted",
         practitioners=True,
     ),
-    Family("p000_gps", "p000", "mis-specified", "GPS multipath/NLOS/outages", "p000_gpsdr.md", "outputs/final/p000_gps", "test=scripted"),
+    Family(
+        "p000_gps",
+        "p000",
+        "mis-specified",
+        "GPS multipath/NLOS/outages",
+        "p000_gpsdr.md",
+        "outputs/final/p000_gps",
+        "test=scripted",
+        practitioners=True,
+    ),
     Family(
         "p000_odometer", "p000", "mis-specified", "odometer scale/slip", "p000_gpsdr.md", "outputs/final/p000_odometer", "test=scripted"
     ),

@@ -120,7 +120,14 @@ FAMILIES: tuple[Family, ...] = (
         practitioners=True,
     ),
     Family(
-        "p000_odometer", "p000", "mis-specified", "odometer scale/slip", "p000_gpsdr.md", "outputs/final/p000_odometer", "test=scripted"
+        "p000_odometer",
+        "p000",
+        "mis-specified",
+        "odometer scale/slip",
+        "p000_gpsdr.md",
+        "outputs/final/p000_odometer",
+        "test=scripted",
+        practitioners=True,
     ),
     Family(
         "p001_elevation",

@@ -221,6 +221,9 @@ JOBS: tuple[Job, ...] = (
     Job("p000_infamily_practitioners", "p00_practitioners.md", 411, _practitioners("p000_infamily")),
     # cpu_s not measured (the five seeds took 6 min wall on the compiled engine; learned training 10.7 CPU-s per seed)
     Job("p000_gyro_practitioners", "p00_practitioners.md", 200, _practitioners("p000_gyro")),
+    Job("p000_gps_practitioners", "p00_practitioners.md", 359, _practitioners("p000_gps")),
+    Job("p000_nominal_practitioners", "p00_practitioners.md", 354, _practitioners("p000_nominal")),
+    Job("p000_odometer_practitioners", "p00_practitioners.md", 374, _practitioners("p000_odometer")),
     Job("p001_colored_practitioners", "p00_practitioners.md", 446, _practitioners("p001_colored")),
     Job("p001_multipath_practitioners", "p00_practitioners.md", 377, _practitioners("p001_multipath")),
     Job("p001_multipath_shared_practitioners", "p00_practitioners.md", 387, _practitioners("p001_multipath_shared")),

@@ -109,9 +109,25 @@ FAMILIES: tuple[Family, ...] = (
         "test=scripted",
         practitioners=True,
     ),
-    Family("p000_gps", "p000", "mis-specified", "GPS multipath/NLOS/outages", "p000_gpsdr.md", "outputs/final/p000_gps", "test=scripted"),
     Family(
-        "p000_odometer", "p000", "mis-specified", "odometer scale/slip", "p000_gpsdr.md", "outputs/final/p000_odometer", "test=scripted"
+        "p000_gps",
+        "p000",
+        "mis-specified",
+        "GPS multipath/NLOS/outages",
+        "p000_gpsdr.md",
+        "outputs/final/p000_gps",
+        "test=scripted",
+        practitioners=True,
+    ),
+    Family(
+        "p000_odometer",
+        "p000",
+        "mis-specified",
+        "odometer scale/slip",
+        "p000_gpsdr.md",
+        "outputs/final/p000_odometer",
+        "test=scripted",
+        practitioners=True,
     ),
     Family(
         "p001_elevation",
@@ -150,6 +166,7 @@ FAMILIES: tuple[Family, ...] = (
         "p000_gpsdr.md",
         "outputs/final/p000_nominal",
         "test=scripted",
+        practitioners=True,
     ),
     Family(
         "p001_colored",

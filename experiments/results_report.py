@@ -383,12 +383,12 @@ def build_detail(fam: Family, root: Path = ROOT) -> str:
         "",
         render_metric(rows, {}),
     ]
-    paired = [r for r in rows if r.filter == "learned" and r.quantity == "diff_pct" and r.reference]
+    paired = [r for r in rows if r.filter in {n for _, n in LEARNED} and r.quantity == "diff_pct" and r.reference]
     cpu = [r for r in rows if r.quantity == "tuning_cpu_s"]
     if paired:
         out += ["", "Learned - best non-learned (paired per test run and seed, % of the best's mean):", ""]
         out += [
-            f"- {r.group or 'test'}: learned - {r.reference}: {fmt_ci(r.estimate, r.lo, r.hi)} ({paired_verdict(r.lo, r.hi)})"
+            f"- {r.group or 'test'}: {r.filter} - {r.reference}: {fmt_ci(r.estimate, r.lo, r.hi)} ({paired_verdict(r.lo, r.hi)})"
             for r in paired
         ]
     if cpu:

@@ -19,7 +19,8 @@ paper's constants, ``hand-tuned``) and adds to ``summary.csv``, per test set (gr
 *learned adaptive* sweep (``experiment=<family>_learned_adaptive``: Sage-Husa with its forgetting
 factor and starting noise learned, a separate training job that also rebuilds the family's
 non-learned rows on the same test runs) to the family's data file as the ``learned-adaptive``
-rows (:func:`join_learned_adaptive`).
+rows (:func:`join_learned_adaptive`); ``--standalone <CSV>`` instead writes the sweep's own
+data file, every row from that sweep (:func:`summarize_learned_adaptive`).
 """
 
 from __future__ import annotations
@@ -33,6 +34,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import argparse  # noqa: E402
 import csv  # noqa: E402
 import math  # noqa: E402
+import shutil  # noqa: E402
 from collections.abc import Sequence  # noqa: E402
 from typing import Any  # noqa: E402
 
@@ -42,7 +44,7 @@ from experiments.results_report import METHODS, REFERENCE  # noqa: E402
 from experiments.results_tables import FIELDS  # noqa: E402
 from experiments.runner.sweep import Job, _interval, _matrix, load_jobs, summarize_sweep  # noqa: E402
 
-__all__ = ["best_non_learned", "join_learned_adaptive", "main", "summarize_practitioners"]
+__all__ = ["best_non_learned", "join_learned_adaptive", "main", "summarize_learned_adaptive", "summarize_practitioners"]
 
 LEARNED = "learned"
 ADAPTIVE = "learned-adaptive"
@@ -74,9 +76,10 @@ def _tuning_rows(jobs: Sequence[Job], group: str) -> list[dict[str, Any]]:
     return out
 
 
-def summarize_practitioners(sweep_dir: str | Path, *, metric: str = "rmse_pos", prob: float = 0.95) -> Path:
-    """Summarise ``sweep_dir`` (module docstring); returns the ``summary.csv`` path."""
-    _, path = summarize_sweep(sweep_dir, metric=metric, reference=REFERENCE, prob=prob)
+def summarize_practitioners(sweep_dir: str | Path, *, metric: str = "rmse_pos", prob: float = 0.95, learned: str = LEARNED) -> Path:
+    """Summarise ``sweep_dir`` (module docstring; ``learned`` names the trained row paired with the
+    best non-learned one); returns the ``summary.csv`` path."""
+    _, path = summarize_sweep(sweep_dir, metric=metric, reference=REFERENCE, learned=learned, prob=prob)
     with path.open(newline="") as fh:
         rows: list[dict[str, Any]] = list(csv.DictReader(fh))
     jobs = load_jobs(sweep_dir)
@@ -85,17 +88,17 @@ def summarize_practitioners(sweep_dir: str | Path, *, metric: str = "rmse_pos", 
         gjobs = [j for j in jobs if j.group == group]
         extra += _tuning_rows(gjobs, group)
         best = best_non_learned(rows, group, metric)
-        learned = _matrix(gjobs, LEARNED, metric)
-        if best is None or best == REFERENCE or learned is None:
+        trained = _matrix(gjobs, learned, metric)
+        if best is None or best == REFERENCE or trained is None:
             continue  # against the paper's constants the sweep's own diff rows are the paired ones
         ref, hand = _matrix(gjobs, best, metric), _matrix(gjobs, REFERENCE, metric)
         if ref is None:
             continue
         # the seeds share their test runs when the paper's constants give the same per-run values
         crossed = hand is not None and bool(torch.allclose(hand, hand[:1].expand_as(hand), rtol=1e-12, atol=0.0, equal_nan=True))
-        diff = _interval(learned - ref, crossed, prob)
+        diff = _interval(trained - ref, crossed, prob)
         base = float(ref[torch.isfinite(ref)].mean())
-        common = {"group": group, "filter": LEARNED, "seeds": learned.shape[0], "runs": learned.shape[1], "reference": best}
+        common = {"group": group, "filter": learned, "seeds": trained.shape[0], "runs": trained.shape[1], "reference": best}
         for qty, iv in (("diff", diff), ("diff_pct", diff.scaled(100.0 / base))):
             extra.append({**common, "quantity": qty, "estimate": iv.estimate, "lo": iv.lo, "hi": iv.hi})
     with path.open("w", newline="") as fh:
@@ -202,6 +205,51 @@ def join_learned_adaptive(
     return lines
 
 
+#: Row names of a learned adaptive job as its own family's data file reads them.
+ADAPTIVE_NAMES = {LEARNED: ADAPTIVE, REFERENCE: "sage-husa-start", PAPER: REFERENCE}
+
+
+def _renamed_copy(path: Path, out: Path) -> None:
+    with path.open(newline="") as fh:
+        reader = csv.DictReader(fh)
+        fields, rows = list(reader.fieldnames or []), list(reader)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with out.open("w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=fields)
+        writer.writeheader()
+        writer.writerows({**r, "filter": ADAPTIVE_NAMES.get(r["filter"], r["filter"])} for r in rows)
+
+
+def summarize_learned_adaptive(sweep_dir: str | Path, out: str | Path, *, metric: str = "rmse_pos", prob: float = 0.95) -> Path:
+    """The data file ``out`` of a learned adaptive sweep on its own, for when its rebuilt rows are
+    not the committed family file's (another code state: :func:`join_learned_adaptive` refuses).
+
+    The sweep's files are copied to ``<sweep_dir>/as_family`` with the rows renamed
+    (:data:`ADAPTIVE_NAMES`: its ``learned`` row is ``learned-adaptive``, the family's filter at
+    the paper's values ``hand-tuned``, the adaptive filter at its start values
+    ``sage-husa-start``) and summarised there as a practitioners sweep
+    (:func:`summarize_practitioners` with ``learned="learned-adaptive"``: every row against the
+    paper's constants, learned adaptive - best non-learned paired per run and seed, tuning CPU);
+    the summary is copied to ``out``.  Every row then comes from one code state; the family's
+    plain ``learned`` row is not in it."""
+    root, mirror = Path(sweep_dir), Path(sweep_dir) / "as_family"
+    if mirror.exists():
+        shutil.rmtree(mirror)
+    for per_run in root.rglob("per_run.csv"):
+        if mirror in per_run.parents:
+            continue
+        rel = per_run.parent.relative_to(root)
+        for name in ("per_run.csv", "results.csv"):
+            if (per_run.parent / name).exists():
+                _renamed_copy(per_run.parent / name, mirror / rel / name)
+        if (per_run.parent / ".hydra").is_dir():
+            shutil.copytree(per_run.parent / ".hydra", mirror / rel / ".hydra")
+    path = summarize_practitioners(mirror, metric=metric, prob=prob, learned=ADAPTIVE)
+    Path(out).parent.mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(path, out)
+    return Path(out)
+
+
 def main(argv: Sequence[str] | None = None) -> Path:
     """Command line: ``python -m experiments.practitioners <sweep_dir> [--metric rmse_pos]``, or
     ``python -m experiments.practitioners --adaptive <sweep_dir> --into <family CSV>``."""
@@ -210,10 +258,15 @@ def main(argv: Sequence[str] | None = None) -> Path:
     ap.add_argument("--metric", default="rmse_pos")
     ap.add_argument("--adaptive", help="a learned adaptive sweep to join to --into as the learned-adaptive rows")
     ap.add_argument("--into", help="the family's data file, results/data/<family>_practitioners.csv")
+    ap.add_argument("--standalone", help="with --adaptive: write the sweep's own data file (every row from the sweep, renamed)")
     args = ap.parse_args(argv)
     if args.adaptive:
-        if not args.into or args.sweep_dir:
-            ap.error("--adaptive takes --into <family CSV> and no sweep_dir")
+        if bool(args.into) == bool(args.standalone) or args.sweep_dir:
+            ap.error("--adaptive takes one of --into <family CSV> or --standalone <CSV>, and no sweep_dir")
+        if args.standalone:
+            out = summarize_learned_adaptive(args.adaptive, args.standalone, metric=args.metric)
+            print(out.read_text())
+            return out
         print("\n".join(join_learned_adaptive(args.adaptive, args.into, metric=args.metric)))
         return Path(args.into)
     if not args.sweep_dir:

@@ -224,7 +224,7 @@ def summarize_learned_adaptive(sweep_dir: str | Path, out: str | Path, *, metric
     """The data file ``out`` of a learned adaptive sweep on its own, for when its rebuilt rows are
     not the committed family file's (another code state: :func:`join_learned_adaptive` refuses).
 
-    The sweep's files are copied to ``<sweep_dir>/as_family`` with the rows renamed
+    The sweep's files are copied to ``<sweep_dir>_as_family`` with the rows renamed
     (:data:`ADAPTIVE_NAMES`: its ``learned`` row is ``learned-adaptive``, the family's filter at
     the paper's values ``hand-tuned``, the adaptive filter at its start values
     ``sage-husa-start``) and summarised there as a practitioners sweep
@@ -232,12 +232,11 @@ def summarize_learned_adaptive(sweep_dir: str | Path, out: str | Path, *, metric
     paper's constants, learned adaptive - best non-learned paired per run and seed, tuning CPU);
     the summary is copied to ``out``.  Every row then comes from one code state; the family's
     plain ``learned`` row is not in it."""
-    root, mirror = Path(sweep_dir), Path(sweep_dir) / "as_family"
+    root = Path(sweep_dir)
+    mirror = root.with_name(root.name + "_as_family")  # beside the sweep: inside, its jobs would be the sweep's
     if mirror.exists():
         shutil.rmtree(mirror)
     for per_run in root.rglob("per_run.csv"):
-        if mirror in per_run.parents:
-            continue
         rel = per_run.parent.relative_to(root)
         for name in ("per_run.csv", "results.csv"):
             if (per_run.parent / name).exists():

@@ -464,6 +464,17 @@ def render(root: Path = ROOT) -> list[Path]:
     return changed
 
 
+def _rejoin_learned_adaptive(fam: Family, root: Path) -> None:
+    """A practitioners data file just copied from its sweep gets its ``learned-adaptive`` rows
+    again from the learned adaptive sweep beside it, where one ran (issue 25; the join checks
+    that the sweep's rebuilt rows are the file's)."""
+    sweep = root / f"{fam.sweep}_learned_adaptive"
+    if fam.sweep.startswith(PRACTITIONERS_ROOT) and sweep.is_dir():
+        from experiments.practitioners import join_learned_adaptive  # it imports this module
+
+        join_learned_adaptive(sweep, _source(fam, root))
+
+
 def collect(root: Path = ROOT) -> list[Path]:
     """Copy each family's ``<sweep>/summary.csv``, where a run of ``experiments/reproduce.py`` left
     one, over its data file (the committed numbers then come from the run), and each summary of
@@ -476,6 +487,7 @@ def collect(root: Path = ROOT) -> list[Path]:
             if rows:
                 shutil.copyfile(src, _source(fam, root))
                 copied.append(src)
+                _rejoin_learned_adaptive(fam, root)
     for source, data in DATA_FILES:  # issue 25's efficiency and transfer summaries
         if (root / source).exists() and read_rows(root / source):
             shutil.copyfile(root / source, root / data)

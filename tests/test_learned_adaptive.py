@@ -183,3 +183,26 @@ def test_standalone_file_renames_the_jobs_rows_and_pairs_learned_adaptive(tmp_pa
     assert (paired.estimate, paired.lo, paired.hi) == pytest.approx((iv.estimate, iv.lo, iv.hi), rel=1e-12)
     assert not any(r.filter in ("learned", "paper-constants") for r in rows)
     assert next(r for r in rows if r.quantity == "tuning_cpu_s").filter == "learned-adaptive"
+
+
+def test_collect_joins_the_learned_adaptive_rows_again_after_copying_a_practitioners_summary(tmp_path, monkeypatch):
+    import experiments.results_report as report
+
+    runs = 6
+    hand = [2.0 + 0.1 * r for r in range(runs)]
+    textbook = [h - 0.4 for h in hand]
+    prac = tmp_path / "outputs" / "practitioners" / "x"
+    prac.parent.mkdir(parents=True)
+    learned = [[t + 0.05 * (s + 1) for t in textbook] for s in range(3)]
+    summarize_practitioners(_sweep(prac, hand, {"learned": learned, "textbook": [textbook] * 3}))
+    job = {"learned": [[t - 0.1 for t in textbook]] * 3, "paper-constants": [hand] * 3, "textbook": [textbook] * 3}
+    _sweep(tmp_path / "outputs" / "practitioners" / "x_learned_adaptive", hand, job)
+    (tmp_path / "results" / "data").mkdir(parents=True)
+    monkeypatch.setattr(
+        report, "FAMILIES", (report.Family("x", "p00x", "mis-specified", "synthetic", "x.md", "outputs/x", practitioners=True),)
+    )
+    report.collect(tmp_path)
+    rows = read_rows(tmp_path / "results" / "data" / "x_practitioners.csv")
+    joined = next(r for r in rows if (r.filter, r.quantity, r.reference) == ("learned-adaptive", "diff", "textbook"))
+    assert joined.estimate == pytest.approx(-0.1, rel=1e-12)
+    assert {r.filter for r in rows} == {"hand-tuned", "learned", "textbook", "learned-adaptive"}

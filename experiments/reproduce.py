@@ -266,6 +266,7 @@ JOBS: tuple[Job, ...] = (
         480,
         _learned_adaptive("p001_elevation_learned_adaptive", "p001_elevation"),
     ),
+    Job("p004_urban_learned_adaptive", "p00_practitioners.md", 307, _learned_adaptive("p004_urban_learned_adaptive", "p004_urban")),
     # issue 25: data efficiency (N = 1, 4, 16 training trajectories) and transfer across p002's
     # families (results/p00_efficiency_transfer.md); the transfer pairs read all three p002 sweeps
     Job(

@@ -267,6 +267,12 @@ JOBS: tuple[Job, ...] = (
         _learned_adaptive("p001_elevation_learned_adaptive", "p001_elevation"),
     ),
     Job("p004_urban_learned_adaptive", "p00_practitioners.md", 307, _learned_adaptive("p004_urban_learned_adaptive", "p004_urban")),
+    Job(
+        "p002_disturbed_learned_adaptive",
+        "p00_practitioners.md",
+        188,
+        _learned_adaptive("p002_disturbed_learned_adaptive", "p002_disturbed_rcukf"),
+    ),
     # issue 25: data efficiency (N = 1, 4, 16 training trajectories) and transfer across p002's
     # families (results/p00_efficiency_transfer.md); the transfer pairs read all three p002 sweeps
     Job(

@@ -110,6 +110,15 @@ def _practitioners(family: str, root: str = "outputs/practitioners") -> tuple[st
     )
 
 
+def _learned_adaptive(experiment: str, family: str, root: str = "outputs/practitioners") -> tuple[str, str]:
+    """A learned adaptive sweep (issue 25) and its rows joined to the family's practitioners data file."""
+    sweep = f"{root}/{family}_learned_adaptive"
+    return (
+        f"python experiments/train.py -m experiment={experiment} seed=0,1,2,3,4 logger=csv hydra.sweep.dir={sweep}",
+        f"python -m experiments.practitioners --adaptive {sweep} --into results/data/{family}_practitioners.csv",
+    )
+
+
 def _p003(experiment: str) -> tuple[str, str]:
     return (
         f"python experiments/train.py -m experiment={experiment} seed=0,1,2,3,4 learner.init_perturbation=0.3 logger=csv "
@@ -253,6 +262,21 @@ JOBS: tuple[Job, ...] = (
             "hydra.sweep.dir=outputs/practitioners/p002_pdr_rcukf",
             "python -m experiments.practitioners outputs/practitioners/p002_pdr_rcukf",
         ),
+    ),
+    # issue 25: the learned adaptive rows (results/p00_practitioners.md, "Learned adaptive"), joined to the
+    # committed practitioners' data files (--collect joins them again after copying a practitioners summary)
+    Job(
+        "p001_elevation_learned_adaptive",
+        "p00_practitioners.md",
+        480,
+        _learned_adaptive("p001_elevation_learned_adaptive", "p001_elevation"),
+    ),
+    Job("p004_urban_learned_adaptive", "p00_practitioners.md", 307, _learned_adaptive("p004_urban_learned_adaptive", "p004_urban")),
+    Job(
+        "p002_disturbed_learned_adaptive",
+        "p00_practitioners.md",
+        188,
+        _learned_adaptive("p002_disturbed_learned_adaptive", "p002_disturbed_rcukf"),
     ),
     # issue 25: data efficiency (N = 1, 4, 16 training trajectories) and transfer across p002's
     # families (results/p00_efficiency_transfer.md); the transfer pairs read all three p002 sweeps

@@ -408,12 +408,12 @@ def build_detail(fam: Family, root: Path = ROOT) -> str:
         "",
         render_metric(rows, {}),
     ]
-    paired = [r for r in rows if r.filter == "learned" and r.quantity == "diff_pct" and r.reference]
+    paired = [r for r in rows if r.filter in {n for _, n in LEARNED} and r.quantity == "diff_pct" and r.reference]
     cpu = [r for r in rows if r.quantity == "tuning_cpu_s"]
     if paired:
         out += ["", "Learned - best non-learned (paired per test run and seed, % of the best's mean):", ""]
         out += [
-            f"- {r.group or 'test'}: learned - {r.reference}: {fmt_ci(r.estimate, r.lo, r.hi)} ({paired_verdict(r.lo, r.hi)})"
+            f"- {r.group or 'test'}: {r.filter} - {r.reference}: {fmt_ci(r.estimate, r.lo, r.hi)} ({paired_verdict(r.lo, r.hi)})"
             for r in paired
         ]
     if cpu:
@@ -489,6 +489,17 @@ def render(root: Path = ROOT) -> list[Path]:
     return changed
 
 
+def _rejoin_learned_adaptive(fam: Family, root: Path) -> None:
+    """A practitioners data file just copied from its sweep gets its ``learned-adaptive`` rows
+    again from the learned adaptive sweep beside it, where one ran (issue 25; the join checks
+    that the sweep's rebuilt rows are the file's)."""
+    sweep = root / f"{fam.sweep}_learned_adaptive"
+    if fam.sweep.startswith(PRACTITIONERS_ROOT) and sweep.is_dir():
+        from experiments.practitioners import join_learned_adaptive  # it imports this module
+
+        join_learned_adaptive(sweep, _source(fam, root))
+
+
 def collect(root: Path = ROOT) -> list[Path]:
     """Copy each family's ``<sweep>/summary.csv``, where a run of ``experiments/reproduce.py`` left
     one, over its data file (the committed numbers then come from the run), and each summary of
@@ -501,6 +512,7 @@ def collect(root: Path = ROOT) -> list[Path]:
             if rows:
                 shutil.copyfile(src, _source(fam, root))
                 copied.append(src)
+                _rejoin_learned_adaptive(fam, root)
     for source, data in DATA_FILES:  # issue 25's efficiency and transfer summaries
         if (root / source).exists() and read_rows(root / source):
             shutil.copyfile(root / source, root / data)

@@ -271,6 +271,10 @@ def summary_cells(fam: Family, rows: Sequence[Row], metric: str = "rmse_pos") ->
         diff_cell, verdict = "no paired interval", "-"
     else:
         diff_cell, verdict = fmt_ci(diff.estimate, diff.lo, diff.hi), paired_verdict(diff.lo, diff.hi)
+    adaptive_cell = "not run"
+    if value["learned-adaptive"] is not None:
+        la = _paired(rows, g, "learned-adaptive", best) if best else None
+        adaptive_cell = "no paired interval" if la is None else f"{fmt_ci(la.estimate, la.lo, la.hi)} ({paired_verdict(la.lo, la.hi)})"
     anees = _get(rows, g, "learned", "anees_all", _get_dof(rows, g))
     if anees is None:
         anees_cell, anees_v = "not in the data", "-"
@@ -292,6 +296,7 @@ def summary_cells(fam: Family, rows: Sequence[Row], metric: str = "rmse_pos") ->
         *shown[len(METHODS) :],
         diff_cell,
         verdict,
+        adaptive_cell,
         anees_cell,
         anees_v,
         link,
@@ -317,6 +322,7 @@ _HEADER = [
     *(t for t, _ in LEARNED),
     "learned - best non-learned, % [95 %]",
     "verdict",
+    "learned adaptive - best non-learned, % [95 %] (verdict)",
     "learned ANEES [95 %] (d; band)",
     "ANEES verdict",
     "detail",
@@ -345,6 +351,8 @@ def build_report(families: Sequence[Family] = FAMILIES, root: Path = ROOT) -> st
         "  non-learned method is the lowest-RMSE row among the seven non-learned columns that were run; a method",
         "  without a row in the family's CSV says *not run*.  A paired interval exists only against the row the",
         "  sweep pairs with (the paper's constants) or a `diff_pct` row whose `reference` names the best method.",
+        "  The learned adaptive filter (Sage-Husa with its forgetting factor and noise learned, a separate training",
+        "  job) gets the same paired comparison and rule in its own column where it ran.",
         "- ANEES of the learned filter (all states, d of them) against the 95 % chi-square band of a consistent",
         "  filter's mean NEES over the N test runs, `[chi2_0.025(N d) / N, chi2_0.975(N d) / N]`: **consistent** when",
         "  the ANEES interval lies inside the band, **over-** / **under-confident** when entirely above / below it,",
@@ -365,18 +373,26 @@ def build_report(families: Sequence[Family] = FAMILIES, root: Path = ROOT) -> st
         "|" + "---|" * len(_HEADER),
     ]
     tally: dict[str, dict[str, int]] = {}
+    adaptive: list[str] = []
     for fam in families:
         shown = fam.practitioners_family() if fam.practitioners else fam
         cells = summary_cells(shown, read_rows(_source(shown, root)))
         out.append("| " + " | ".join(cells) + " |")
         kind = tally.setdefault(fam.kind, {})
         kind[cells[_HEADER.index("verdict")]] = kind.get(cells[_HEADER.index("verdict")], 0) + 1
+        la_cell = cells[_HEADER.index("learned adaptive - best non-learned, % [95 %] (verdict)")]
+        if la_cell.endswith(")"):
+            adaptive.append(f"{fam.name} {la_cell.rsplit('(', 1)[1].rstrip(')')}")
     out += [""] + [
         f"Verdicts of learned against the best non-learned method, {kind} families: "
         + ", ".join(f"{n} {v}" for v, n in sorted(counts.items()))
         + "."
         for kind, counts in tally.items()
     ]
+    if adaptive:
+        out.append(
+            "Verdicts of the learned adaptive filter against the best non-learned method, where it ran: " + ", ".join(adaptive) + "."
+        )
     out += [
         "",
         "Not in the table: the real drive (smartLoc Berlin, `results/smartloc_real.md`: median/RMS error per fold,",

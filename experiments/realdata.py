@@ -4,6 +4,7 @@ a held-out validation block from several seeds, test with paired block-bootstrap
     python experiments/realdata.py                                   # smartLoc Berlin, folds A and B, 5 seeds
     python experiments/realdata.py folder=/data/drives               # every <name>_Input.txt + <name>_GT.txt of a folder
     python experiments/realdata.py folder=../shared/data/real/librsf_ranging_w3500   # range2 data: the 2-D ranging protocol
+    python experiments/realdata.py folder=[/data/set1,/data/set2]   # the data sets of several folders (one kind)
     python experiments/realdata.py transfer_from=outputs/realdata/smartloc/<run> folder=/data/other
     python experiments/realdata.py realdata.horizons=[1,2,4]          # stability check (4x the epochs)
     python experiments/realdata.py evaluate_from=outputs/realdata/smartloc/<run>   # recompute a run's test tables (no training)
@@ -37,18 +38,37 @@ from experiments.ranging.report import run_ranging  # noqa: E402
 log = logging.getLogger(__name__)
 
 
+def folder_list(folder: object) -> list[str]:
+    """``folder=`` as a list of folders: none (``null``), one path, or a list of paths."""
+    if folder is None or folder == "":
+        return []
+    if isinstance(folder, str):
+        return [folder]
+    return [str(f) for f in folder]  # type: ignore[attr-defined]
+
+
+def data_kind(folders: list[str]) -> str:
+    """The one kind (``ranging2d`` / ``pseudorange``) of every folder's data sets; ``ValueError``
+    naming the folders when they differ."""
+    kinds = {f: folder_kind(f) for f in folders}
+    if len(set(kinds.values())) > 1:
+        raise ValueError(f"the folders hold data of different kinds {kinds}; run each kind on its own")
+    return next(iter(kinds.values()))
+
+
 @hydra.main(version_base="1.3", config_path="../conf", config_name="realdata")
 def main(cfg: DictConfig) -> None:
     """Run the protocol (or a transfer evaluation, or a re-evaluation of a finished run) and print the report."""
     torch.set_num_threads(int(cfg.threads))
     warnings.filterwarnings("ignore", module="pytorch_lightning")
     out = HydraConfig.get().runtime.output_dir
-    if cfg.folder and folder_kind(cfg.folder) == "ranging2d":
-        run_ranging(cfg.folder, OmegaConf.to_container(cfg.realdata_ranging, resolve=True), out)  # type: ignore[arg-type]
+    folders = folder_list(cfg.folder)
+    if folders and data_kind(folders) == "ranging2d":
+        run_ranging(folders, OmegaConf.to_container(cfg.realdata_ranging, resolve=True), out)  # type: ignore[arg-type]
         print(open(f"{out}/results.md").read())
         log.info("results written to %s", out)
         return
-    spec = resolve_config(OmegaConf.to_container(cfg.realdata, resolve=True), cfg.folder)  # type: ignore[arg-type]
+    spec = resolve_config(OmegaConf.to_container(cfg.realdata, resolve=True), folders or None)  # type: ignore[arg-type]
     if cfg.evaluate_from:
         run_evaluation(cfg.evaluate_from, out, compare_with=cfg.get("compare_with"))
     elif cfg.transfer_from:

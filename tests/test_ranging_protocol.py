@@ -266,3 +266,53 @@ def test_run_fold_warm_starts_every_row_alike() -> None:
     assert {k: len(v) for k, v in warm.errors.items()} == {k: len(v) for k, v in cold.errors.items()}
     torch.testing.assert_close(warm.errors["snapshot-lsq"], cold.errors["snapshot-lsq"])  # per step: no state to warm
     assert not torch.equal(warm.errors["hand-tuned"], cold.errors["hand-tuned"])
+
+
+@pytest.mark.slow
+def test_several_folders_pool_their_data_sets_and_kinds_must_agree(tmp_path) -> None:
+    """``folder=[a, b]``: the data sets of both folders (each a copy of one input and the shared
+    truth) get block folds and leave-one-data-set-out folds; a name in two folders, and folders of
+    different kinds, are errors naming them."""
+    import shutil
+
+    from experiments.realdata import data_kind, folder_list
+
+    one, two = tmp_path / "one", tmp_path / "two"
+    for folder, name in ((one, "heavy-tailed"), (two, "skewed")):
+        folder.mkdir()
+        shutil.copy(ASSETS / f"W3500x_{name}_Input.txt", folder)
+        shutil.copy(ASSETS / "W3500x_GT.txt", folder)
+    cfg = {**CFG, "seeds": 1, "epochs": 1, "folds": {}}  # data-set folds only: the block folds are tested above
+    results = run_ranging([one, two], cfg, tmp_path / "run")
+    assert list(results) == ["leave_out_W3500x_heavy-tailed", "leave_out_W3500x_skewed"]
+    for fold in results:
+        assert (tmp_path / "run" / fold / "results.csv").is_file()
+    assert json.loads((tmp_path / "run" / "summary.json").read_text())["folder"] == [str(one), str(two)]
+    shutil.copy(ASSETS / "W3500x_skewed_Input.txt", one)
+    with pytest.raises(ValueError, match=r"same name in several folders: {.W3500x_skewed.: \[.*one/W3500x_skewed_Input.txt"):
+        run_ranging([one, two], cfg, tmp_path / "again")
+    assert folder_list(None) == [] and folder_list(str(one)) == [str(one)] and folder_list([one, two]) == [str(one), str(two)]
+    assert data_kind([str(one), str(two)]) == "ranging2d"
+    gnss = tmp_path / "gnss"
+    gnss.mkdir()
+    (gnss / "D_Input.txt").write_text("pseudorange3 0 2e7 25 1 2 3 5 1 40 45\n")
+    with pytest.raises(ValueError, match="different kinds"):
+        data_kind([str(one), str(gnss)])
+
+
+def test_a_folder_without_truth_or_inputs_is_refused_before_training(tmp_path) -> None:
+    """A data set without ``point2`` truth cannot be scored, a folder without ``<name>_Input.txt``
+    holds no data set: both are errors naming what is missing (nothing trains)."""
+    import shutil
+
+    shutil.copy(ASSETS / "W3500x_skewed_Input.txt", tmp_path)
+    with pytest.raises(ValueError, match=r"without point2 ground truth cannot be scored: \['W3500x_skewed'\]"):
+        run_ranging(tmp_path, CFG, tmp_path / "run")
+    (tmp_path / "W3500x_GT.txt").write_text("angle 0 0.5\n")  # a truth file without point2 records
+    with pytest.raises(ValueError, match=r"W3500x_GT.txt: no point2 records"):
+        run_ranging(tmp_path, CFG, tmp_path / "run")
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    shutil.copy(ASSETS / "W3500x_GT.txt", empty)
+    with pytest.raises(FileNotFoundError, match="empty: no data set found"):
+        run_ranging(empty, CFG, tmp_path / "run")

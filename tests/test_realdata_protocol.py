@@ -5,6 +5,7 @@ different pseudorange corrections)."""
 
 from __future__ import annotations
 
+import csv
 import json
 import os
 import subprocess
@@ -20,7 +21,7 @@ from experiments.papers.smartloc.report import resolve_config, run_evaluation, r
 
 from .librsf_fixture import HAVE_DATA, write_drive
 
-pytestmark = pytest.mark.skipif(not HAVE_DATA, reason="smartLoc data folder ../shared/data/real not present")
+pytestmark = pytest.mark.skipif(not HAVE_DATA, reason="the smartLoc excerpt tests/assets/librsf/smartlocx_* is missing")
 ROOT = Path(__file__).resolve().parents[1]
 SMALL = {
     "epochs": 1,
@@ -67,7 +68,7 @@ def test_protocol_on_a_folder_and_transfer_to_a_second_processing(tmp_path) -> N
     assert summary["drives"] == ["Cut"] and set(summary["folds"]) == {"A", "B"}
     for fold in summary["folds"].values():
         names = [r["filter"] for r in fold["test"]]
-        assert names == ["hand-tuned", "learned-elev_cn0", "ekf-no-gate", "snapshot-wls"]
+        assert names == ["hand-tuned", "learned-elev_cn0", "untrained-gate", "ekf-no-gate", "snapshot-wls", "sage-husa", "vb-adaptive-r"]
         sel = fold["selection"]["learned-elev_cn0"]
         assert sel["seed"] in (0, "start") and sel["epoch"] in (0, 1)
         scores = fold["val_scores"]["elev_cn0/seed0"]
@@ -75,12 +76,29 @@ def test_protocol_on_a_folder_and_transfer_to_a_second_processing(tmp_path) -> N
         assert all(k in fold["test"][1] for k in ("d_median_lo", "d_rms_hi"))
     for name in ("results.md", "summary.json", "selected.pt", "noise_model_fold_A.png", "noise_model_fold_B.png"):
         assert (run / name).exists(), name
+    for fold, fs in summary["folds"].items():  # results.csv per fold: the columns and row names of the ranging protocol
+        with open(run / fold / "results.csv") as fh:
+            rows = list(csv.DictReader(fh))
+        assert [r["filter"] for r in rows] == ["hand-tuned", "learned", *names[2:]]
+        assert list(rows[0])[:4] == ["filter", "pos_err_p50", "rmse_pos", "pos_err_p95"] and {"u_rms_lo", "d_median_hi"} <= set(rows[0])
+        for r, t in zip(rows, fs["test"], strict=True):
+            for col, stat in (("pos_err_p50", "median"), ("rmse_pos", "rms"), ("pos_err_p95", "p95")):
+                assert float(r[col]) == pytest.approx(t[stat], rel=1e-5)
+        assert rows[0]["d_rms"] == "" and rows[2]["u_rms"] == "" and rows[1]["u_rms"] != ""
     assert any((run / "tb").rglob("events.out.tfevents.*"))
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    tb = EventAccumulator(str(run / "tb" / "noise_models"))
+    tb.Reload()
+    tags = set(tb.Tags()["scalars"])
+    if summary["folds"]["A"]["selection"]["learned-elev_cn0"]["values"]:  # a learned selection: its gate and noise values
+        assert {f"extras/fold_A/learned-elev_cn0/measurement.robust_gate.gate_{k}" for k in ("threshold", "floor", "softness")} <= tags
+    assert "noise_model/fold_A" in tb.Tags()["images"]
     again = run_evaluation(run, tmp_path / "eval")  # rebuilt from the saved selections: the same test tables
     for fold, fs in summary["folds"].items():
         assert again["folds"][fold]["tables"]["hand-tuned"] == fs["test"]
         ref = again["folds"][fold]["tables"]["ekf-no-gate"]
-        assert [r["filter"] for r in ref] == names and "d_rms" not in ref[2] and "d_rms" in ref[0]
+        assert [r["filter"] for r in ref] == names and "d_rms" not in ref[names.index("ekf-no-gate")] and "d_rms" in ref[0]
         assert again["folds"][fold]["validation"]["hand-tuned"] == pytest.approx(fs["hand_val"], rel=1e-12)
     out = tmp_path / "transfer"
     result = run_transfer(run, _config(second), out)
@@ -178,7 +196,7 @@ def test_the_fallback_row_is_the_hand_tuned_filter_and_rebuilds(tmp_path, monkey
         row = next(r for r in fs["test"] if r["filter"] == "learned-elev_cn0")
         assert row["d_median"] == 0.0 and row["d_rms"] == 0.0 and row["rms"] == fs["test"][0]["rms"]
     assert "no learned model validates better" in (run / "results.md").read_text()
-    assert torch.load(run / "selected.pt", weights_only=False)["A/elev_cn0"] == {"hand_tuned": True}
+    assert torch.load(run / "selected.pt", weights_only=False)["A/elev_cn0"]["hand_tuned"] is True
     again = run_evaluation(run, tmp_path / "eval")
     for fold, fs in summary["folds"].items():
         assert again["folds"][fold]["tables"]["hand-tuned"] == fs["test"]

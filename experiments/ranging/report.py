@@ -24,7 +24,7 @@ from difffilter.datasets.ranging import RangingRecording, find_recordings, load_
 
 from .protocol import ProtocolResult, fold_pieces, run_fold
 
-__all__ = ["extras", "fold_specs", "plot_extras", "run_ranging", "write_csv"]
+__all__ = ["extras", "fold_specs", "gate_curve", "plot_extras", "run_ranging", "write_csv"]
 
 COLUMNS = (
     "filter",
@@ -85,7 +85,7 @@ def extras(filt: torch.nn.Module) -> dict[str, list[float]]:
     return out
 
 
-def _gate_curve(ex: Mapping[str, list[float]], n: torch.Tensor) -> torch.Tensor:
+def gate_curve(ex: Mapping[str, list[float]], n: torch.Tensor) -> torch.Tensor:
     """Variance factor ``f`` of a reject gate with the extras' threshold / softness against the
     normalised innovation ``n = |e| / sqrt(S + floor^2)``."""
     soft = ex.get("gate_softness", [0.0])[0]
@@ -109,7 +109,7 @@ def plot_extras(results: Mapping[str, ProtocolResult]) -> Figure:
         if "noise_scale" in ex:
             ax[1].semilogy(range(1, len(ex["noise_scale"]) + 1), ex["noise_scale"], "o-", color=color)
         if "gate_threshold" in ex:
-            ax[2].semilogy(res, 1.0 / _gate_curve(ex, res), color=color)
+            ax[2].semilogy(res, 1.0 / gate_curve(ex, res), color=color)
         for row, style in (("hand-tuned", ":"), ("learned", "-")):
             e = torch.sort(r.errors[row]).values
             ax[3].plot(e, torch.linspace(0, 1, len(e)), style, color=color, label=label if row == "learned" else None)
@@ -124,7 +124,7 @@ def plot_extras(results: Mapping[str, ProtocolResult]) -> Figure:
             va="bottom",
         )
     first = next(iter(results.values()))
-    ax[2].semilogy(res, 1.0 / _gate_curve(extras(first.start), res), "k--", label="untrained gate")
+    ax[2].semilogy(res, 1.0 / gate_curve(extras(first.start), res), "k--", label="untrained gate")
     ax[0].axhline(0.0, color="k", ls="--", lw=0.8)
     ax[1].axhline(1.0, color="k", ls="--", lw=0.8)
     ax[0].set(xlabel="anchor", ylabel="m")
@@ -185,16 +185,26 @@ def _markdown(results: Mapping[str, ProtocolResult]) -> str:
 
 
 def run_ranging(
-    folder: str | Path, cfg: Mapping[str, Any], output_dir: str | Path, *, only: Sequence[str] | None = None
+    folder: str | Path | Sequence[str | Path], cfg: Mapping[str, Any], output_dir: str | Path, *, only: Sequence[str] | None = None
 ) -> dict[str, ProtocolResult]:
-    """Every fold of :func:`fold_specs` on the recordings of ``folder`` (``only``: these names);
-    writes the report (module docstring) and returns ``{fold: result}``."""
+    """Every fold of :func:`fold_specs` on the recordings of ``folder`` (one folder or several;
+    ``only``: these names); writes the report (module docstring) and returns ``{fold: result}``.
+
+    Raises:
+        ValueError: two folders hold recordings of the same name (the folds are named by them).
+    """
     t0 = time.time()
     out = Path(output_dir)
     out.mkdir(parents=True, exist_ok=True)
-    found = [f for f in find_recordings(folder) if only is None or f[0] in only]
+    folders = [folder] if isinstance(folder, (str, Path)) else list(folder)
+    found = [f for d in folders for f in find_recordings(d) if only is None or f[0] in only]
     if not found:
         raise ValueError(f"{folder}: no recording named {list(only or [])}")
+    names = [f[0] for f in found]
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:
+        where = {n: [str(f[1]) for f in found if f[0] == n] for n in twice}
+        raise ValueError(f"recordings of the same name in several folders: {where}; rename one (<name>_Input.txt)")
     recordings = [load_ranging(inp, gt, min_ranges=int(cfg.get("min_ranges", 1))) for _name, inp, gt in found]
     missing = [r.name for r in recordings if not bool((~torch.as_tensor(r.truth).isnan()).any())]
     if missing:
@@ -215,7 +225,7 @@ def run_ranging(
     writer.close()
     (out / "results.md").write_text(_markdown(results))
     summary = {
-        "folder": str(folder),
+        "folder": [str(d) for d in folders] if len(folders) > 1 else str(folders[0]),
         "recordings": [r.name for r in recordings],
         "issues": {r.name: r.issues for r in recordings},
         "config": json.loads(json.dumps(dict(cfg))),

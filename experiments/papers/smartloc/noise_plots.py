@@ -1,4 +1,5 @@
-"""Figures of learned pseudorange noise models against elevation and C/N0."""
+"""Figures of the learned pseudorange extras: noise models against elevation and C/N0, and the
+outlier gate's weight against the normalised innovation."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import numpy as np
 import torch
 from matplotlib.figure import Figure
 
-__all__ = ["binned_sigma", "plot_noise_models"]
+__all__ = ["binned_sigma", "gate_values", "plot_noise_models"]
 
 _SYSTEM_NAMES = {1: "GPS", 4: "GLONASS"}
 
@@ -42,10 +43,29 @@ def _side_information(drives: Sequence[Any]) -> dict[str, torch.Tensor]:
     return {k: torch.cat(v) for k, v in parts.items()}
 
 
-def plot_noise_models(filters: Mapping[str, Any], drives: Sequence[Any], *, title: str = "") -> Figure:
-    """Pseudorange sigma against elevation (left) and C/N0 (right), per constellation: the
+def gate_values(filt: Any) -> dict[str, list[float]]:
+    """``gate_threshold``, ``gate_floor`` (m) and, for a smooth gate, ``gate_softness`` of a
+    pseudorange filter's reject gate (empty without a gate)."""
+    gate = getattr(filt.model.measurement, "robust_gate", None)
+    if gate is None:
+        return {}
+    out = {"gate_threshold": [float(torch.as_tensor(gate.threshold).detach())], "gate_floor": [float(torch.as_tensor(gate.floor).detach())]}
+    if gate.soft:
+        out["gate_softness"] = [float(gate.gate_softness.detach())]
+    return out
+
+
+def plot_noise_models(
+    filters: Mapping[str, Any], drives: Sequence[Any], *, title: str = "", gates: Mapping[str, Any] | None = None
+) -> Figure:
+    """Pseudorange sigma against elevation (left) and C/N0 (middle), per constellation: the
     receiver's reported sigma (what the hand-tuned filter uses) and each filter's noise model
-    evaluated on the drives' satellites (RMS per bin)."""
+    evaluated on the drives' satellites (RMS per bin); right: the reject gate's weight ``1 / f``
+    on a range against its normalised innovation ``|e| / sqrt(R + floor^2)`` for ``filters`` and
+    ``gates`` (e.g. the hand-tuned and the untrained gated filter; threshold, floor and softness
+    in the legend)."""
+    from experiments.ranging.report import gate_curve  # the same RobustGate curve as the ranging figure
+
     u = _side_information(drives)
     el, cn0, grp = u["elevation"].numpy(), u["cn0"].numpy(), u["constellation"].numpy().astype(int)
     curves = {"receiver (hand-tuned)": np.sqrt(u["pr_var"].numpy())}
@@ -54,8 +74,8 @@ def plot_noise_models(filters: Mapping[str, Any], drives: Sequence[Any], *, titl
         if nm is not None:
             with torch.no_grad():
                 curves[name] = torch.sqrt(nm(u, u["pr_var"])).numpy()
-    fig = Figure(figsize=(11, 4.2))
-    axes = fig.subplots(1, 2)
+    fig = Figure(figsize=(16, 4.2))
+    axes = fig.subplots(1, 3)
     systems = drives[0].data.systems
     for i, (label, sig) in enumerate(curves.items()):
         for g, sys_id in enumerate(systems):
@@ -67,12 +87,25 @@ def plot_noise_models(filters: Mapping[str, Any], drives: Sequence[Any], *, titl
             for ax, x, edges in ((axes[0], el, np.arange(15.0, 91.0, 5.0)), (axes[1], cn0, np.arange(10.0, 56.0, 3.0))):
                 c, v = binned_sigma(x[sel], sig[sel], edges)
                 ax.plot(c, v, style, color=f"C{i}", label=name, marker="o" if i == 0 else None, ms=3)
+    res = torch.linspace(0.0, 8.0, 321, dtype=torch.float64)
+    styles = {"hand-tuned": "k:", "untrained-gate": "k--"}
+    for i, (name, filt) in enumerate({**dict(gates or {}), **filters}.items()):
+        g = gate_values(filt)
+        if g:
+            soft = f", t {g['gate_softness'][0]:.3g}" if "gate_softness" in g else " (hard)"
+            label = f"{name}: {g['gate_threshold'][0]:.2f} sigma, floor {g['gate_floor'][0]:.1f} m{soft}"
+            kw = {"label": label} if name in styles else {"label": label, "color": f"C{i}"}
+            axes[2].semilogy(res, 1.0 / gate_curve(g, res), styles.get(name, "-"), **kw)
+    axes[2].set(xlabel="normalised innovation |e| / sqrt(R + floor²)", ylabel="gate weight 1/f", ylim=(1e-6, 2))
+    axes[2].set_title("reject gate (weight of a range in the update)", fontsize=9)
+    axes[2].legend(fontsize=6)
     axes[0].set_xlabel("elevation (deg)")
     axes[1].set_xlabel("C/N0 (dB-Hz)")
-    for ax in axes:
+    for ax in axes[:2]:
         ax.set_ylabel("pseudorange sigma (m, RMS per bin)")
+    for ax in axes:
         ax.grid(alpha=0.3)
     axes[1].legend(fontsize=7)
-    fig.suptitle(f"pseudorange noise models {title}".strip())
+    fig.suptitle(f"learned pseudorange extras: noise model and reject gate {title}".strip())
     fig.tight_layout()
     return fig

@@ -100,6 +100,10 @@ def load_drives(specs: Sequence[Mapping[str, Any]], *, slots: str = "epoch", min
             out.append(Drive(data, single_epoch_wls(data, robust="cauchy", threshold=1.5)))
     if not out:
         raise ValueError("no drive to load: give at least one {folder: ...}")
+    names = [d.data.name for d in out]
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:  # the test rows of each drive are found by its name
+        raise ValueError(f"drives of the same name {twice} in {[str(s['folder']) for s in specs]}; rename one (<name>_Input.txt)")
     return out
 
 

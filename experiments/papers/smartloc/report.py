@@ -2,7 +2,12 @@
 
 :func:`run_protocol` trains every (fold, variant, seed), selects on validation
 (:mod:`experiments.papers.smartloc.protocol`), evaluates the test blocks and writes to the output
-folder: ``results.md`` (tables), ``summary.json`` (numbers, selections, learned values),
+folder: ``results.md`` (tables), ``<fold>/results.csv`` (rows ``hand-tuned``, ``learned`` (the
+first variant's selection), the other variants' ``learned-<variant>``, ``untrained-gate`` (the
+first variant's gated filter at its untrained start) and the baselines ``ekf-no-gate``,
+``snapshot-wls``, ``sage-husa``, ``vb-adaptive-r``; columns ``pos_err_p50``, ``rmse_pos``,
+``pos_err_p95`` and the paired differences to hand-tuned ``d_*`` and to the untrained gated
+filter ``u_*``, as the 2-D ranging protocol writes them), ``summary.json`` (numbers, selections, learned values),
 ``selected.pt`` (what :func:`run_transfer` needs to rebuild the selected filters),
 ``noise_model.png`` and TensorBoard events (``tb/``: training curves, validation scores, the
 noise-model curves).  :func:`run_transfer` evaluates a finished run's selected filters against the
@@ -23,10 +28,11 @@ from typing import Any
 import torch
 from torch.utils.tensorboard import SummaryWriter
 
-from difffilter.filters import EKF
+from difffilter.filters import EKF, SageHusa, VBAdaptiveR
 from difffilter.learn.data import TrajectorySet
 from difffilter.selection import learnable_values
 from experiments.holdout import paired_error_table, select_candidate
+from experiments.ranging.report import write_csv
 
 from .data import default_smartloc_path
 from .filters import SnapshotWLS
@@ -35,6 +41,7 @@ from .noise_plots import plot_noise_models
 from .protocol import (
     Drive,
     block_sets,
+    build_filter,
     cached_drives,
     fold_coefficients,
     fold_data,
@@ -47,15 +54,16 @@ from .protocol import (
     validation_score,
 )
 
-__all__ = ["format_tables", "resolve_config", "run_evaluation", "run_protocol", "run_transfer"]
+__all__ = ["format_tables", "resolve_config", "run_evaluation", "run_protocol", "run_transfer", "untrained_filter", "write_fold_csv"]
 
 
-def resolve_config(cfg: Mapping[str, Any], folder: str | None = None) -> dict[str, Any]:
-    """A plain, JSON-able configuration: ``folder`` (if given) replaces the drives by every drive of
-    that folder; a drive folder ``null`` is the smartLoc default folder."""
+def resolve_config(cfg: Mapping[str, Any], folder: str | Path | Sequence[str | Path] | None = None) -> dict[str, Any]:
+    """A plain, JSON-able configuration: ``folder`` (one folder or several, if given) replaces the
+    drives by every drive of those folders; a drive folder ``null`` is the smartLoc default folder."""
     out = json.loads(json.dumps(dict(cfg)))
     if folder is not None:
-        out["drives"] = [{"folder": str(folder), "input_file": None, "truth_file": None}]
+        folders = [folder] if isinstance(folder, (str, Path)) else list(folder)
+        out["drives"] = [{"folder": str(f), "input_file": None, "truth_file": None} for f in folders]
     for spec in out["drives"]:
         if spec.get("folder") is None:
             spec["folder"] = str(default_smartloc_path())
@@ -63,8 +71,51 @@ def resolve_config(cfg: Mapping[str, Any], folder: str | None = None) -> dict[st
 
 
 def _baselines(drive: Drive, cfg: Mapping[str, Any]) -> dict[str, Any]:
-    model = make_smartloc_model(drive.data, robust=None, **{k: float(v) for k, v in dict(cfg["hand_tuned"]).items()})
-    return {"ekf-no-gate": EKF(model), "snapshot-wls": SnapshotWLS(make_smartloc_model(drive.data), robust="cauchy", threshold=1.5)}
+    """The rows every test block gets besides the configured filters: the hand-tuned EKF without
+    its gate, the robust single-epoch WLS fix, and the adaptive-R filters (Sage-Husa, VB-AKF) on
+    the hand-tuned model without gate, started at the receiver's variances (their default
+    hyperparameters, untrained).  The adaptive filters estimate ``R`` per satellite slot; the
+    slots' satellites change over the drive, so their estimate mixes satellites - what these
+    filters can do with a varying constellation.  No EM row: ``fit_em`` refuses the
+    control-dependent ``R`` (the receiver's per-epoch variances)."""
+    hand = {k: float(v) for k, v in dict(cfg["hand_tuned"]).items()}
+    model = lambda: make_smartloc_model(drive.data, robust=None, **hand)  # noqa: E731
+    return {
+        "ekf-no-gate": EKF(model()),
+        "snapshot-wls": SnapshotWLS(make_smartloc_model(drive.data), robust="cauchy", threshold=1.5),
+        "sage-husa": SageHusa(EKF(model())),
+        "vb-adaptive-r": VBAdaptiveR(EKF(model())),
+    }
+
+
+def untrained_filter(cfg: Mapping[str, Any], drives: Sequence[Drive], fold: str, selected: Mapping[str, Any] | None = None) -> Any:
+    """The first variant's learned filter at its untrained start (start coefficients fitted on the
+    fold's training blocks, the configured gate at its start values): the ``untrained-gate`` row.
+    The coefficients come from ``selected`` (the run's entry for this fold and variant) when it
+    has them: the fit is iterative and refitting can differ in the last bits."""
+    variant = str(cfg["variants"][0])
+    coef = (selected or {}).get("coefficients")
+    if coef is None:
+        coef = fold_coefficients(cfg, drives, fold, variant)
+    return build_filter(cfg, drives, variant, torch.as_tensor(coef, dtype=torch.float64), learned=True)
+
+
+def write_fold_csv(path: Path, errors: Mapping[str, torch.Tensor], cfg: Mapping[str, Any]) -> list[dict[str, Any]]:
+    """``path`` (a fold's ``results.csv``): one row per filter with ``pos_err_p50``, ``rmse_pos``,
+    ``pos_err_p95`` and the paired differences to ``hand-tuned`` (``d_*``) and to
+    ``untrained-gate`` (``u_*``, same resamples); the first variant's row is named ``learned``."""
+    boot = dict(cfg["bootstrap"])
+    kw = {"block": int(boot["block"]), "draws": int(boot["draws"]), "seed": int(boot["seed"])}
+    main = f"learned-{cfg['variants'][0]}"
+    vs_start = {r["filter"]: r for r in paired_error_table(errors, "untrained-gate", **kw)}
+    rows = []
+    for r in paired_error_table(errors, "hand-tuned", **kw):
+        row = {"filter": "learned" if r["filter"] == main else r["filter"], "pos_err_p50": r["median"], "rmse_pos": r["rms"]}
+        row |= {"pos_err_p95": r["p95"], **{k: v for k, v in r.items() if k.startswith("d_")}}
+        row |= {f"u_{k[2:]}": v for k, v in vs_start[r["filter"]].items() if k.startswith("d_")}
+        rows.append(row)
+    write_csv(path, rows)
+    return rows
 
 
 def _test_errors(
@@ -140,7 +191,7 @@ def run_protocol(cfg: Mapping[str, Any], output_dir: str | Path, *, workers: int
                     fold_sum["selection"][name] |= {f"val_{k}": v for k, v in hand_extra.items()}
                     fold_sum["selection"][name]["best_learned"] = {"seed": run["seed"], "epoch": ep, "val_score": run["scores"][ep]}
                     if h == horizons[0]:
-                        selected[f"{fold}/{variant}"] = {"hand_tuned": True}
+                        selected[f"{fold}/{variant}"] = {"hand_tuned": True, "coefficients": coefs[(fold, variant)]}
                     continue
                 filt = learned_filter(cfg, drives, variant, coefs[(fold, variant)], run["snapshots"][ep])
                 filters[name] = filt
@@ -154,7 +205,10 @@ def run_protocol(cfg: Mapping[str, Any], output_dir: str | Path, *, workers: int
                 if h == horizons[0]:
                     selected[f"{fold}/{variant}"] = {"coefficients": coefs[(fold, variant)], "snapshot": run["snapshots"][ep]}
             fold_sum["val_scores"] = fold_sum.get("val_scores", {}) | {f"{variant}/seed{r['seed']}": r["scores"] for r in mine}
+        v0 = cfg["variants"][0]
+        filters["untrained-gate"] = untrained_filter(cfg, drives, fold, {"coefficients": coefs[(fold, v0)]})
         errors = _test_errors(filters, drives, sets["test"], cfg)
+        write_fold_csv(out_dir / fold / "results.csv", errors, cfg)
         boot = dict(cfg["bootstrap"])
         fold_sum["test"] = paired_error_table(
             errors, "hand-tuned", block=int(boot["block"]), draws=int(boot["draws"]), seed=int(boot["seed"])
@@ -162,8 +216,15 @@ def run_protocol(cfg: Mapping[str, Any], output_dir: str | Path, *, workers: int
         fold_sum["test_epochs"] = int(errors["hand-tuned"].numel())
         summary["folds"][fold] = fold_sum
         fig = plot_noise_models(
-            {k: v for k, v in filters.items() if k.startswith("learned-") and "x epochs" not in k}, drives, title=f"fold {fold}"
+            {k: v for k, v in filters.items() if k.startswith("learned-") and "x epochs" not in k},
+            drives,
+            title=f"fold {fold}",
+            gates={k: filters[k] for k in ("hand-tuned", "untrained-gate")},
         )
+        for name, sel in fold_sum["selection"].items():  # the selected learned values as scalars (TensorBoard)
+            for key, vals in sel["values"].items():
+                for j, v in enumerate(vals):
+                    writer.add_scalar(f"extras/fold_{fold}/{name}/{key}{'' if len(vals) == 1 else f'_{j + 1}'}", float(v), 0)
         writer.add_figure(f"noise_model/fold_{fold}", fig, close=False)
         fig.savefig(out_dir / f"noise_model_fold_{fold}.png", dpi=110)
     writer.close()
@@ -249,6 +310,7 @@ def run_evaluation(
             f, variant = key.split("/")
             if f == fold:
                 filters[f"learned-{variant}"] = selected_filter(cfg, drives, variant, sel)
+        filters["untrained-gate"] = untrained_filter(cfg, drives, fold, selected.get(f"{fold}/{cfg['variants'][0]}"))
         extra_refs = []
         for key, sel in (other.get("selected") or {}).items():
             f, variant = key.split("/")

@@ -90,6 +90,10 @@ class RecursiveFilter(Filter):
     #: an exact diffuse part (:mod:`difffilter.filters.diffuse`); set False on an instance to
     #: run every step in plain covariance form.
     diffuse_prior: bool = True
+    #: Whether a plain call asks :data:`ENGINE_HOOK` (the engine policy) first.  False where the
+    #: class's own ``forward`` is the point (the parallel scan): its few sequential steps never
+    #: pay for a compiled kernel.
+    uses_engine_policy: bool = True
 
     # -- to implement -----------------------------------------------------------------------
     def init_belief(self, mean: Tensor, cov: Tensor) -> Belief:
@@ -218,7 +222,7 @@ class RecursiveFilter(Filter):
         belief: Belief | None = None,
     ) -> FilterResult:
         hook = ENGINE_HOOK[0]
-        if hook is not None:
+        if hook is not None and self.uses_engine_policy:
             out = hook(self, measurements, initial_mean, initial_cov, mask, controls, belief)
             if out is not None:
                 return out

@@ -25,9 +25,9 @@ log-likelihood by more than ``2e-2 + 2e-4 |l*|`` nats; a wrong step is
 *flagged* when ``extras["untrusted"]`` marks it or an earlier step of its trajectory, else
 *silent*.  Each case (scenario x filter x dtype x engine) counts once: within tolerance, flagged
 (some wrong step, all flagged) or SILENT (some wrong step unflagged); a case whose run raises
-counts as an error.  Isolation: the cases of ``tests/test_reliability_isolation_matrix.py``
-(corrupted trajectory flagged or refused by name, the others' values and gradients equal to a run
-without it to 1e-12).
+counts as an error.  Isolation: the cases of ``experiments/benchmarks/isolation.py``, which
+``tests/test_reliability_isolation_matrix.py`` also runs (corrupted trajectory flagged or refused by
+name, the others' values and gradients equal to a run without it to 1e-12).
 """
 
 from __future__ import annotations
@@ -53,7 +53,7 @@ from difffilter.filters import EKF, UKF, ColoredNoiseUKF, KalmanFilter, Simplifi
 from difffilter.mixers import IMM  # noqa: E402
 from difffilter.models import FunctionalModel, LinearModel  # noqa: E402
 from experiments.benchmarks.exact import exact_colored_posteriors, exact_imm, exact_kalman  # noqa: E402
-from tests.test_reliability_isolation_matrix import COMPILED, EAGER, check_isolated, make_filter  # noqa: E402  (the test's cases)
+from experiments.benchmarks.isolation import COMPILED, EAGER, check_isolated, make_filter  # noqa: E402
 
 F64 = torch.float64
 PI = np.array([[0.9, 0.1], [0.1, 0.9]])

@@ -110,6 +110,15 @@ def _practitioners(family: str, root: str = "outputs/practitioners") -> tuple[st
     )
 
 
+def _learned_adaptive(experiment: str, family: str, root: str = "outputs/practitioners") -> tuple[str, str]:
+    """A learned adaptive sweep (issue 25) and its rows joined to the family's practitioners data file."""
+    sweep = f"{root}/{family}_learned_adaptive"
+    return (
+        f"python experiments/train.py -m experiment={experiment} seed=0,1,2,3,4 logger=csv hydra.sweep.dir={sweep}",
+        f"python -m experiments.practitioners --adaptive {sweep} --into results/data/{family}_practitioners.csv",
+    )
+
+
 def _p003(experiment: str) -> tuple[str, str]:
     return (
         f"python experiments/train.py -m experiment={experiment} seed=0,1,2,3,4 learner.init_perturbation=0.3 logger=csv "
@@ -221,6 +230,9 @@ JOBS: tuple[Job, ...] = (
     Job("p000_infamily_practitioners", "p00_practitioners.md", 411, _practitioners("p000_infamily")),
     # cpu_s not measured (the five seeds took 6 min wall on the compiled engine; learned training 10.7 CPU-s per seed)
     Job("p000_gyro_practitioners", "p00_practitioners.md", 200, _practitioners("p000_gyro")),
+    Job("p000_gps_practitioners", "p00_practitioners.md", 359, _practitioners("p000_gps")),
+    Job("p000_nominal_practitioners", "p00_practitioners.md", 354, _practitioners("p000_nominal")),
+    Job("p000_odometer_practitioners", "p00_practitioners.md", 374, _practitioners("p000_odometer")),
     Job("p001_colored_practitioners", "p00_practitioners.md", 446, _practitioners("p001_colored")),
     Job("p001_multipath_practitioners", "p00_practitioners.md", 377, _practitioners("p001_multipath")),
     Job("p001_multipath_shared_practitioners", "p00_practitioners.md", 387, _practitioners("p001_multipath_shared")),
@@ -229,6 +241,8 @@ JOBS: tuple[Job, ...] = (
     Job("p004_blend_practitioners", "p00_practitioners.md", 435, _practitioners("p004_blend")),
     # cpu_s not measured for this one (10.5 min wall on the loaded 2-core machine, compiled engine); it orders the queue only
     Job("p004_outage_practitioners", "p00_practitioners.md", 300, _practitioners("p004_outage")),
+    # p003_physical: 973 CPU-s measured (/usr/bin/time, 5 seeds, 51 min wall on the loaded machine; eager engine)
+    Job("p003_physical_practitioners", "p00_practitioners.md", 973, _practitioners("p003_physical")),
     Job(
         "p002_disturbed_practitioners",
         "p00_practitioners.md",
@@ -248,6 +262,21 @@ JOBS: tuple[Job, ...] = (
             "hydra.sweep.dir=outputs/practitioners/p002_pdr_rcukf",
             "python -m experiments.practitioners outputs/practitioners/p002_pdr_rcukf",
         ),
+    ),
+    # issue 25: the learned adaptive rows (results/p00_practitioners.md, "Learned adaptive"), joined to the
+    # committed practitioners' data files (--collect joins them again after copying a practitioners summary)
+    Job(
+        "p001_elevation_learned_adaptive",
+        "p00_practitioners.md",
+        480,
+        _learned_adaptive("p001_elevation_learned_adaptive", "p001_elevation"),
+    ),
+    Job("p004_urban_learned_adaptive", "p00_practitioners.md", 307, _learned_adaptive("p004_urban_learned_adaptive", "p004_urban")),
+    Job(
+        "p002_disturbed_learned_adaptive",
+        "p00_practitioners.md",
+        188,
+        _learned_adaptive("p002_disturbed_learned_adaptive", "p002_disturbed_rcukf"),
     ),
     # issue 25: data efficiency (N = 1, 4, 16 training trajectories) and transfer across p002's
     # families (results/p00_efficiency_transfer.md); the transfer pairs read all three p002 sweeps

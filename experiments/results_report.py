@@ -109,9 +109,25 @@ FAMILIES: tuple[Family, ...] = (
         "test=scripted",
         practitioners=True,
     ),
-    Family("p000_gps", "p000", "mis-specified", "GPS multipath/NLOS/outages", "p000_gpsdr.md", "outputs/final/p000_gps", "test=scripted"),
     Family(
-        "p000_odometer", "p000", "mis-specified", "odometer scale/slip", "p000_gpsdr.md", "outputs/final/p000_odometer", "test=scripted"
+        "p000_gps",
+        "p000",
+        "mis-specified",
+        "GPS multipath/NLOS/outages",
+        "p000_gpsdr.md",
+        "outputs/final/p000_gps",
+        "test=scripted",
+        practitioners=True,
+    ),
+    Family(
+        "p000_odometer",
+        "p000",
+        "mis-specified",
+        "odometer scale/slip",
+        "p000_gpsdr.md",
+        "outputs/final/p000_odometer",
+        "test=scripted",
+        practitioners=True,
     ),
     Family(
         "p001_elevation",
@@ -132,7 +148,15 @@ FAMILIES: tuple[Family, ...] = (
         "test=P=0.4",
         practitioners=True,
     ),
-    Family("p003_physical", "p003", "mis-specified", "vibration, C/N0 shading", "p003_imm_sins.md", "outputs/p003_final/p003_physical"),
+    Family(
+        "p003_physical",
+        "p003",
+        "mis-specified",
+        "vibration, C/N0 shading",
+        "p003_imm_sins.md",
+        "outputs/p003_final/p003_physical",
+        practitioners=True,
+    ),
     Family("p004_urban", "p004", "mis-specified", "urban-canyon GNSS", "p004_urban.md", f"{_R}/p004_urban", practitioners=True),
     Family(
         "p000_nominal",
@@ -142,6 +166,7 @@ FAMILIES: tuple[Family, ...] = (
         "p000_gpsdr.md",
         "outputs/final/p000_nominal",
         "test=scripted",
+        practitioners=True,
     ),
     Family(
         "p001_colored",
@@ -246,6 +271,10 @@ def summary_cells(fam: Family, rows: Sequence[Row], metric: str = "rmse_pos") ->
         diff_cell, verdict = "no paired interval", "-"
     else:
         diff_cell, verdict = fmt_ci(diff.estimate, diff.lo, diff.hi), paired_verdict(diff.lo, diff.hi)
+    adaptive_cell = "not run"
+    if value["learned-adaptive"] is not None:
+        la = _paired(rows, g, "learned-adaptive", best) if best else None
+        adaptive_cell = "no paired interval" if la is None else f"{fmt_ci(la.estimate, la.lo, la.hi)} ({paired_verdict(la.lo, la.hi)})"
     anees = _get(rows, g, "learned", "anees_all", _get_dof(rows, g))
     if anees is None:
         anees_cell, anees_v = "not in the data", "-"
@@ -267,6 +296,7 @@ def summary_cells(fam: Family, rows: Sequence[Row], metric: str = "rmse_pos") ->
         *shown[len(METHODS) :],
         diff_cell,
         verdict,
+        adaptive_cell,
         anees_cell,
         anees_v,
         link,
@@ -292,6 +322,7 @@ _HEADER = [
     *(t for t, _ in LEARNED),
     "learned - best non-learned, % [95 %]",
     "verdict",
+    "learned adaptive - best non-learned, % [95 %] (verdict)",
     "learned ANEES [95 %] (d; band)",
     "ANEES verdict",
     "detail",
@@ -320,6 +351,8 @@ def build_report(families: Sequence[Family] = FAMILIES, root: Path = ROOT) -> st
         "  non-learned method is the lowest-RMSE row among the seven non-learned columns that were run; a method",
         "  without a row in the family's CSV says *not run*.  A paired interval exists only against the row the",
         "  sweep pairs with (the paper's constants) or a `diff_pct` row whose `reference` names the best method.",
+        "  The learned adaptive filter (Sage-Husa with its forgetting factor and noise learned, a separate training",
+        "  job) gets the same paired comparison and rule in its own column where it ran.",
         "- ANEES of the learned filter (all states, d of them) against the 95 % chi-square band of a consistent",
         "  filter's mean NEES over the N test runs, `[chi2_0.025(N d) / N, chi2_0.975(N d) / N]`: **consistent** when",
         "  the ANEES interval lies inside the band, **over-** / **under-confident** when entirely above / below it,",
@@ -340,18 +373,26 @@ def build_report(families: Sequence[Family] = FAMILIES, root: Path = ROOT) -> st
         "|" + "---|" * len(_HEADER),
     ]
     tally: dict[str, dict[str, int]] = {}
+    adaptive: list[str] = []
     for fam in families:
         shown = fam.practitioners_family() if fam.practitioners else fam
         cells = summary_cells(shown, read_rows(_source(shown, root)))
         out.append("| " + " | ".join(cells) + " |")
         kind = tally.setdefault(fam.kind, {})
         kind[cells[_HEADER.index("verdict")]] = kind.get(cells[_HEADER.index("verdict")], 0) + 1
+        la_cell = cells[_HEADER.index("learned adaptive - best non-learned, % [95 %] (verdict)")]
+        if la_cell.endswith(")"):
+            adaptive.append(f"{fam.name} {la_cell.rsplit('(', 1)[1].rstrip(')')}")
     out += [""] + [
         f"Verdicts of learned against the best non-learned method, {kind} families: "
         + ", ".join(f"{n} {v}" for v, n in sorted(counts.items()))
         + "."
         for kind, counts in tally.items()
     ]
+    if adaptive:
+        out.append(
+            "Verdicts of the learned adaptive filter against the best non-learned method, where it ran: " + ", ".join(adaptive) + "."
+        )
     out += [
         "",
         "Not in the table: the real drive (smartLoc Berlin, `results/smartloc_real.md`: median/RMS error per fold,",
@@ -383,12 +424,12 @@ def build_detail(fam: Family, root: Path = ROOT) -> str:
         "",
         render_metric(rows, {}),
     ]
-    paired = [r for r in rows if r.filter == "learned" and r.quantity == "diff_pct" and r.reference]
+    paired = [r for r in rows if r.filter in {n for _, n in LEARNED} and r.quantity == "diff_pct" and r.reference]
     cpu = [r for r in rows if r.quantity == "tuning_cpu_s"]
     if paired:
         out += ["", "Learned - best non-learned (paired per test run and seed, % of the best's mean):", ""]
         out += [
-            f"- {r.group or 'test'}: learned - {r.reference}: {fmt_ci(r.estimate, r.lo, r.hi)} ({paired_verdict(r.lo, r.hi)})"
+            f"- {r.group or 'test'}: {r.filter} - {r.reference}: {fmt_ci(r.estimate, r.lo, r.hi)} ({paired_verdict(r.lo, r.hi)})"
             for r in paired
         ]
     if cpu:
@@ -464,6 +505,17 @@ def render(root: Path = ROOT) -> list[Path]:
     return changed
 
 
+def _rejoin_learned_adaptive(fam: Family, root: Path) -> None:
+    """A practitioners data file just copied from its sweep gets its ``learned-adaptive`` rows
+    again from the learned adaptive sweep beside it, where one ran (issue 25; the join checks
+    that the sweep's rebuilt rows are the file's)."""
+    sweep = root / f"{fam.sweep}_learned_adaptive"
+    if fam.sweep.startswith(PRACTITIONERS_ROOT) and sweep.is_dir():
+        from experiments.practitioners import join_learned_adaptive  # it imports this module
+
+        join_learned_adaptive(sweep, _source(fam, root))
+
+
 def collect(root: Path = ROOT) -> list[Path]:
     """Copy each family's ``<sweep>/summary.csv``, where a run of ``experiments/reproduce.py`` left
     one, over its data file (the committed numbers then come from the run), and each summary of
@@ -476,6 +528,7 @@ def collect(root: Path = ROOT) -> list[Path]:
             if rows:
                 shutil.copyfile(src, _source(fam, root))
                 copied.append(src)
+                _rejoin_learned_adaptive(fam, root)
     for source, data in DATA_FILES:  # issue 25's efficiency and transfer summaries
         if (root / source).exists() and read_rows(root / source):
             shutil.copyfile(root / source, root / data)

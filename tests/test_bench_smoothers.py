@@ -33,3 +33,30 @@ def test_smoke_config_writes_smoother_rows(tmp_path: Path) -> None:
 def test_bad_smoother_section_is_refused() -> None:
     with pytest.raises(ValueError, match="benchmark.smoothers"):
         run_smoother_benchmark(BenchSettings(), {"filters": ["sqrt"]}, lambda dt, b: None)
+
+
+@pytest.mark.slow  # two jax compilations: ~20 s CPU
+def test_dynamax_smoother_peer_computes_the_same_loss() -> None:
+    """The smoother rows' dynamax twin (RTS, unscented RTS) smooths the same model: its training
+    loss, the position mean squared error of the smoothed means, equals difffilter's."""
+    pytest.importorskip("dynamax")
+    import torch
+
+    from difffilter.smoothers import make_smoother
+    from experiments.benchmarks.dynamax_peer import prepare_dynamax
+    from experiments.benchmarks.gpsdr import simulate_gpsdr
+    from experiments.benchmarks.runner import make_difffilter
+    from experiments.benchmarks.smoothers import _inputs
+
+    s = BenchSettings()
+    data = simulate_gpsdr(batch_size=2, steps=8, seed=3)
+    truth = data.truth[:, 1:, [0, 3]]
+    for kind in ("kf", "ukf"):
+        peer = prepare_dynamax(
+            kind, data, torch.float64, "train", ukf_alpha=s.ukf_alpha, ukf_beta=s.ukf_beta, ukf_kappa=s.ukf_kappa, smoother=True
+        )
+        theirs = float(peer.run()[0])
+        z, m0, p0, pos = _inputs(kind, data)
+        with torch.no_grad():
+            ours = float((make_smoother(make_difffilter(kind, torch.float64, s))(z, m0, p0).mean[..., pos] - truth).square().mean())
+        assert ours == pytest.approx(theirs, rel=1e-7), kind

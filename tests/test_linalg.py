@@ -7,7 +7,16 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from difffilter.linalg import chol_rank1_update, gaussian_log_density, joseph_update, psd_solve, safe_cholesky, symmetrize, tria
+from difffilter.linalg import (
+    chol_rank1_update,
+    gaussian_log_density,
+    joseph_update,
+    nonfinite_rows,
+    psd_solve,
+    safe_cholesky,
+    symmetrize,
+    tria,
+)
 
 VALS = st.floats(-5.0, 5.0, allow_nan=False)
 
@@ -123,3 +132,24 @@ def test_jitter_bound_limits_repair_and_failures_are_counted():
     assert torch.isinf(res.jitter).all()
     assert cholesky_failure_count() == before + 1
     assert torch.isfinite(safe_cholesky(near_singular).jitter).all()  # bound restored on exit
+
+
+def test_nonfinite_rows_equals_the_element_wise_test():
+    """The sum's shortcut never changes the answer: NaN, +-inf, a row whose finite values
+    overflow their sum (1e308 + 1e308), a strided view, float32, under vmap."""
+    gen = torch.Generator().manual_seed(0)
+    for dtype, huge in ((torch.float64, 1e308), (torch.float32, 3e38)):
+        x = torch.randn(6, 5, 3, generator=gen, dtype=torch.float64).to(dtype)
+        x[1, 2, 0] = float("nan")
+        x[3, 0, 2] = float("inf")
+        x[3, 1, 2] = -float("inf")  # inf - inf: a NaN sum
+        x[4, :, :] = huge  # finite, the sum overflows: still a finite row
+        x[5, 4, 1] = -float("inf")
+        for view in (x, x.transpose(0, 2).contiguous().transpose(0, 2), x[:, ::2]):
+            for dims in (0, 1, 2, 3):
+                want = ~torch.isfinite(view).reshape(*view.shape[:dims], -1).all(-1)
+                assert torch.equal(nonfinite_rows(view, dims), want)
+        assert not bool(nonfinite_rows(x[[0, 2, 4]], 0))
+        assert nonfinite_rows(x, 1).tolist() == [False, True, False, True, False, True]
+    got = torch.func.vmap(lambda r: nonfinite_rows(r, 0))(x.double())
+    assert got.tolist() == [False, True, False, True, False, True]

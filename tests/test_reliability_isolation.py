@@ -17,18 +17,10 @@ from difffilter.engines import FusedFilter
 from difffilter.engines.build import compiler_available
 from difffilter.filters import UKF, KalmanFilter, SquareRootUKF
 from difffilter.mixers import IMM
-from difffilter.models import LinearModel
-
-from .filter_contract import cv_matrices
+from experiments.benchmarks.isolation import isolation_model as _model
 
 F64, F32 = torch.float64, torch.float32
 BAD = 1
-
-
-def _model(dtype: torch.dtype) -> LinearModel:
-    m = {k: v.to(dtype) for k, v in cv_matrices().items()}
-    m["B"] = torch.tensor([[0.5, 0.0], [1.0, 0.0], [0.0, 0.5], [0.0, 1.0]], dtype=dtype)
-    return LinearModel(**m)
 
 
 def _filter(kind: str, dtype: torch.dtype):  # type: ignore[no-untyped-def]

@@ -212,3 +212,18 @@ def test_a_whole_file_generator_must_be_a_committed_script(tmp_path):
     ]
     (root / "results" / "z.md").write_text("# z\n\n<!-- generated file: python experiments/bench_x.py -->\n" + table)  # not the first line
     assert any("z.md: line" in p and "outside" in p for p in check(root))
+
+
+def test_summary_row_learned_adaptive_column_pairs_with_the_best_non_learned_row(tmp_path):
+    fam = Family("x", "p009", "mis-specified", "synthetic", "x.md", "outputs/x")
+    rows = _family_rows((-10.0, -12.0, -8.0))
+    column = "learned adaptive - best non-learned, % [95 %] (verdict)"
+    row = dict(zip(results_report._HEADER, summary_cells(fam, read_rows(_write(tmp_path / "x.csv", rows))), strict=True))
+    assert row[column] == "not run"
+    la = {"filter": "learned-adaptive", "quantity": "rmse_pos", "estimate": 2.2, "lo": 2.1, "hi": 2.3, "seeds": 5, "runs": 30}
+    row = dict(zip(results_report._HEADER, summary_cells(fam, read_rows(_write(tmp_path / "y.csv", [*rows, la]))), strict=True))
+    assert row[column] == "no paired interval"  # the data have no diff_pct row for it
+    # best non-learned = the paper's constants (the sweep's reference): its diff_pct row has no reference
+    pct = {"filter": "learned-adaptive", "quantity": "diff_pct", "estimate": 10.0, "lo": 4.0, "hi": 16.0}
+    row = dict(zip(results_report._HEADER, summary_cells(fam, read_rows(_write(tmp_path / "z.csv", [*rows, la, pct]))), strict=True))
+    assert row[column] == "10 [4, 16] (loss)" and row["verdict"] == "win"

@@ -112,3 +112,38 @@ def test_bad_knobs_raise():
         validation_loss(torch.zeros(1, 2, 1), torch.zeros(2), torch.eye(2), kind="mae")
     with pytest.raises(ValueError, match="truth"):
         validation_loss(torch.zeros(1, 2, 1), torch.zeros(2), torch.eye(2), kind="rmse")
+
+
+def test_grid_of_whole_values_sets_each_transition_matrix_and_matches_brute_force():
+    """A nested-list grid value (an IMM's transition matrix per candidate) is set as given, also
+    beside a relative numeric knob; the best candidate is the brute-force argmin of the score."""
+    from difffilter.mixers import IMM
+
+    start = {"initial_mean": torch.zeros(2, dtype=F64), "initial_cov": torch.eye(2, dtype=F64)}
+    data = simulate(model(q=0.05, r=4.0), num_steps=20, batch_size=2, seed=2, **start)
+
+    def imm():
+        modes = [KalmanFilter(model(q=0.01, r=4.0)), KalmanFilter(model(q=1.0, r=4.0))]
+        return IMM(modes, transition=torch.tensor([[0.9, 0.1], [0.1, 0.9]], dtype=F64), initial_probs=torch.tensor([0.5, 0.5], dtype=F64))
+
+    score = validation_loss(data.measurements, data.initial_mean, data.initial_cov, kind="nll")
+    pis = [[[0.99, 0.01], [0.5, 0.5]], [[0.9, 0.1], [0.1, 0.9]], [[0.6, 0.4], [0.3, 0.7]]]
+    scales = [0.5, 2.0]
+    filt = imm()
+    res = grid_search(filt, {"filters.1.model.dynamics.Q": scales, "transition": pis}, score, relative=True)
+    brute = {}
+    for s in scales:
+        for k, pi in enumerate(pis):
+            ref = imm()
+            with torch.no_grad():
+                ref.filters[1].model.dynamics.Q = s * ref.filters[1].model.dynamics.Q
+            ref.transition = torch.tensor(pi, dtype=F64)
+            brute[(s, k)] = score(ref)
+    s_best, k_best = min(brute, key=brute.__getitem__)
+    assert res.best["filters.1.model.dynamics.Q"] == s_best and res.best["transition"] == pis[k_best]
+    assert res.best_score == pytest.approx(brute[(s_best, k_best)], rel=1e-12)
+    assert [row["score"] for row in res.table] == pytest.approx([brute[(s, k)] for s in scales for k in range(3)], rel=1e-12)
+    torch.testing.assert_close(filt.transition, torch.tensor(pis[k_best], dtype=F64), rtol=1e-9, atol=1e-9)
+    torch.testing.assert_close(filt.filters[0].model.dynamics.Q, imm().filters[0].model.dynamics.Q)  # only the named mode moved
+    with pytest.raises(ValueError, match="finite numbers"):
+        grid_search(imm(), {"transition": [[[float("nan"), 1.0], [0.5, 0.5]]]}, score)

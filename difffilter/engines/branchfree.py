@@ -83,11 +83,12 @@ def branch_free() -> Iterator[None]:
 
 
 def step_flag(info: Any) -> Tensor:
-    """``[B]`` 1.0 where the step flags itself untrusted (``StepInfo.untrusted``, or an
+    """``[B]`` 1.0 where the step flags itself untrusted (``StepInfo.flags()``, or an
     innovation covariance that needed repair, ``StepInfo.jitter``), else 0.0."""
     flag = torch.zeros_like(info.log_likelihood)
-    if getattr(info, "untrusted", None) is not None:
-        flag = flag + info.untrusted.to(flag.dtype)
+    own = info.flags() if hasattr(info, "flags") else getattr(info, "untrusted", None)
+    if own is not None:
+        flag = flag + own.to(flag.dtype)
     if getattr(info, "jitter", None) is not None:
         flag = flag + (info.jitter != 0).to(flag.dtype)
     return flag

@@ -109,12 +109,20 @@ class GeneratedEngine:
         )
 
     def _fields(
-        self, z: Tensor, mask: Tensor | None, belief: Belief, controls: Controls
+        self, z: Tensor, mask: Tensor | None, belief: Belief, controls: Controls, common: dict[str, Tensor] | None = None
     ) -> tuple[Callable[[str], Tensor], SequenceProgram]:
-        """Run the kernel; ``(field, program)`` where ``field(name)`` is output ``name`` ``[B, T, ...]``."""
+        """Run the kernel; ``(field, program)`` where ``field(name)`` is output ``name`` ``[B, T, ...]``.
+
+        ``common``: more controls, each ``[T, ...]`` and the same for every trajectory (the
+        kernel's ``shared`` input; their gradient arrives as ``[T, ...]``, where a control
+        expanded over the batch gets its gradient through a ``[B, T, ...]`` buffer)."""
         bsz, steps, mdim = z.shape
         dtype = z.dtype
         keys = sorted(belief)
+        if common:
+            if controls is not None and not isinstance(controls, dict):
+                raise TypeError("common controls need the other controls as a dict")
+            controls = {**(controls or {}), **{k: v[None].expand(bsz, *v.shape) for k, v in common.items()}}
         ctrl_layout, ctrl = _controls_layout(controls, dtype)
         # a control expanded over the batch (stride 0) is read once per step, not once per trajectory
         shared = tuple(k for (k, _, _), c in zip(ctrl_layout or (), ctrl, strict=True) if bsz > 1 and c.stride(0) == 0)
@@ -135,12 +143,17 @@ class GeneratedEngine:
         own = [c for (k, _, _), c in zip(ctrl_layout or (), ctrl, strict=True) if k not in shared]
         per_step += [c.reshape(bsz, steps, -1).to(dtype).permute(1, 2, 0) for c in own]
         step_in = _pad_lanes(torch.cat(per_step, 1), padded)
-        common = [c[0].reshape(steps, -1).to(dtype) for (k, _, _), c in zip(ctrl_layout or (), ctrl, strict=True) if k in shared]
+        given = common or {}
+        common_in = [
+            (given[k] if k in given else c[0]).reshape(steps, -1).to(dtype)
+            for (k, _, _), c in zip(ctrl_layout or (), ctrl, strict=True)
+            if k in shared
+        ]
         trained = dict(self.filter.named_parameters())
         params = [trained[name].reshape(-1) for name, _ in prog.traced.params]
         flat_params = torch.cat(params) if params else z.new_zeros(1)
         threads = self.threads if self.threads is not None else caller_threads()
-        outs = run_sequence(prog, state0, step_in, flat_params, shared=torch.cat(common, 1) if common else None, threads=threads)
+        outs = run_sequence(prog, state0, step_in, flat_params, shared=torch.cat(common_in, 1) if common_in else None, threads=threads)
 
         def field(name: str) -> Tensor:
             gi, offset, shape = prog.traced.fields[name]

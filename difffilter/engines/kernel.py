@@ -147,9 +147,13 @@ class SequenceProgram:
             call(0, tiles)
             return
         bounds = [tiles * i // chunks for i in range(chunks + 1)]
-        futures = [_pool(chunks).submit(call, bounds[i], bounds[i + 1]) for i in range(chunks)]
-        for f in futures:
-            f.result()
+        # the calling thread runs the first chunk itself: one hand-over fewer, and no idle wait
+        futures = [_pool(chunks - 1).submit(call, bounds[i], bounds[i + 1]) for i in range(1, chunks)]
+        try:
+            call(bounds[0], bounds[1])
+        finally:
+            for f in futures:
+                f.result()
 
     def forward(self, state0: Tensor, step_in: Tensor, shared: Tensor, params: Tensor, threads: int) -> list[Tensor]:
         """Outputs ``[T, K_g, Bp]`` per group for ``state0 [S, Bp]``, ``step_in [T, I, Bp]``,

@@ -17,6 +17,12 @@ smoothers' forward filters) asks :func:`run_compiled_if_chosen` first:
   for every CPU call it can run;
 * ``eager``: the filter's own Python loop, always.
 
+Calls under a ``torch.func`` transform (``vmap``, ``grad``, ``jacrev``...: :mod:`difffilter.func`,
+per-sample gradients) and on other devices than the CPU run eagerly, without a warning and without
+counting towards the work above: the kernels read plain CPU storage, which transformed tensors do
+not have.  :class:`~difffilter.filters.ParallelKalmanFilter` never asks the policy (its scan is
+the point; ``last_engine`` stays ``None`` for it).
+
 Where the compiled engine cannot run a filter (no compiler, an operation the generator lacks, an
 error inside the engine on input the eager filter accepts), the call runs eagerly and one warning
 per filter class and reason (one in all for a missing compiler) says why; set
@@ -36,6 +42,7 @@ from collections import OrderedDict
 
 import torch
 from torch import Tensor
+from torch._C import _functorch
 
 from ..filters.base import Belief, FilterResult, RecursiveFilter
 from ..models.base import Controls
@@ -167,7 +174,9 @@ def _compiled_result(
         return None, "eager"
     if measurements.device.type != "cpu" or measurements.dtype not in (torch.float32, torch.float64) or measurements.dim() != 3:
         return None, "eager"
-    if torch.compiler.is_compiling():
+    if torch.compiler.is_compiling() or _functorch.get_interpreter_stack():
+        # a transform's wrapped tensors have no storage for the kernels to read: eager, and the
+        # filter is not marked as one the engine failed on (its plain calls still compile)
         return None, "eager"
     if policy == "auto" and not _pays_for_a_build(filt, measurements.shape[0], measurements.shape[1]):
         return None, "eager"

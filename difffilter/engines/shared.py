@@ -25,13 +25,15 @@ from ..filters._common import StepInfo, mask_measurement_system
 from ..filters.base import Belief, FilterResult, RecursiveFilter
 from ..filters.kalman import KalmanFilter
 from ..filters.update import untrusted_steps
-from ..linalg import gaussian_log_density, safe_cholesky
+from ..linalg import gaussian_log_density, nonfinite_rows, safe_cholesky
 from ..models.base import Controls, LinearModel
 
 __all__ = ["MIN_SHARED_BATCH", "SharedGainMean", "shares_covariance", "shared_covariance_run"]
 
 #: ``fields_of(z, mask, belief, controls) -> field``: a generated-kernel run, ``field(name)`` its output ``[B, T, ...]``
 FieldsOf = Callable[[Tensor, "Tensor | None", Belief, Controls], Callable[[str], Tensor]]
+#: the same with ``common``, controls ``[T, ...]`` the same for every trajectory
+MeanFieldsOf = Callable[[Tensor, "Tensor | None", Belief, Controls, "dict[str, Tensor]"], Callable[[str], Tensor]]
 
 #: below this batch size the per-trajectory run is as fast (process CPU time of a training step of
 #: the benchmark's 4-state KF, T = 500, float64, experiments/benchmark_kf_shared.py, per trajectory
@@ -71,8 +73,8 @@ def shares_covariance(filt: RecursiveFilter, mask: Tensor | None, belief: Belief
 class SharedGainMean(RecursiveFilter):
     """The mean recursion of a Kalman filter whose gains are given: per-step controls ``gain``
     ``[B, T, n m]`` (``K_t``, row-major), ``chol`` ``[B, T, m m]`` (the Cholesky factor of the
-    masked ``S_t``) and ``logdet`` ``[B, T, 1]`` (its log-determinant), expanded over the batch
-    so that the generated kernel reads them once per step (its ``shared`` input).  Its belief's ``cov`` is a
+    masked ``S_t``) and ``logdet`` ``[B, T, 1]`` (its log-determinant), the same for every
+    trajectory, so that the generated kernel reads them once per step (its ``shared`` input).  Its belief's ``cov`` is a
     ``[B, 1, 1]`` placeholder, passed through."""
 
     def predict(self, belief: Belief, u: Controls) -> Belief:
@@ -95,14 +97,14 @@ class SharedGainMean(RecursiveFilter):
 
 
 def shared_covariance_run(
-    filt: KalmanFilter, z: Tensor, mask: Tensor | None, belief: Belief, fields_of: FieldsOf, mean_fields_of: FieldsOf
+    filt: KalmanFilter, z: Tensor, mask: Tensor | None, belief: Belief, fields_of: FieldsOf, mean_fields_of: MeanFieldsOf
 ) -> FilterResult:
     """The filter's result with the covariance recursion run once.
 
     ``fields_of(z, mask, belief, controls)`` runs ``filt``'s generated kernel and returns
     ``field(name)``, the per-step output ``name`` ``[B, T, ...]``; it is called at batch one.
-    ``mean_fields_of`` does the same for :class:`SharedGainMean` on ``filt``'s model, on the
-    whole batch.
+    ``mean_fields_of(z, mask, belief, None, common)`` does the same for :class:`SharedGainMean`
+    on ``filt``'s model, on the whole batch, with its controls ``common`` given once ``[T, ...]``.
     """
     bsz, steps, mdim = z.shape
     dtype = z.dtype
@@ -122,10 +124,9 @@ def shared_covariance_run(
     w = torch.linalg.solve_triangular(chol, pht_m.mT, upper=False)  # [T, m, n]
     gain = torch.linalg.solve_triangular(chol.mT, w, upper=True).mT  # [T, n, m]
     logdet = 2.0 * torch.log(torch.diagonal(chol, dim1=-2, dim2=-1)).sum(-1)  # [T]: once, not per trajectory
-    shared = {"chol": chol, "gain": gain, "logdet": logdet}
-    controls = {k: v.reshape(1, steps, -1).expand(bsz, -1, -1) for k, v in shared.items()}
+    shared = {"chol": chol.reshape(steps, -1), "gain": gain.reshape(steps, -1), "logdet": logdet[:, None]}
     mean_belief = {"mean": belief["mean"], "cov": belief["mean"].new_zeros(1, 1, 1).expand(bsz, 1, 1)}
-    mf = mean_fields_of(z, mask, mean_belief, controls)
+    mf = mean_fields_of(z, mask, mean_belief, None, shared)
     post, prior, loglik = mf("mean"), mf("prior_mean"), mf("log_likelihood")
     cov = post_cov.expand(bsz, *post_cov.shape)
     pcov = prior_cov.expand(bsz, *prior_cov.shape)
@@ -133,10 +134,12 @@ def shared_covariance_run(
     shared_bad = untrusted_steps(
         post_cov.new_zeros(1, steps, 1), post_cov[None].detach(), prior_cov[None].detach(), post_cov.new_zeros(1, steps)
     )
-    untrusted = (shared_bad | step_flag[None]) | ~torch.isfinite(loglik.detach())
-    finite = torch.isfinite(post.detach())
-    if not bool(finite.all()):
-        untrusted = untrusted | ~finite.all(-1)
+    untrusted = (shared_bad | step_flag[None]).repeat(bsz, 1)
+    # nonfinite_rows: one sum for a finite run, the element-wise test only when it is not
+    if bool(nonfinite_rows(loglik, 0)):
+        untrusted = untrusted | ~torch.isfinite(loglik.detach())
+    if bool(nonfinite_rows(post, 0)):
+        untrusted = untrusted | nonfinite_rows(post, 2)
     return FilterResult(
         mean=post,
         cov=cov,

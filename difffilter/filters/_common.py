@@ -28,7 +28,8 @@ class StepInfo:
     components, normalised innovation squared ``e^T S^{-1} e`` and number of observed components.
     ``untrusted [B]`` (bool, optional) marks updates whose rounding error cannot be vouched for
     and ``jitter [B]`` (optional) the innovation covariance's repair (see
-    :func:`~difffilter.filters.update.gaussian_update`)."""
+    :func:`~difffilter.filters.update.gaussian_update`); read the flags with :meth:`flags`, which
+    adds the check that ``rounding`` defers."""
 
     log_likelihood: Tensor
     nis: Tensor
@@ -37,6 +38,19 @@ class StepInfo:
     innovation_cov: Tensor | None = None
     untrusted: Tensor | None = None
     jitter: Tensor | None = None
+    #: the inputs of a rounding check not yet made, ``(chol, whitened, var, prediction, mask)``
+    #: (:func:`~difffilter.filters.update.rounding_flags`): the time loop makes it once for a
+    #: block of steps; :meth:`flags` makes it now
+    rounding: tuple[Tensor, Tensor, Tensor, Tensor | None, Tensor | None] | None = None
+
+    def flags(self) -> Tensor | None:
+        """``[B]`` every flag of the step: ``untrusted`` and the pending :attr:`rounding` check."""
+        if self.rounding is None:
+            return self.untrusted
+        from .update import rounding_flags  # the updates build on this module
+
+        rounding = rounding_flags(*self.rounding)
+        return rounding if self.untrusted is None else self.untrusted | rounding
 
 
 def slice_controls(controls: Controls, t: int) -> Controls:

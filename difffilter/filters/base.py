@@ -27,6 +27,7 @@ vocabulary (:class:`~difffilter.filters.protocol.FilterResult`, ``Belief``, :cla
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Any
 
 import torch
@@ -40,10 +41,11 @@ from ._common import StepInfo, cast_controls, detach_belief, mask_measurement_sy
 from .diffuse import DIFFUSE_COV, DIFFUSE_SCALE, drop_resolved, measurement_sensitivity, split_prior, total_cov
 from .isolation import isolated_run
 from .protocol import Belief, Filter, FilterResult
-from .update import diffuse_gaussian_update, gaussian_update, square_root_deviations, untrusted_steps
+from .update import diffuse_gaussian_update, gaussian_update, rounding_flags, square_root_deviations, untrusted_steps
 
 __all__ = [
     "PRECOMPUTE_BLOCK",
+    "ROUNDING_BLOCK",
     "Belief",
     "FilterResult",
     "GaussianFilter",
@@ -65,6 +67,8 @@ __all__ = [
 #: ``forward`` builds in one call: ``T`` steps at once up to ``B T = 8192`` (a ``[B, T, 20, 20]``
 #: float64 transition is then 26 MB), blocks of ``8192 // B`` steps beyond.
 PRECOMPUTE_BLOCK = 8192
+#: Steps whose pending rounding checks (:attr:`StepInfo.rounding`) the time loop makes at once.
+ROUNDING_BLOCK = 64
 #: ``hook(filter, measurements, initial_mean, initial_cov, mask, controls, belief)`` asked first by
 #: every :meth:`RecursiveFilter.forward`: a result to return, or None to run the filter's own
 #: loop.  Set by :mod:`difffilter.engines` to its engine policy (``DIFFFILTER_ENGINE``).
@@ -86,6 +90,10 @@ class RecursiveFilter(Filter):
     #: an exact diffuse part (:mod:`difffilter.filters.diffuse`); set False on an instance to
     #: run every step in plain covariance form.
     diffuse_prior: bool = True
+    #: Whether a plain call asks :data:`ENGINE_HOOK` (the engine policy) first.  False where the
+    #: class's own ``forward`` is the point (the parallel scan): its few sequential steps never
+    #: pay for a compiled kernel.
+    uses_engine_policy: bool = True
 
     # -- to implement -----------------------------------------------------------------------
     def init_belief(self, mean: Tensor, cov: Tensor) -> Belief:
@@ -160,6 +168,7 @@ class RecursiveFilter(Filter):
         with parametrize.cached():
             prior = self.predict(belief, controls)
             post, info = self.update(prior, z[:, 0], None if mk is None else mk[:, 0], controls)
+            info = replace(info, untrusted=info.flags(), rounding=None)  # the pending check, made now
             return drop_resolved(self.finalize_belief(post)), prior, info
 
     def initial_belief(
@@ -213,7 +222,7 @@ class RecursiveFilter(Filter):
         belief: Belief | None = None,
     ) -> FilterResult:
         hook = ENGINE_HOOK[0]
-        if hook is not None:
+        if hook is not None and self.uses_engine_policy:
             out = hook(self, measurements, initial_mean, initial_cov, mask, controls, belief)
             if out is not None:
                 return out
@@ -227,7 +236,8 @@ class RecursiveFilter(Filter):
         derived = self.precompute_controls(slice_steps(controls, 0, block))
         means, covs, pmeans, pcovs, lls, nis, nobs = [], [], [], [], [], [], []
         extras: dict[str, list[Tensor]] = {}
-        flags: list[tuple[Tensor | None, Tensor | None, bool]] = []
+        flags: list[tuple[Tensor | int | None, Tensor | None, bool]] = []
+        pending = _PendingRounding()
         with parametrize.cached():
             if belief is None:
                 belief = self.start_belief(mean0, cov0, slice_controls(derived, 0))
@@ -247,7 +257,7 @@ class RecursiveFilter(Filter):
                 nobs.append(info.num_observed)
                 for k, v in self.record(belief).items():
                     extras.setdefault(k, []).append(v)
-                flags.append((info.untrusted, info.jitter, DIFFUSE_COV in prior))
+                flags.append((pending.add(info), info.jitter, DIFFUSE_COV in prior))
                 belief = drop_resolved(belief)
         stack: Any = lambda xs: torch.stack(xs, 1)  # noqa: E731
         result = FilterResult(
@@ -261,12 +271,56 @@ class RecursiveFilter(Filter):
             final_belief=belief,
             extras={k: stack(v) for k, v in extras.items()},
         )
-        result.extras["untrusted"] = _untrusted(result, flags)
+        pending.flush()
+        result.extras["untrusted"] = _untrusted(result, [(pending.resolve(f), j, d) for f, j, d in flags])
         return result
 
 
 #: The former name of :class:`RecursiveFilter` (kept for existing code and configs).
 GaussianFilter = RecursiveFilter
+
+
+class _PendingRounding:
+    """The steps' pending rounding checks (:attr:`StepInfo.rounding`), made for
+    :data:`ROUNDING_BLOCK` steps at a time: a few operations per block instead of per step, and
+    memory for a block's inputs only.  :meth:`add` returns a step's flag or a placeholder that
+    :meth:`resolve` turns into the flag once its block was checked."""
+
+    def __init__(self) -> None:
+        self.waiting: list[tuple[int, StepInfo]] = []
+        self.done: dict[int, Tensor] = {}
+        self.count = 0
+
+    def add(self, info: StepInfo) -> Tensor | int | None:
+        if info.rounding is None:
+            return info.untrusted
+        key = self.count
+        self.count += 1
+        self.waiting.append((key, info))
+        if len(self.waiting) >= ROUNDING_BLOCK:
+            self.flush()
+        return key
+
+    def flush(self) -> None:
+        waiting, self.waiting = self.waiting, []
+        if not waiting:
+            return
+        terms = [info.rounding for _, info in waiting]
+        like = terms[0]
+        same = all(
+            all((a is None) == (b is None) and (a is None or a.shape == b.shape) for a, b in zip(t, like, strict=True))  # type: ignore[union-attr]
+            for t in terms
+        )
+        if same and len(terms) > 1:
+            stacked = [None if like[i] is None else torch.stack([t[i] for t in terms], 0) for i in range(len(like))]
+            flags = list(rounding_flags(*stacked).unbind(0))  # type: ignore[arg-type]
+        else:
+            flags = [rounding_flags(*t) for t in terms]  # type: ignore[misc]
+        for (key, info), flag in zip(waiting, flags, strict=True):
+            self.done[key] = flag if info.untrusted is None else info.untrusted | flag
+
+    def resolve(self, flag: Tensor | int | None) -> Tensor | None:
+        return self.done.pop(flag) if isinstance(flag, int) else flag
 
 
 def _untrusted(result: FilterResult, flags: list[tuple[Tensor | None, Tensor | None, bool]]) -> Tensor:

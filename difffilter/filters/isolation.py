@@ -25,7 +25,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from ..linalg import inside_vmap
+from ..linalg import inside_vmap, nonfinite_rows
 from .protocol import FilterResult
 
 __all__ = ["isolated_run", "nonfinite_trajectories"]
@@ -42,7 +42,7 @@ def nonfinite_trajectories(result: FilterResult) -> Tensor:
             # a field shared by the batch (expanded, stride 0: a Kalman filter's common
             # covariances) is checked once, not once per trajectory
             shared = v.dim() > 1 and v.shape[0] > 1 and v.stride(0) == 0
-            row = ~torch.isfinite(v[:1] if shared else v).flatten(1).all(1)
+            row = nonfinite_rows(v[:1] if shared else v)
             row = row.expand(v.shape[0]) if shared else row
             bad = row if bad is None else bad | row
     assert bad is not None

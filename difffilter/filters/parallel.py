@@ -79,8 +79,13 @@ class ParallelKalmanFilter(KalmanFilter):
     the state (they are evaluated at zero).  Angular state or measurement components are
     refused (the scan adds, it cannot wrap).  :meth:`step` is the sequential filter's.
 
+    The engine policy (:mod:`difffilter.engines.policy`, ``DIFFFILTER_ENGINE``) never routes
+    this filter to the compiled engine, whatever the call's size: its diffuse steps run eagerly.
+
     Learnable: ``Q``, ``R`` and the model's parameters; gradients flow through the scan.
     """
+
+    uses_engine_policy = False
 
     def __init__(self, model: StateSpaceModel, *, joseph: bool = True) -> None:
         super().__init__(model, joseph=joseph)

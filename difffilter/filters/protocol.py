@@ -29,7 +29,7 @@ import torch
 from torch import Tensor, nn
 from torch.utils import _pytree
 
-from ..linalg import inside_vmap
+from ..linalg import inside_vmap, nonfinite_rows
 from ..models.base import Controls, DynamicsModel, MeasurementModel, StateSpaceModel
 from ..params import check_covariance
 
@@ -198,16 +198,18 @@ class Filter(nn.Module):
                 if mask.is_complex() or (values and not bool(((mask == 0) | (mask == 1)).all())):
                     raise ValueError("mask must be boolean (True = observed) or hold only 0 and 1")
                 mask = mask.to(torch.bool)
-        finite = torch.isfinite(measurements)
-        bad = ~finite if mask is None else (~finite & mask)
-        if values and bool(bad.any()):
+        observed = measurements
+        if mask is not None:
+            observed = torch.where(mask, measurements, torch.zeros((), dtype=dtype, device=measurements.device))
+        # one sum decides a finite batch (nonfinite_rows); the element-wise test only finds the culprit
+        if values and bool(nonfinite_rows(observed, 0)):
+            bad = ~torch.isfinite(observed)
             idx = tuple(int(i) for i in bad.nonzero()[0])
             raise ValueError(
                 f"measurements contain a non-finite value at [b, t, i] = {list(idx)} that is not masked; "
                 "pass mask=False there to mark it missing"
             )
-        if mask is not None:
-            measurements = torch.where(mask, measurements, torch.zeros((), dtype=dtype, device=measurements.device))
+        measurements = observed
         if initial_mean is not None:
             initial_mean = self._check_mean(initial_mean, bsz, n, dtype, values=values)
         if initial_cov is not None:

@@ -91,8 +91,9 @@ class SequentialUpdate(RecursiveFilter):
                 continue
             belief, info = self.filter.update(belief, z, gmask, u)
             ll, nis, nobs = ll + info.log_likelihood, nis + info.nis, nobs + info.num_observed
-            if info.untrusted is not None:
-                untrusted = untrusted | info.untrusted
+            flag = info.flags()
+            if flag is not None:
+                untrusted = untrusted | flag
             if info.jitter is not None:
                 jitter = jitter + info.jitter
         return belief, StepInfo(ll, nis, nobs, untrusted=untrusted, jitter=jitter)

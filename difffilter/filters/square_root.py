@@ -13,7 +13,7 @@ from .diffuse import DIFFUSE_COV, propagate_diffuse
 from .jacobians import measurement_matrix
 from .sigma_points import SigmaPoints
 from .ukf import UKF, centred_points, deviations, linear_image, linear_space, offset_untrusted, state_add, weighted_mean
-from .update import rounding_untrusted
+from .update import rounding_terms
 
 __all__ = ["SquareRootUKF"]
 
@@ -110,7 +110,9 @@ class SquareRootUKF(UKF):
         pzz = szz @ szz.mT
         # the gain's weak directions: P_xz and S are rounded apart, so K e keeps ~eps cond(S)
         whitened = torch.linalg.solve_triangular(szz.detach(), e.detach()[..., None], upper=False)[..., 0]
-        flag = rounding_untrusted(szz, whitened, pzz, zhat, mask)
-        info = StepInfo(loglik, maha, num_obs, e, pzz, flag if exact else flag | offset_untrusted(mean, s @ s.mT, zhat, pzz, maha))
+        # the rounding check deferred (StepInfo.flags), as in gaussian_update
+        rounding = rounding_terms(szz, whitened, pzz, zhat, mask)
+        own = None if exact else offset_untrusted(mean, s @ s.mT, zhat, pzz, maha)
+        info = StepInfo(loglik, maha, num_obs, e, pzz, own, rounding=rounding)
         out = {k: v for k, v in belief.items() if k not in ("mean", "cov", "scale_tril")}
         return {**out, "mean": new_mean, "cov": s_new @ s_new.mT, "scale_tril": s_new}, info

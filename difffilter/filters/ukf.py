@@ -108,6 +108,15 @@ def offset_untrusted(mean: Tensor, cov: Tensor, zhat: Tensor, pzz: Tensor, maha:
     return ~(loss * maha.clamp_min(1.0).sqrt() <= 1e-2)
 
 
+def _second_moment_exact(points: SigmaPoints) -> bool:
+    """Whether ``points`` are the base rule's ``0, +-gamma L_i`` with covariance weights
+    ``1 / (2 gamma^2)`` off the centre (every set here: Julier, MerweScaled, Cubature), whose
+    weighted second moment of the deviations is ``L L^T`` exactly; a subclass with its own
+    points or weights is not assumed to be."""
+    cls = type(points)
+    return cls.generate is SigmaPoints.generate and cls.weights is SigmaPoints.weights
+
+
 def state_add(space: DynamicsModel) -> Callable[[Tensor, Tensor], Tensor] | None:
     """``space.add`` for a state with angular components, else None (plain addition)."""
     return space.add if space.angular else None
@@ -183,7 +192,11 @@ class UKF(RecursiveFilter):
         q, r = self._noise_matrices(mean, u)
         out: Belief = dict(belief)
         lin = linear_space(f, u) if self.noise == "additive" and self.redraw_after_predict else None
-        if lin is not None:
+        if lin is not None and _second_moment_exact(self.sigma_points):
+            # the points' weighted second moment is P itself (weights 1 / (2 gamma^2) on 0, +-gamma L_i),
+            # so the transform of a linear map is F P F^T: no square root, no points
+            xm, new_cov = f(mean, u), symmetrize(lin @ cov @ lin.mT + q)
+        elif lin is not None:
             wm, wc = self._weights(n, mean)
             xm, dev = linear_image(f, mean, centred_points(self.sigma_points, psd_sqrt(cov).factor), u, lin)
             new_cov = symmetrize((dev * wc[:, None]).mT @ dev + q)

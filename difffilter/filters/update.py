@@ -15,7 +15,16 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from ..linalg import any_set, gaussian_log_density, joseph_update, psd_sqrt, safe_cholesky, symmetrize, vmapped
+from ..linalg import (
+    any_set,
+    gaussian_log_density,
+    joseph_update,
+    nonfinite_rows,
+    psd_sqrt,
+    safe_cholesky,
+    symmetrize,
+    vmapped,
+)
 from ._common import StepInfo, mask_measurement_system
 from .diffuse import DIFFUSE_COV, DIFFUSE_SCALE, diffuse_update
 from .protocol import Belief
@@ -24,6 +33,8 @@ __all__ = [
     "JosephForm",
     "diffuse_gaussian_update",
     "gaussian_update",
+    "rounding_flags",
+    "rounding_terms",
     "rounding_untrusted",
     "square_root_deviations",
     "untrusted_steps",
@@ -63,10 +74,25 @@ def rounding_untrusted(chol: Tensor, whitened: Tensor, innovation_cov: Tensor, p
     (:func:`gaussian_update`).  A handful of elementwise operations per step, not differentiated
     (a flag).
     """
+    return rounding_flags(chol, whitened, torch.diagonal(innovation_cov, dim1=-2, dim2=-1), prediction, mask)
+
+
+def rounding_terms(
+    chol: Tensor, whitened: Tensor, innovation_cov: Tensor, prediction: Tensor | None, mask: Tensor | None
+) -> tuple[Tensor, Tensor, Tensor, Tensor | None, Tensor | None]:
+    """What :func:`rounding_untrusted` reads (detached; ``S`` only by its diagonal), for
+    :attr:`StepInfo.rounding`: the check made later, for many steps at once."""
+    var = torch.diagonal(innovation_cov, dim1=-2, dim2=-1).detach()
+    return chol.detach(), whitened.detach(), var, None if prediction is None else prediction.detach(), mask
+
+
+def rounding_flags(chol: Tensor, whitened: Tensor, var: Tensor, prediction: Tensor | None, mask: Tensor | None) -> Tensor:
+    """:func:`rounding_untrusted` from ``diag S`` ``var [..., m]``; any leading dimensions
+    (``[B, T, ...]``: a block of steps at once, the same flags as step by step)."""
     eps = torch.finfo(chol.dtype).eps
     with torch.no_grad():
         pivots = torch.diagonal(chol, dim1=-2, dim2=-1).detach().square()
-        var = torch.diagonal(innovation_cov, dim1=-2, dim2=-1).detach()
+        var = var.detach()
         v = whitened.detach()
         s_inv_e = torch.linalg.solve_triangular(chol.detach().mT, v[..., None], upper=True)[..., 0]
         spread = pivots.reciprocal().sum(-1) + s_inv_e.square().sum(-1)
@@ -153,10 +179,11 @@ def gaussian_update(
     and a fallback is given, those batch elements are recomputed in the fallback's Joseph form;
     ``StepInfo.jitter`` is ``S``'s repair (0 if none); without a Joseph form or a fallback,
     ``StepInfo.untrusted`` marks elements whose reduction ``P - K S K^T`` cannot resolve to
-    ``1e-2``; it also marks the steps :func:`rounding_untrusted` finds unresolved (a nearly
-    singular ``S``, an innovation below the rounding of ``z_hat``).  The time loop flags the rest
-    over the whole run at once
-    (:func:`untrusted_steps`), so this function adds no per-step work for it.
+    ``1e-2``; ``StepInfo.flags()`` also marks the steps :func:`rounding_untrusted` finds
+    unresolved (a nearly singular ``S``, an innovation below the rounding of ``z_hat``), a check
+    left pending in ``StepInfo.rounding`` so that the time loop makes it for a block of steps at
+    once.  The time loop flags the rest over the whole run at once (:func:`untrusted_steps`), so
+    this function adds no per-step work for it.
     """
     innovation, innovation_cov, cross_cov, num_obs = mask_measurement_system(innovation, innovation_cov, cross_cov, mask)
     chol, jitter = safe_cholesky(innovation_cov)
@@ -181,9 +208,9 @@ def gaussian_update(
         gain = torch.linalg.solve_triangular(chol.mT, w, upper=True).mT  # K = W^T L^{-1}
         new_cov = joseph.covariance(cov, gain, mask)
     loglik, maha = gaussian_log_density(innovation, chol, num_obs, whitened=v)
-    rounding = rounding_untrusted(chol, v, innovation_cov, prediction, mask)
-    untrusted = rounding if untrusted is None else untrusted | rounding
-    info = StepInfo(loglik, maha, num_obs, innovation, innovation_cov, untrusted, jitter)
+    # the rounding check deferred (StepInfo.flags, or the time loop for a block of steps at once)
+    rounding = rounding_terms(chol, v, innovation_cov, prediction, mask)
+    info = StepInfo(loglik, maha, num_obs, innovation, innovation_cov, untrusted, jitter, rounding)
     return new_mean, new_cov, info
 
 
@@ -197,15 +224,17 @@ def untrusted_steps(mean: Tensor, cov: Tensor, prior_cov: Tensor, log_likelihood
     post_var = torch.diagonal(cov, dim1=-2, dim2=-1)
     prior_var = torch.diagonal(prior_cov, dim1=-2, dim2=-1)
     # a NaN compares False, so non-finite variances are flagged too; whole-run checks first
-    # (one reduction each), per-step reductions only when one fails
-    bad = ~torch.isfinite(log_likelihood)
-    low = ~(post_var >= limit * prior_var)
+    # (one reduction each: nonfinite_rows' sum), per-step reductions only when one fails
     # (inside vmap, where values cannot be read, the per-step reductions always run: same value)
+    if vmapped(log_likelihood) or bool(nonfinite_rows(log_likelihood, 0)):
+        bad = ~torch.isfinite(log_likelihood)
+    else:
+        bad = torch.zeros(log_likelihood.shape, dtype=torch.bool, device=log_likelihood.device)
+    low = ~(post_var >= limit * prior_var)
     if vmapped(low) or bool(low.any()):
         bad = bad | low.any(-1)
-    finite = torch.isfinite(mean)
-    if vmapped(finite) or not bool(finite.all()):
-        bad = bad | ~finite.all(-1)
+    if vmapped(mean) or bool(nonfinite_rows(mean, 0)):
+        bad = bad | nonfinite_rows(mean, mean.dim() - 1)
     if exact is not None:
         bad = bad & ~exact
     return bad

@@ -13,7 +13,8 @@ leave the filter with the best values (or its original ones, ``apply_best=False`
 A scalar value ``s`` sets a square-matrix parameter to ``s I`` (or the scale of a ``"scalar"``
 structure, :func:`~difffilter.selection.assign_parameters`); ``relative=True`` multiplies the
 parameter's starting value instead (``R = s R_0``), which keeps a tuned shape and searches its
-level.
+level.  A grid value may also be a whole value (a nested list, e.g. one transition matrix per
+candidate): it is set as given, also under ``relative=True`` (which scales numbers only).
 """
 
 from __future__ import annotations
@@ -43,7 +44,8 @@ class SearchResult:
     """Outcome of a search.
 
     Attributes:
-        best: the best candidate's knob values ``{knob: value}``.
+        best: the best candidate's knob values ``{knob: value}`` (a float, or a nested list where
+            the grid gave whole values).
         best_score: its validation loss (lower is better).
         table: every candidate in the order tried, ``{knob: value, ..., "score": loss}``.
         cpu_seconds: process CPU time of the whole search (the tuning cost).
@@ -51,9 +53,9 @@ class SearchResult:
         values: the constrained values the best candidate set ``{dotted name: tensor}``.
     """
 
-    best: dict[str, float]
+    best: dict[str, Any]
     best_score: float
-    table: list[dict[str, float]]
+    table: list[dict[str, Any]]
     cpu_seconds: float
     method: str
     values: dict[str, Tensor] = field(default_factory=dict)
@@ -121,9 +123,13 @@ def _check_knobs(filt: nn.Module, names: Sequence[str]) -> dict[str, list[str]]:
         raise ValueError(f"knobs: {exc}") from exc
 
 
+def _is_number(value: Any) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool)
+
+
 def _run(
     filt: Filter,
-    candidates: list[dict[str, float]],
+    candidates: list[dict[str, Any]],
     score: Score,
     hits: dict[str, list[str]],
     relative: bool,
@@ -135,12 +141,13 @@ def _run(
     dotted = [n for names in hits.values() for n in names]
     original = {n: getattr(owners[n][0], owners[n][1]).detach().clone() for n in dotted}
 
-    def setting(cand: Mapping[str, float]) -> dict[str, Any]:
+    def setting(cand: Mapping[str, Any]) -> dict[str, Any]:
         if not relative:
             return dict(cand)
-        return {n: original[n] * float(cand[k]) for k, names in hits.items() for n in names}
+        # a whole value (nested list) is set as given; a number scales the starting value
+        return {n: original[n] * float(cand[k]) if _is_number(cand[k]) else cand[k] for k, names in hits.items() for n in names}
 
-    table: list[dict[str, float]] = []
+    table: list[dict[str, Any]] = []
     best_i, best_s = -1, math.inf
     try:
         for i, cand in enumerate(candidates):
@@ -165,21 +172,37 @@ def _run(
     )
 
 
+def _finite_value(value: Any) -> bool:
+    """A finite number, or a non-empty nested list/tuple of finite numbers."""
+    if _is_number(value):
+        return math.isfinite(value)
+    if not isinstance(value, list | tuple) or not value:
+        return False
+    try:
+        return bool(torch.isfinite(torch.as_tensor(value, dtype=torch.float64)).all())
+    except (TypeError, ValueError, RuntimeError):
+        return False
+
+
 def grid_search(
-    filt: Filter, grid: Mapping[str, Sequence[float]], score: Score, *, relative: bool = False, apply_best: bool = True
+    filt: Filter, grid: Mapping[str, Sequence[Any]], score: Score, *, relative: bool = False, apply_best: bool = True
 ) -> SearchResult:
     """Try every combination of ``grid`` (``{knob: values}``, one to three knobs) and keep the best.
 
-    Candidates run in the order of ``itertools.product`` over the knobs as given; ties keep the
-    first.  ``score`` is called on ``filt`` with each candidate set (e.g. :func:`validation_loss`).
+    A value is a number (under ``relative=True`` a factor on the starting value) or a whole value
+    as a nested list of numbers (set as given, e.g. a transition matrix).  Candidates run in the
+    order of ``itertools.product`` over the knobs as given; ties keep the first.  ``score``
+    is called on ``filt`` with each candidate set (e.g. :func:`validation_loss`).
     """
     start = time.process_time()
     names = list(grid)
     hits = _check_knobs(filt, names)
     for k, vals in grid.items():
-        if len(vals) < 1 or not all(isinstance(v, int | float) and math.isfinite(v) for v in vals):
-            raise ValueError(f"grid[{k!r}] must be a non-empty sequence of finite numbers, got {vals!r}")
-    candidates = [dict(zip(names, map(float, combo), strict=True)) for combo in itertools.product(*grid.values())]
+        if len(vals) < 1 or not all(_finite_value(v) for v in vals):
+            raise ValueError(f"grid[{k!r}] must be a non-empty sequence of finite numbers (or nested lists of them), got {vals!r}")
+    candidates = [
+        dict(zip(names, (float(v) if _is_number(v) else v for v in combo), strict=True)) for combo in itertools.product(*grid.values())
+    ]
     return _run(filt, candidates, score, hits, relative, apply_best, "grid", start)
 
 

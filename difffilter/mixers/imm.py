@@ -343,7 +343,7 @@ class IMM(RecursiveFilter):
         out = self._assemble(posts, log_w)
         out["mode_log_likelihoods"] = log_lik
         nis = (log_c.exp() * torch.stack([i.nis for i in infos], -1)).sum(-1)
-        flags = [i.untrusted for i in infos if i.untrusted is not None]
+        flags = [f for f in (i.flags() for i in infos) if f is not None]
         # The mode probabilities rest on differences of the modes' log-likelihoods, each of which
         # carries a rounding error of about eps * |log-likelihood|: past 1e-2 nats (a 1e10
         # outlier gives 5e19 nats, ~1e4 of rounding in float64) the probabilities are noise,

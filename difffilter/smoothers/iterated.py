@@ -75,6 +75,12 @@ class IteratedSmoother(Smoother):
     The result's ``filtered`` (and its ``log_likelihood``) is the last pass's filter on the
     linearised model.  Additive noise only; angular components are refused.
 
+    The starting filter and, with ``parallel=False``, each pass's sequential filter are plain
+    filter calls: the engine policy applies to them (:mod:`difffilter.engines.policy`; on the
+    CPU a large or repeated call runs the compiled engine, same values to ~1e-13,
+    ``DIFFFILTER_ENGINE=eager`` turns it off).  The scans never run compiled, and neither does
+    anything under ``torch.func`` transforms (:mod:`difffilter.func`).
+
     Args:
         model: the nonlinear state-space model.
         method: ``"extended"`` or ``"sigma"``.

@@ -55,11 +55,23 @@ def _np(t: torch.Tensor) -> np.ndarray:
 
 
 def prepare_dynamax(
-    kind: str, data: BenchData, dtype: torch.dtype, mode: str, *, ukf_alpha: float, ukf_beta: float, ukf_kappa: float
+    kind: str,
+    data: BenchData,
+    dtype: torch.dtype,
+    mode: str,
+    *,
+    ukf_alpha: float,
+    ukf_beta: float,
+    ukf_kappa: float,
+    smoother: bool = False,
 ) -> DynamaxRun:
     """Build and compile the dynamax ``kind`` (``kf``, ``ekf``, ``ukf``) run on ``data``.
 
     ``mode`` is ``"forward"`` or ``"train"`` (value and gradient w.r.t. ``log diag R``).
+    ``smoother``: dynamax's smoother of the filter (``lgssm_smoother``,
+    ``extended_kalman_smoother``, ``unscented_kalman_smoother``), the twin of the smoother
+    benchmark (:mod:`.smoothers`): its training loss is the position mean squared error of the
+    smoothed means against the truth.
     """
     import jax
     import jax.numpy as jnp
@@ -75,6 +87,7 @@ def prepare_dynamax(
             ParamsLGSSMEmissions,
             ParamsLGSSMInitial,
             lgssm_filter,
+            lgssm_smoother,
         )
 
         f_t, h_t, q_t, r_t = cv_matrices(c, torch.float64)
@@ -91,10 +104,17 @@ def prepare_dynamax(
                 dynamics=ParamsLGSSMDynamics(weights=F, bias=jnp.zeros(n, jdt), input_weights=jnp.zeros((n, 0), jdt), cov=Q),
                 emissions=ParamsLGSSMEmissions(weights=H, bias=jnp.zeros(m, jdt), input_weights=jnp.zeros((m, 0), jdt), cov=R),
             )
-            return lgssm_filter(params, z)
+            return (lgssm_smoother if smoother else lgssm_filter)(params, z)
 
     else:
-        from dynamax.nonlinear_gaussian_ssm import ParamsNLGSSM, UKFHyperParams, extended_kalman_filter, unscented_kalman_filter
+        from dynamax.nonlinear_gaussian_ssm import (
+            ParamsNLGSSM,
+            UKFHyperParams,
+            extended_kalman_filter,
+            extended_kalman_smoother,
+            unscented_kalman_filter,
+            unscented_kalman_smoother,
+        )
 
         f_t, q_t, r_t = gpsdr_matrices(c, torch.float64)
         F = jnp.asarray(_np(f_t), jdt)
@@ -124,13 +144,23 @@ def prepare_dynamax(
                 emission_covariance=R,
             )
             if kind == "ekf":
-                return extended_kalman_filter(params, z)
-            return unscented_kalman_filter(params, z, hyper)
+                return (extended_kalman_smoother if smoother else extended_kalman_filter)(params, z)
+            return (unscented_kalman_smoother if smoother else unscented_kalman_filter)(params, z, hyper)
 
     batched = jax.vmap(single, in_axes=(None, None, 0, 0))
     if mode == "forward":
         fn = jax.jit(batched)
         args = (Q0, R0, m0s, zs)
+    elif mode == "train" and smoother:
+        # the smoother benchmark's loss: position mean squared error of the smoothed means
+        pos = [0, 2] if kind == "kf" else [0, 3]
+        truth = jnp.asarray(_np(data.truth[:, 1:, [0, 3]]), jdt)
+
+        def loss(log_r, m0, z):  # type: ignore[no-untyped-def]
+            return jnp.mean((batched(Q0, jnp.diag(jnp.exp(log_r)), m0, z).smoothed_means[..., pos] - truth) ** 2)
+
+        fn = jax.jit(jax.value_and_grad(loss))
+        args = (jnp.log(jnp.diag(R0)), m0s, zs)
     elif mode == "train":
 
         def loss(log_r, m0, z):  # type: ignore[no-untyped-def]

@@ -1,22 +1,33 @@
 """Timing of the parallel-in-time (associative-scan) Kalman filter and RTS smoother against the
-sequential ones (``experiments/benchmark_parallel.py``), with dynamax's parallel filter as an
-optional peer when JAX and dynamax are importable.
+sequential ones (``experiments/benchmark_parallel.py``), with dynamax's parallel filter and
+smoother as the peer when JAX and dynamax are importable.
 
-Every row times both implementations in the same process on the same data and reports their
-log-likelihood difference, so a speed figure never stands without the check that both computed
-the same thing.
+The sequential filter is timed twice: on the default path (a plain call under the engine policy
+in force, ``auto`` unless ``DIFFFILTER_ENGINE`` says otherwise: on the CPU a call with
+``B T >= 1e4``, or a filter's repeated calls, run the compiled engine; the row names the engine
+that ran) and forced eager (the filter's own Python loop).  Every row times all implementations
+in the same process on the same data and reports their log-likelihood differences, so a speed
+figure never stands without the check that they computed the same thing.
 """
 
 from __future__ import annotations
 
 import importlib.util
+import json
+import shutil
+import subprocess
+import sys
+import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
+from pathlib import Path
 
+import numpy as np
 import torch
 
+from difffilter.engines.policy import last_engine, set_engine
 from difffilter.filters import KalmanFilter, ParallelKalmanFilter
 from difffilter.models import LinearModel
 from difffilter.smoothers import ParallelRTSSmoother, RTSSmoother
@@ -26,12 +37,20 @@ __all__ = ["Row", "constant_velocity", "dynamax_available", "markdown", "measure
 
 @dataclass
 class Row:
+    """One timed ``(T, B, what)``: the sequential filter on the default path (the engine policy in
+    force; ``engine`` names what ran the best repeat) and forced eager, the parallel filter, and
+    dynamax's parallel filter; ``None`` where not timed."""
+
     steps: int
     batch: int
-    what: str  # "filter", "filter fwd+bwd", "smoother", "dynamax parallel filter"
-    sequential_s: float | None
+    what: str  # "filter", "filter fwd+bwd", "smoother"
+    default_s: float | None
+    engine: str  # the engine of the default path's best repeat ("generated", "eager"; "*": it changed during the repeats)
+    eager_s: float | None
     parallel_s: float
-    max_abs_loglik_diff: float | None
+    dynamax_s: float | None
+    loglik_diff: float | None  # max |parallel - sequential| of the per-trajectory log-likelihoods
+    dynamax_diff: tuple[float, float] | None  # max |parallel - dynamax| of those and of the filtered means
 
 
 def constant_velocity(dtype: torch.dtype, device: str) -> LinearModel:
@@ -62,56 +81,66 @@ def _sync(device: str) -> None:
 
 
 def _time(fn: Callable[[], object], repeats: int, device: str) -> float:
-    """Best of ``repeats`` wall-clock times (the caller has run ``fn`` once before when it wants a
-    warm-up: the first eager call costs no compilation, only allocator warm-up)."""
-    best = float("inf")
+    """Best of ``repeats`` wall-clock times (the caller has run ``fn`` once before as a warm-up)."""
+    return min(_timed(fn, repeats, device))
+
+
+def _timed(fn: Callable[[], object], repeats: int, device: str) -> list[float]:
+    out = []
     for _ in range(repeats):
         _sync(device)
         start = time.perf_counter()
         fn()
         _sync(device)
-        best = min(best, time.perf_counter() - start)
-    return best
+        out.append(time.perf_counter() - start)
+    return out
 
 
 def dynamax_available() -> bool:
     return importlib.util.find_spec("jax") is not None and importlib.util.find_spec("dynamax") is not None
 
 
-def _dynamax_parallel(model: LinearModel, z: torch.Tensor, repeats: int) -> tuple[float, torch.Tensor]:
-    """dynamax's associative-scan filter (``parallel_inference.lgssm_filter``) on the same data,
-    vmapped over the batch and jitted (compile time excluded by the warm-up)."""
-    import jax  # optional peer
-    import jax.numpy as jnp
-    from dynamax.linear_gaussian_ssm import parallel_inference
-    from dynamax.linear_gaussian_ssm.inference import ParamsLGSSM, ParamsLGSSMDynamics, ParamsLGSSMEmissions, ParamsLGSSMInitial
-
-    jax.config.update("jax_enable_x64", z.dtype == torch.float64)
-    a = lambda t: jnp.asarray(t.detach().cpu().numpy())  # noqa: E731
-    f, h, q, r = (a(x) for x in (model.dynamics.F, model.measurement.H, model.dynamics.Q, model.measurement.R))
-    n = f.shape[0]
-    # dynamax's initial state is x_0 (updated by the first measurement); difffilter's x_{-1} is
-    # predicted first: N(F m0, F P0 F^T + Q) with m0 = 0, P0 = I
-    params = ParamsLGSSM(
-        initial=ParamsLGSSMInitial(mean=jnp.zeros(n), cov=f @ f.T + q),
-        dynamics=ParamsLGSSMDynamics(weights=f, bias=jnp.zeros(n), input_weights=jnp.zeros((n, 0)), cov=q),
-        emissions=ParamsLGSSMEmissions(weights=h, bias=jnp.zeros(h.shape[0]), input_weights=jnp.zeros((h.shape[0], 0)), cov=r),
-    )
-    run = jax.jit(jax.vmap(lambda y: parallel_inference.lgssm_filter(params, y).marginal_loglik))
-    ys = a(z)
-    out = run(ys).block_until_ready()
-    best = float("inf")
-    for _ in range(repeats):
-        start = time.perf_counter()
-        run(ys).block_until_ready()
-        best = min(best, time.perf_counter() - start)
-    return best, torch.as_tensor(jax.device_get(out).copy())
-
-
 def _fwd_bwd(filt: KalmanFilter, z: torch.Tensor, m0: torch.Tensor, p0: torch.Tensor) -> None:
     """Forward, then the gradient of the negative log-likelihood with respect to Q and R."""
     loss = -filt(z, m0, p0).total_log_likelihood.sum()
     torch.autograd.grad(loss, list(filt.parameters()))
+
+
+def _call(what: str, filt: KalmanFilter) -> Callable[[torch.Tensor, torch.Tensor, torch.Tensor], object]:
+    if what == "filter fwd+bwd":
+        return partial(_fwd_bwd, filt)
+    if what == "smoother":
+        return ParallelRTSSmoother(filt) if isinstance(filt, ParallelKalmanFilter) else RTSSmoother(filt)
+    return filt
+
+
+def _default_path(
+    what: str, model: LinearModel, z: torch.Tensor, m0: torch.Tensor, p0: torch.Tensor, reps: int, device: str
+) -> tuple[float, str]:
+    """The sequential filter as a plain call runs it (engine policy in force): a fresh filter (the
+    ``auto`` policy counts each filter's calls), one warm-up call (a kernel build, if any, is not
+    timed), then the repeats; the engine of the best repeat, ``*`` when it changed between them."""
+    filt = KalmanFilter(model)
+    fn = partial(_call(what, filt), z, m0, p0)
+    with torch.set_grad_enabled(what == "filter fwd+bwd"):
+        fn()
+        times, engines = [], []
+        for _ in range(reps):
+            times += _timed(fn, 1, device)
+            engines.append(str(last_engine(filt)))
+    best = min(range(reps), key=times.__getitem__)
+    return times[best], engines[best] + ("*" if len(set(engines)) > 1 else "")
+
+
+def _eager(what: str, model: LinearModel, z: torch.Tensor, m0: torch.Tensor, p0: torch.Tensor, reps: int, device: str) -> float:
+    filt = KalmanFilter(model)
+    fn = partial(_call(what, filt), z, m0, p0)
+    set_engine("eager")
+    try:
+        with torch.set_grad_enabled(what == "filter fwd+bwd"):
+            return _time(fn, reps, device)
+    finally:
+        set_engine(None)
 
 
 def run_grid(
@@ -122,56 +151,125 @@ def run_grid(
     device: str,
     max_elements: int,
     max_sequential: int,
+    max_eager: int,
     backward: bool,
     smoother: bool,
     repeats: Callable[[int], int],
-) -> list[Row]:
-    """Rows for every ``(T, B)`` with ``B T <= max_elements``; the sequential filter is timed only
-    up to ``B T <= max_sequential`` (its time grows linearly in ``T`` through a Python loop)."""
+    peer: bool = True,
+    peer_rows: tuple[str, ...] = ("filter",),
+    peer_timeout_s: float = 1800.0,
+    progress: Callable[[str], None] | None = None,
+) -> tuple[list[Row], str]:
+    """Rows for every ``(T, B)`` with ``B T <= max_elements``: the sequential filter on the default
+    path up to ``B T <= max_sequential`` and forced eager up to ``B T <= max_eager`` (a Python loop
+    over ``T``; not timed on another device than the CPU, where the default path is eager), the
+    parallel filter, and dynamax's parallel filter when ``peer`` and it is importable (on the rows
+    named in ``peer_rows``; each shape costs dynamax a JIT compilation, tens of seconds on a loaded
+    CPU).  dynamax runs after the torch rows in a process of its own
+    (:mod:`experiments.benchmarks.parallel_peer`), bounded by ``peer_timeout_s``.  Returns the rows
+    and a description of the peer for the header."""
     rows: list[Row] = []
     model = constant_velocity(dtype, device)
-    seq, par = KalmanFilter(model), ParallelKalmanFilter(model)
+    par = ParallelKalmanFilter(model)
     m0 = torch.zeros(4, dtype=dtype, device=device)
     p0 = torch.eye(4, dtype=dtype, device=device)
+    whats = ["filter"] + (["filter fwd+bwd"] if backward else []) + (["smoother"] if smoother else [])
+    use_peer = peer and dynamax_available()
+    folder = Path(tempfile.mkdtemp(prefix="benchmark-parallel-peer-"))
+    cells, means = [], {}
     for steps in steps_list:
         for batch in batches:
-            if batch * steps > max_elements:
+            elements = batch * steps
+            if elements > max_elements:
                 continue
             z = measurements(batch, steps, dtype, device)
-            reps = repeats(batch * steps)
-            timed_seq = batch * steps <= max_sequential
+            reps = repeats(elements)
             with torch.no_grad():
-                ll_p = par(z, m0, p0).total_log_likelihood  # also the warm-up
-                t_p = _time(partial(par, z, m0, p0), reps, device)
-                t_s, diff = None, None
-                if timed_seq:
-                    ll_s = seq(z, m0, p0).total_log_likelihood
-                    diff = float((ll_s - ll_p).abs().max())
-                    t_s = _time(partial(seq, z, m0, p0), reps, device)
-            rows.append(Row(steps, batch, "filter", t_s, t_p, diff))
-            if backward:
-                t_bs = _time(partial(_fwd_bwd, seq, z, m0, p0), reps, device) if timed_seq else None
-                rows.append(Row(steps, batch, "filter fwd+bwd", t_bs, _time(partial(_fwd_bwd, par, z, m0, p0), reps, device), diff))
-            if smoother:
-                with torch.no_grad():
-                    s_seq, s_par = RTSSmoother(seq), ParallelRTSSmoother(par)
-                    t_ss = _time(partial(s_seq, z, m0, p0), reps, device) if timed_seq else None
-                    rows.append(Row(steps, batch, "smoother", t_ss, _time(partial(s_par, z, m0, p0), reps, device), diff))
-            if dynamax_available():
-                t_d, ll_d = _dynamax_parallel(model, z, reps)
-                rows.append(Row(steps, batch, "dynamax parallel filter", None, t_d, float((ll_d.to(ll_p.dtype) - ll_p.cpu()).abs().max())))
-    return rows
+                out_p = par(z, m0, p0)  # also the warm-up
+                ll_p = out_p.log_likelihood.sum(1)
+                ll_s = KalmanFilter(model)(z, m0, p0).log_likelihood.sum(1) if elements <= max_sequential else None
+            diff = None if ll_s is None else float((ll_s - ll_p).abs().max())
+            name = f"z_{steps}_{batch}.npy"
+            if use_peer:
+                np.save(folder / name, z.cpu().numpy())
+                cells.append({"file": name, "repeats": reps, "whats": [w for w in whats if w in peer_rows]})
+                means[name] = (ll_p.cpu(), out_p.mean.detach().cpu())
+            for what in whats:
+                with torch.set_grad_enabled(what == "filter fwd+bwd"):
+                    fn = partial(_call(what, par), z, m0, p0)
+                    fn()
+                    t_p = _time(fn, reps, device)
+                t_d, engine = (None, "-")
+                if elements <= max_sequential:
+                    t_d, engine = _default_path(what, model, z, m0, p0, reps, device)
+                t_e = _eager(what, model, z, m0, p0, reps, device) if elements <= max_eager and device == "cpu" else None
+                rows.append(Row(steps, batch, what, t_d, engine, t_e, t_p, None, diff, None))
+                if progress is not None:
+                    progress(markdown(rows[-1:]).splitlines()[-1])
+    about = "skipped (--no-peer)" if not peer else "not installed (no peer columns)"
+    if use_peer:
+        about = _run_peer(folder, model, dtype, device, cells, rows, means, peer_timeout_s)
+    shutil.rmtree(folder, ignore_errors=True)
+    return rows, about
+
+
+def _run_peer(
+    folder: Path, model: LinearModel, dtype: torch.dtype, device: str, cells: list, rows: list[Row], means: dict, timeout_s: float
+) -> str:
+    """dynamax in its own process over ``cells``; fills the rows' peer columns; the header text."""
+    mats = {"F": model.dynamics.F, "H": model.measurement.H, "Q": model.dynamics.Q, "R": model.measurement.R}
+    spec = {
+        "device": device,
+        "dtype": str(dtype).removeprefix("torch."),
+        "cells": cells,
+        "model": {k: v.detach().cpu().tolist() for k, v in mats.items()},
+    }
+    (folder / "spec.json").write_text(json.dumps(spec))
+    script = Path(__file__).with_name("parallel_peer.py")
+    note = ""
+    try:
+        done = subprocess.run([sys.executable, str(script), str(folder)], timeout=timeout_s, capture_output=True, text=True)
+        if done.returncode != 0:
+            note = f"; the peer process failed: {done.stderr.strip().splitlines()[-1][:200] if done.stderr.strip() else done.returncode}"
+    except subprocess.TimeoutExpired:
+        note = f"; the peer process stopped at its {timeout_s:.0f} s limit (rows without a dynamax time did not finish)"
+    about_file = folder / "about.txt"
+    about = (about_file.read_text() if about_file.exists() else "dynamax") + " (in a process of its own)" + note
+    results = folder / "out.jsonl"
+    for line in results.read_text().splitlines() if results.exists() else []:
+        rec = json.loads(line)
+        steps, batch = (int(x) for x in rec["cell"].removesuffix(".npy").split("_")[1:])
+        row = next(r for r in rows if (r.steps, r.batch, r.what) == (steps, batch, rec["what"]))
+        row.dynamax_s = rec["seconds"]
+        if rec["what"] == "filter":
+            ll_p, mean_p = means[rec["cell"]]
+            ll_x = torch.as_tensor(np.load(folder / f"{rec['cell']}.ll.npy")).to(ll_p.dtype)
+            mean_x = torch.as_tensor(np.load(folder / f"{rec['cell']}.mean.npy")).to(mean_p.dtype)
+            row.dynamax_diff = (float((ll_x - ll_p).abs().max()), float((mean_x - mean_p).abs().max()))
+    return about
+
+
+def _s(x: float | None) -> str:
+    return "-" if x is None else f"{x:.4f}"
+
+
+def _ratio(a: float, b: float | None) -> str:
+    return "-" if b is None else f"{a / b:.3g}"
 
 
 def markdown(rows: list[Row]) -> str:
-    """The rows as a markdown table; ``parallel / sequential`` < 1 means the scan is faster."""
+    """The rows as a markdown table; a ratio ``parallel / x`` < 1 means the scan is faster."""
     out = [
-        "| T | B | what | sequential [s] | parallel [s] | parallel / sequential | max abs loglik diff |",
-        "|---:|---:|---|---:|---:|---:|---:|",
+        "| T | B | what | sequential, default path [s] | its engine | sequential, eager [s] | parallel [s] | dynamax parallel [s] "
+        "| parallel / default | parallel / eager | parallel / dynamax | loglik diff to sequential | diff to dynamax: loglik, mean |",
+        "|---:|---:|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---|",
     ]
     for r in rows:
-        seq = "-" if r.sequential_s is None else f"{r.sequential_s:.4f}"
-        ratio = "-" if r.sequential_s is None else f"{r.parallel_s / r.sequential_s:.2f}"
-        diff = "-" if r.max_abs_loglik_diff is None else f"{r.max_abs_loglik_diff:.1e}"
-        out.append(f"| {r.steps} | {r.batch} | {r.what} | {seq} | {r.parallel_s:.4f} | {ratio} | {diff} |")
+        diffs = "-" if r.loglik_diff is None else f"{r.loglik_diff:.1e}"
+        peer = "-" if r.dynamax_diff is None else f"{r.dynamax_diff[0]:.1e}, {r.dynamax_diff[1]:.1e}"
+        out.append(
+            f"| {r.steps} | {r.batch} | {r.what} | {_s(r.default_s)} | {r.engine} | {_s(r.eager_s)} | {r.parallel_s:.4f} "
+            f"| {_s(r.dynamax_s)} | {_ratio(r.parallel_s, r.default_s)} | {_ratio(r.parallel_s, r.eager_s)} "
+            f"| {_ratio(r.parallel_s, r.dynamax_s)} | {diffs} | {peer} |"
+        )
     return "\n".join(out)

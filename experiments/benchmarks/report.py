@@ -87,6 +87,11 @@ def summarize_targets(report: BenchReport, *, batch: int = 256, dtype: str = "fl
         v = None if imm is None or ukf is None else imm["seconds"] / ukf["seconds"]
         goal = 1.3 * imm_modes
         add(f"IMM of {imm_modes} UKFs train B={batch} ({lib}): time / UKF time", v, f"<= {goal:g}", None if v is None else v <= goal)
+    # issue 26: the smoother's training step (difffilter's default path) against dynamax's unscented smoother
+    smo = _find(report.extra_tables.get("smoothers", []), filter="ukf", dtype=dtype, B=batch, mode="train")
+    v = None if smo is None else smo.get("smoother_over_dynamax")
+    v = None if v is None or math.isnan(v) else float(v)
+    add(f"UKF + unscented RTS train B={batch}: dynamax smoother time / difffilter", v, ">= 3", None if v is None else v >= 3)
     for r in report.extra_tables.get("memory", []):
         if r.get("engine", "reference") != "reference" and r.get("T") == 5000 and r.get("B") == 1024:
             v = r.get("peak_above_baseline_mb")

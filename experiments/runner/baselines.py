@@ -10,7 +10,8 @@ fitted on the experiment's own data, never on the test set:
     trajectories, from the hand-tuned values;
 ``tune.method: grid`` / ``random``
     a validation search (:mod:`difffilter.learn.search`) over one to three named knobs (``grid:
-    {name: [values]}`` or ``{name: {low, high, num}}``, log-spaced; ``random``: ``bounds: {name:
+    {name: [values]}`` or ``{name: {low, high, num}}``, log-spaced; a value may be a nested list,
+    a whole value per candidate such as an IMM's transition matrix; ``random``: ``bounds: {name:
     [low, high]}``, ``num_samples``, ``seed``), each
     candidate scored on the *validation* trajectories (``score: rmse`` of the position where the
     data have truth, or ``nll`` of the innovations).
@@ -75,7 +76,7 @@ def _belief(batch: Mapping[str, Any], mean: torch.Tensor, cov: torch.Tensor) -> 
     return mean, cov
 
 
-def _grid(spec: Any, key: str) -> dict[str, list[float]]:
+def _grid(spec: Any, key: str) -> dict[str, list[Any]]:
     if not isinstance(spec, Mapping) or not 1 <= len(spec) <= 3:
         raise ValueError(f"{key} must map one to three parameter names to their values, got {spec!r}")
     out = {}
@@ -88,8 +89,16 @@ def _grid(spec: Any, key: str) -> dict[str, list[float]]:
             if not (0 < low < high and num >= 2):
                 raise ValueError(f"{key}.{name} must have 0 < low < high and num >= 2, got {dict(values)}")
             values = log_grid(low, high, num)
-        out[str(name)] = [float(v) for v in values]
+        # a nested list is a whole value per candidate (e.g. an IMM's transition matrix), kept as given
+        out[str(name)] = [v if isinstance(v, list | tuple) else float(v) for v in values]
     return out
+
+
+def _show(value: Any) -> str:
+    """A chosen knob value in short: ``4.2`` or a nested list with 4 significant digits."""
+    if isinstance(value, list | tuple):
+        return "[" + ", ".join(_show(v) for v in value) + "]"
+    return f"{value:.4g}"
 
 
 def _bounds(spec: Any, key: str) -> dict[str, tuple[float, float]]:
@@ -169,7 +178,7 @@ def tune_baseline(
             bounds = _bounds(tune.get("bounds"), f"{key}.bounds")
             draws = {"num_samples": int(tune.get("num_samples", 16)), "seed": int(tune.get("seed", 0))}
             found = random_search(filt, bounds, score, relative=relative, **draws)
-        chosen = ", ".join(f"{k}={v:.4g}" for k, v in found.best.items())
+        chosen = ", ".join(f"{k}={_show(v)}" for k, v in found.best.items())
         what = f"{method} search over {len(found.table)} candidates on {len(data['measurements'])} val traj ({kind}): {chosen}"
     cpu = time.process_time() - start
     log.info("baseline %s tuned in %.1f CPU-s: %s", name, cpu, what)

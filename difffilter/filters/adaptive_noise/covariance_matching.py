@@ -106,7 +106,7 @@ class CovarianceMatching(AdaptiveNoiseFilter):
             gain = self.gain(mo.spread + r_new, mo.pxz, e, mask)
             q_new = symmetrize(gain @ c_new @ gain.mT)
             noise["noise_Q"] = self.keep_where(q_new, belief["noise_Q"], any_obs)
-        info.untrusted, info.jitter = upd.untrusted, torch.maximum(upd.jitter, info.jitter)
+        info.untrusted, info.rounding, info.jitter = upd.untrusted, upd.rounding, torch.maximum(upd.jitter, info.jitter)
         return self.finish(belief, new_mean, new_cov, noise), info
 
     @staticmethod

@@ -104,6 +104,6 @@ class SageHusa(AdaptiveNoiseFilter):
             gain_part = dx[..., :, None] * dx[..., None, :]
             q_new = self.safeguarded(q_prev, d, gain_part + new_cov - belief["noise_spread"], gain_part)
             noise["noise_Q"] = self.keep_where(q_new, q_prev, any_obs)
-        info.untrusted = upd.untrusted
+        info.untrusted, info.rounding = upd.untrusted, upd.rounding
         info.jitter = upd.jitter if info.jitter is None else torch.maximum(upd.jitter, info.jitter)
         return self.finish(belief, new_mean, new_cov, noise), info

@@ -88,7 +88,7 @@ class VBAdaptiveR(AdaptiveNoiseFilter):
             res = torch.where(obs, hm.residual(z, post.zhat), zero)
             beta = torch.where(obs, beta_pred + 0.5 * (res * res + torch.diagonal(post.spread, dim1=-2, dim2=-1)), beta_prev)
         r_new = torch.diag_embed(beta / alpha)
-        info.untrusted, info.jitter = upd.untrusted, torch.maximum(upd.jitter, info.jitter)
+        info.untrusted, info.rounding, info.jitter = upd.untrusted, upd.rounding, torch.maximum(upd.jitter, info.jitter)
         return self.finish(belief, new_mean, new_cov, {"noise_R": r_new, "noise_alpha": alpha}), info
 
 
@@ -182,5 +182,5 @@ class VBAdaptiveQR(AdaptiveNoiseFilter):
             "noise_Q": self.model_q(x_pred, u) + (p_hat - p_pred),
             "noise_prior_cov": p_hat,
         }
-        info.untrusted, info.jitter = upd.untrusted, torch.maximum(upd.jitter, info.jitter)
+        info.untrusted, info.rounding, info.jitter = upd.untrusted, upd.rounding, torch.maximum(upd.jitter, info.jitter)
         return self.finish(belief, x, p, noise), info

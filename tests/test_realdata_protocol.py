@@ -223,3 +223,78 @@ def test_evaluation_compares_two_runs_paired(tmp_path) -> None:
     run_protocol(cfg, tmp_path / "one_fold", workers=1)
     with pytest.raises(ValueError, match="compare_with"):
         run_evaluation(tmp_path / "run", tmp_path / "eval2", compare_with=tmp_path / "one_fold")
+
+
+def _v3_config(folder: Path) -> dict:
+    cfg = _v2_config(folder)
+    v3 = OmegaConf.to_container(OmegaConf.load(ROOT / "conf" / "realdata" / "smartloc_v3.yaml"), resolve=True)
+    cfg.update({k: v for k, v in v3.items() if k != "defaults"})
+    return cfg
+
+
+def test_the_loss_switch_gives_the_innovation_nll_or_a_huber_loss_of_the_horizontal_error() -> None:
+    """``loss: nll`` is the learner's innovation NLL; ``loss: position`` the per-trajectory mean over
+    epochs of Huber(||(E, N) error||) (checked against a numpy Huber written here; the vertical
+    component does not count); anything else is refused."""
+    import types
+
+    import numpy as np
+
+    assert protocol.training_loss({}) == "nll" and protocol.training_loss({"loss": "nll"}) == "nll"
+    loss = protocol.training_loss({"loss": "position", "position_loss": {"huber_delta": 3.0}})
+    gen = torch.Generator().manual_seed(0)
+    mean = torch.randn(2, 7, 9, generator=gen, dtype=torch.float64) * 4.0
+    truth = torch.randn(2, 7, 3, generator=gen, dtype=torch.float64) * 4.0
+    got = loss(types.SimpleNamespace(mean=mean), {"truth": truth})
+    n = np.linalg.norm(mean[..., :2].numpy() - truth[..., :2].numpy(), axis=-1)
+    rho = np.where(n <= 3.0, 0.5 * n**2, 3.0 * (n - 1.5))
+    np.testing.assert_allclose(got.numpy(), rho.mean(-1), rtol=1e-12)
+    truth2 = truth.clone()
+    truth2[..., 2] += 100.0
+    assert torch.equal(loss(types.SimpleNamespace(mean=mean), {"truth": truth2}), got)
+    with pytest.raises(ValueError, match="loss must be"):
+        protocol.training_loss({"loss": "mse"})
+
+
+def test_a_learned_model_is_chosen_only_below_every_non_learned_candidate() -> None:
+    """``select_with_fallbacks``: strictly below the hand-tuned filter AND the untrained start, else the
+    better of the two (the hand-tuned filter on a tie with the start; a tie with a learned model
+    keeps the non-learned one)."""
+    learned = [[10.0, 9.0, 8.5], [9.5, 8.0, 8.7]]
+    assert protocol.select_with_fallbacks(learned, start=9.0, hand=8.5) == ("learned", 1, 1)
+    assert protocol.select_with_fallbacks(learned, start=8.0, hand=9.0) == ("start", 0, 0)
+    assert protocol.select_with_fallbacks(learned, start=9.0, hand=8.0) == ("hand-tuned", 0, 0)
+    assert protocol.select_with_fallbacks(learned, start=7.0, hand=7.0) == ("hand-tuned", 0, 0)
+    assert protocol.select_with_fallbacks(learned, start=7.5, hand=None) == ("start", 0, 0)
+    assert protocol.select_with_fallbacks(learned, start=None, hand=None) == ("learned", 1, 1)
+    assert protocol.select_with_fallbacks(learned, start=9.0, hand=8.5, horizon=0) == ("hand-tuned", 0, 0)
+
+
+@pytest.mark.slow
+def test_v3_trains_on_position_and_never_selects_a_model_that_validates_worse_than_its_start(tmp_path) -> None:
+    """v3 end to end on a cut drive: the selected row of each variant validates no worse than the
+    hand-tuned filter and the untrained start, and it is a learned model only when strictly better
+    than both."""
+    drives = tmp_path / "drives"
+    write_drive(drives, "Cut", start=100.0, stop=140.0)
+    cfg = _v3_config(drives)
+    assert cfg["loss"] == "position" and cfg["selection"] == {"hand_tuned_candidate": True, "start_candidate": True}
+    cfg["epochs"] = 2
+    summary = run_protocol(cfg, tmp_path / "run", workers=1)
+    for fs in summary["folds"].values():
+        sel = fs["selection"]["learned-elev_cn0"]
+        hand = fs["hand_val"]["median"] + fs["hand_val"]["rms"]
+        start = fs["val_scores"]["elev_cn0/seedstart"][0]
+        learned = min(min(s) for k, s in fs["val_scores"].items() if k.startswith("elev_cn0/seed") and k != "elev_cn0/seedstart")
+        assert sel["val_score"] <= min(hand, start) + 1e-12
+        assert sel["best_learned"]["val_score"] == pytest.approx(learned)
+        if learned < min(hand, start):
+            assert sel["seed"] not in ("hand-tuned", "start")
+        else:
+            assert sel["seed"] == ("start" if start < hand else "hand-tuned")
+    from experiments.realdata_tables import tables
+
+    md = tables(tmp_path / "run")  # the run's own numbers as markdown (learned vs hand-tuned and vs the untrained gate)
+    rows = {r["filter"]: r for r in summary["folds"]["A"]["test"]}
+    assert f"| A | learned-elev_cn0 | {rows['learned-elev_cn0']['median']:.2f} | {rows['learned-elev_cn0']['rms']:.2f} |" in md
+    assert "| B | untrained-gate |" in md and "| A | learned-elev_cn0 | " in md.split("best learned")[1]

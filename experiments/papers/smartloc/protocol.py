@@ -13,7 +13,9 @@ model, :mod:`experiments.papers.smartloc.variants`):
    learnable smooth reject gate) starts from the hand-tuned values; every positive parameter is
    bounded to ``[start / bound_ratio, start x bound_ratio]`` and pulled back to its start by a
    :class:`~experiments.holdout.LogDistancePrior`; ``seeds`` replicates (seeded log-normal
-   perturbations of the start) train by innovation likelihood (no reference positions);
+   perturbations of the start) train by innovation likelihood (no reference positions) or, with
+   ``loss: position``, by a Huber loss of the horizontal error against the train block's
+   reference track (:func:`training_loss`);
 3. after every epoch the validation blocks' horizontal median + RMS error is recorded
    (:class:`~experiments.holdout.EpochSnapshots`); the model used on test is the
    (seed, epoch) - or the unperturbed start - with the lowest validation score
@@ -47,10 +49,17 @@ from difffilter.filters import EKF
 from difffilter.filters.protocol import Filter
 from difffilter.learn.data import TrajectorySet, WindowedTrajectories
 from difffilter.learn.learner import FilterLearner, LearnerOptions
-from difffilter.learn.losses import LogPrior
+from difffilter.learn.losses import FilterLoss, HuberLoss, LogPrior
 from difffilter.learn.replicates import perturb_initial_values
 from difffilter.selection import assign_parameters, match_parameters, parameter_owners
-from experiments.holdout import EpochSnapshots, LogDistancePrior, bound_parameters, contiguous_blocks, restore_snapshot
+from experiments.holdout import (
+    EpochSnapshots,
+    LogDistancePrior,
+    bound_parameters,
+    contiguous_blocks,
+    restore_snapshot,
+    select_candidate,
+)
 
 from .data import SmartLocData, find_drives, load_drive
 from .model import make_smartloc_model, smartloc_initial_belief
@@ -70,9 +79,11 @@ __all__ = [
     "learned_filter",
     "learned_names",
     "load_drives",
+    "select_with_fallbacks",
     "selected_filter",
     "start_candidate",
     "train_jobs",
+    "training_loss",
     "validation_score",
 ]
 
@@ -263,6 +274,38 @@ def learned_names(filt: Filter, patterns: Sequence[str]) -> list[str]:
     return sorted(set(out))
 
 
+def training_loss(cfg: Mapping[str, Any]) -> FilterLoss | str:
+    """The training loss of ``cfg["loss"]``: ``"nll"`` (default) the innovation likelihood (no
+    reference positions); ``"position"`` the mean over epochs of a Huber function of the horizontal
+    (E, N) error against the training block's reference track, quadratic up to
+    ``position_loss.huber_delta`` metres and linear beyond (so lock-loss stretches with errors of
+    50-100 m do not dominate the gradient)."""
+    kind = str(cfg.get("loss", "nll"))
+    if kind == "nll":
+        return "nll"
+    if kind == "position":
+        delta = float(dict(cfg.get("position_loss") or {}).get("huber_delta", 10.0))
+        return HuberLoss(state_index=[0, 1], truth_index=[0, 1], delta=delta)
+    raise ValueError(f"loss must be 'nll' or 'position', got {kind!r}")
+
+
+def select_with_fallbacks(
+    learned: Sequence[Sequence[float]], *, start: float | None, hand: float | None, horizon: int | None = None
+) -> tuple[str, int, int]:
+    """The validation choice among the learned ``(replicate, epoch)`` scores and the non-learned
+    candidates (the untrained start's score ``start`` and the hand-tuned filter's ``hand``; ``None``:
+    not a candidate).  A learned model is chosen only if its score is strictly below every
+    non-learned candidate's; otherwise the best non-learned one (the hand-tuned filter on a tie).
+    Returns ``("learned", replicate, epoch)``, ``("start", 0, 0)`` or ``("hand-tuned", 0, 0)``."""
+    rep, ep = select_candidate(learned, horizon)
+    best = float(learned[rep][ep])
+    others = [(float(v), k) for k, v in (("hand-tuned", hand), ("start", start)) if v is not None and math.isfinite(float(v))]
+    if not others or all(best < v for v, _ in others):
+        return "learned", rep, ep
+    low = min(v for v, _ in others)
+    return next(k for v, k in others if v == low), 0, 0  # "hand-tuned" first: it wins a tie with the start
+
+
 def _train_job(job: Mapping[str, Any]) -> dict[str, Any]:
     """One replicate: train, recording validation scores and parameter snapshots every epoch."""
     torch.set_num_threads(1)
@@ -277,7 +320,7 @@ def _train_job(job: Mapping[str, Any]) -> dict[str, Any]:
     snaps = EpochSnapshots(lambda f: validation_score(f, sets["val"]), names)
     learner = FilterLearner(
         filt.double(),
-        "nll",
+        training_loss(cfg),
         learn=names,
         optimizer=functools.partial(torch.optim.Adam, lr=float(cfg["lr"])),
         prior=LogPrior(priors, weight=float(prior["weight"])),

@@ -48,6 +48,7 @@ from .protocol import (
     hand_tuned_filter,
     horizontal_errors,
     learned_filter,
+    select_with_fallbacks,
     selected_filter,
     start_candidate,
     train_jobs,
@@ -179,17 +180,36 @@ def run_protocol(cfg: Mapping[str, Any], output_dir: str | Path, *, workers: int
         fold_sum["hand_val"] = dict(hand_extra)
         # The hand-tuned filter as a candidate of its own: it keeps its place unless a learned model validates strictly better.
         fallback = bool(dict(cfg.get("selection") or {}).get("hand_tuned_candidate", False))
+        # start_candidate: the untrained start is a non-learned candidate too; a learned model must beat it strictly.
+        strict_start = bool(dict(cfg.get("selection") or {}).get("start_candidate", False))
         for variant in cfg["variants"]:
             mine = [r for r in runs if r["fold"] == fold and r["variant"] == variant]
             for h in horizons:
-                rep, ep = select_candidate([r["scores"] for r in mine], int(cfg["epochs"]) * h)
-                run = mine[rep]
+                if strict_start:
+                    trained = [r for r in mine if r["seed"] != "start"]
+                    start = next(r for r in mine if r["seed"] == "start")
+                    kind, rep, ep = select_with_fallbacks(
+                        [r["scores"] for r in trained],
+                        start=start["scores"][0],
+                        hand=hand_score if fallback else None,
+                        horizon=int(cfg["epochs"]) * h,
+                    )
+                    best = select_candidate([r["scores"] for r in trained], int(cfg["epochs"]) * h)
+                    best_learned = {"seed": trained[best[0]]["seed"], "epoch": best[1], "val_score": trained[best[0]]["scores"][best[1]]}
+                    run = trained[rep] if kind == "learned" else start
+                else:
+                    rep, ep = select_candidate([r["scores"] for r in mine], int(cfg["epochs"]) * h)
+                    run, kind, best_learned = mine[rep], "learned", None
                 name = f"learned-{variant}" + ("" if h == horizons[0] else f" ({h}x epochs)")
-                if fallback and not run["scores"][ep] < hand_score:
+                if fallback and (kind == "hand-tuned" or (not strict_start and not run["scores"][ep] < hand_score)):
                     filters[name] = filters["hand-tuned"]
                     fold_sum["selection"][name] = {"seed": "hand-tuned", "epoch": 0, "val_score": hand_score, "values": {}}
                     fold_sum["selection"][name] |= {f"val_{k}": v for k, v in hand_extra.items()}
-                    fold_sum["selection"][name]["best_learned"] = {"seed": run["seed"], "epoch": ep, "val_score": run["scores"][ep]}
+                    fold_sum["selection"][name]["best_learned"] = best_learned or {
+                        "seed": run["seed"],
+                        "epoch": ep,
+                        "val_score": run["scores"][ep],
+                    }
                     if h == horizons[0]:
                         selected[f"{fold}/{variant}"] = {"hand_tuned": True, "coefficients": coefs[(fold, variant)]}
                     continue
@@ -202,6 +222,8 @@ def run_protocol(cfg: Mapping[str, Any], output_dir: str | Path, *, workers: int
                     **{f"val_{k}": v for k, v in run["extras"][ep].items()},
                     "values": _values(filt, list(run["snapshots"][ep])),
                 }
+                if best_learned is not None:
+                    fold_sum["selection"][name]["best_learned"] = best_learned
                 if h == horizons[0]:
                     selected[f"{fold}/{variant}"] = {"coefficients": coefs[(fold, variant)], "snapshot": run["snapshots"][ep]}
             fold_sum["val_scores"] = fold_sum.get("val_scores", {}) | {f"{variant}/seed{r['seed']}": r["scores"] for r in mine}
@@ -372,6 +394,10 @@ def format_tables(summary: Mapping[str, Any]) -> str:
             if sel["seed"] == "hand-tuned":
                 b = sel["best_learned"]
                 vals = f"no learned model validates better (best: seed {b['seed']}, epoch {b['epoch']}, {b['val_score']:.2f})"
+            elif sel["seed"] == "start" and "best_learned" in sel:
+                b = sel["best_learned"]
+                best = f"best: seed {b['seed']}, epoch {b['epoch']}, {b['val_score']:.2f}"
+                vals = f"the untrained start; no learned model validates better ({best}); {vals}"
             parts.append(
                 f"- {name}: seed {sel['seed']}, epoch {sel['epoch']}, validation {sel['val_median']:.2f} + {sel['val_rms']:.2f}; {vals}"
             )

@@ -17,6 +17,8 @@ from difffilter.func import per_sample_grads, stack_parameters, vmap_filter
 from difffilter.models import FunctionalModel, LinearModel
 from difffilter.smoothers import IteratedSmoother
 
+from .test_engine_policy import _Recording
+
 F64 = torch.float64
 
 
@@ -31,19 +33,6 @@ def fresh_policy(monkeypatch):
     policy.set_engine(None)
     policy._runners.clear()
     policy._failed.clear()
-
-
-class _Recording:
-    """Stands in for the compiled runner: records each call, returns the eager result."""
-
-    calls: list[tuple[int, ...]] = []
-
-    def __init__(self, filt, engine):  # type: ignore[no-untyped-def]
-        self.filter = filt
-
-    def _run(self, z, m0, p0, mask, controls, belief=None):  # type: ignore[no-untyped-def]
-        _Recording.calls.append(tuple(z.shape))
-        return self.filter._run(z, m0, p0, mask, controls, belief=belief)
 
 
 def _linear(k: int) -> LinearModel:

@@ -27,6 +27,11 @@ from types import SimpleNamespace  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
+try:  # the optional peer; dynamax_available() below says why it is skipped when missing
+    import jax  # noqa: E402
+except ImportError:
+    jax = None
+
 from difffilter.engines import FusedFilter  # noqa: E402
 from difffilter.engines.policy import chosen_engine, last_engine  # noqa: E402
 from experiments.benchmarks.cases import builtin_case  # noqa: E402
@@ -117,9 +122,7 @@ def main(argv: list[str] | None = None) -> str:
             )
         )
     peer = "skipped (--no-peer)" if args.no_peer else dynamax_available()
-    if peer is None:
-        import jax
-
+    if peer is None and jax is not None:
         dx = prepare_dynamax("ukf", data, dtype, "train", ukf_alpha=1.0, ukf_beta=2.0, ukf_kappa=0.0)
         best, _ = _best(dx.run, args.repeats, "cpu")  # run() blocks until done
         rows.append((f"dynamax UKF (jax {jax.default_backend()})", "jit", dx.compile_s, best, float(np.abs(dx.loglik() - ref).max())))

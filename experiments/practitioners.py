@@ -6,7 +6,7 @@ paper's constants, ``hand-tuned``) and adds to ``summary.csv``, per test set (gr
 
 * the paired difference learned - *best non-learned* (``diff`` and ``diff_pct`` rows of
   ``learned`` whose ``reference`` names the best), where the best is the lowest mean test RMSE
-  among the non-learned methods of :data:`experiments.results_report.METHODS` that ran, the rule
+  among the non-learned methods of :data:`experiments.results_tables.METHODS` that ran, the rule
   pre-declared in ``results/p00_practitioners.md``; the interval is over seeds x runs when the
   seeds share their test runs (the paper's constants then give the same per-run values in every
   seed), else over seed means, as the sweep's own differences;
@@ -40,8 +40,7 @@ from typing import Any  # noqa: E402
 
 import torch  # noqa: E402
 
-from experiments.results_report import METHODS, REFERENCE  # noqa: E402
-from experiments.results_tables import FIELDS  # noqa: E402
+from experiments.results_tables import FIELDS, METHODS, REFERENCE  # noqa: E402
 from experiments.runner.sweep import Job, _interval, _matrix, load_jobs, summarize_sweep  # noqa: E402
 
 __all__ = ["best_non_learned", "join_learned_adaptive", "main", "summarize_learned_adaptive", "summarize_practitioners"]

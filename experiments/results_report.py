@@ -26,7 +26,10 @@ from collections.abc import Sequence  # noqa: E402
 from dataclasses import dataclass, replace  # noqa: E402
 
 from experiments.efficiency_transfer import DATA_FILES  # noqa: E402
+from experiments.practitioners import join_learned_adaptive  # noqa: E402
 from experiments.results_tables import (  # noqa: E402
+    METHODS,
+    REFERENCE,
     ROOT,
     Row,
     anees_band,
@@ -226,18 +229,7 @@ FAMILIES: tuple[Family, ...] = (
     Family("p004_mems", "p004", "in-family", "MEMS IMU noise", "p004_mems.md", f"{_R}/p004_mems", practitioners=True),
 )
 
-#: Summary columns of the non-learned methods (column title, filter name in the CSVs).
-METHODS: tuple[tuple[str, str], ...] = (
-    ("paper's constants", "hand-tuned"),
-    ("textbook rule", "textbook"),
-    ("validation search", "validation-search"),
-    ("EM", "em"),
-    ("Sage-Husa", "sage-husa"),
-    ("VB-AKF", "vb-akf"),
-    ("covariance matching", "covariance-matching"),
-)
 LEARNED: tuple[tuple[str, str], ...] = (("learned", "learned"), ("learned adaptive", "learned-adaptive"))
-REFERENCE = "hand-tuned"
 
 
 def _get(rows: Sequence[Row], group: str, name: str, quantity: str, reference: str = "") -> Row | None:
@@ -511,8 +503,6 @@ def _rejoin_learned_adaptive(fam: Family, root: Path) -> None:
     that the sweep's rebuilt rows are the file's)."""
     sweep = root / f"{fam.sweep}_learned_adaptive"
     if fam.sweep.startswith(PRACTITIONERS_ROOT) and sweep.is_dir():
-        from experiments.practitioners import join_learned_adaptive  # it imports this module
-
         join_learned_adaptive(sweep, _source(fam, root))
 
 

@@ -41,6 +41,8 @@ from scipy.stats import chi2
 
 __all__ = [
     "FIELDS",
+    "METHODS",
+    "REFERENCE",
     "Row",
     "anees_band",
     "anees_verdict",
@@ -57,6 +59,19 @@ __all__ = [
     "render_text",
     "unmarked_tables",
 ]
+
+#: Summary columns of the non-learned methods (column title, filter name in the CSVs).
+METHODS: tuple[tuple[str, str], ...] = (
+    ("paper's constants", "hand-tuned"),
+    ("textbook rule", "textbook"),
+    ("validation search", "validation-search"),
+    ("EM", "em"),
+    ("Sage-Husa", "sage-husa"),
+    ("VB-AKF", "vb-akf"),
+    ("covariance matching", "covariance-matching"),
+)
+#: The row every sweep pairs its differences with (the paper's constants).
+REFERENCE = "hand-tuned"
 
 ROOT = Path(__file__).resolve().parents[1]
 

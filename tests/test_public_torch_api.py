@@ -20,6 +20,7 @@ D = torch.float64
 ALLOWED_PRIVATE = {
     "torch._C._storage_Use_Count",  # buffer reuse; without it buffers are never reused (test below)
     "torch._dynamo.config",  # recompile limit of the inductor engine (documented knob)
+    "torch._C._functorch",  # is a torch.func transform active? without it the engine's error falls back to eager
 }
 
 

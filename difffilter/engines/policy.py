@@ -42,7 +42,14 @@ from collections import OrderedDict
 
 import torch
 from torch import Tensor
-from torch._C import _functorch
+
+try:  # torch.func's transform stack (no public query exists); see the fallback below
+    from torch._C._functorch import get_interpreter_stack as _transform_stack
+except ImportError:  # pragma: no cover - a torch without it: transforms reach the engine, whose error falls back to eager
+
+    def _transform_stack() -> list[object] | None:
+        return None
+
 
 from ..filters.base import Belief, FilterResult, RecursiveFilter
 from ..models.base import Controls
@@ -174,7 +181,7 @@ def _compiled_result(
         return None, "eager"
     if measurements.device.type != "cpu" or measurements.dtype not in (torch.float32, torch.float64) or measurements.dim() != 3:
         return None, "eager"
-    if torch.compiler.is_compiling() or _functorch.get_interpreter_stack():
+    if torch.compiler.is_compiling() or _transform_stack():
         # a transform's wrapped tensors have no storage for the kernels to read: eager, and the
         # filter is not marked as one the engine failed on (its plain calls still compile)
         return None, "eager"

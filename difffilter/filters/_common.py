@@ -18,6 +18,7 @@ __all__ = [
     "detach_belief",
     "expand_controls",
     "mask_measurement_system",
+    "rounding_flags",
     "slice_controls",
 ]
 
@@ -39,7 +40,7 @@ class StepInfo:
     untrusted: Tensor | None = None
     jitter: Tensor | None = None
     #: the inputs of a rounding check not yet made, ``(chol, whitened, var, prediction, mask)``
-    #: (:func:`~difffilter.filters.update.rounding_flags`): the time loop makes it once for a
+    #: (:func:`rounding_flags`): the time loop makes it once for a
     #: block of steps; :meth:`flags` makes it now
     rounding: tuple[Tensor, Tensor, Tensor, Tensor | None, Tensor | None] | None = None
 
@@ -47,10 +48,25 @@ class StepInfo:
         """``[B]`` every flag of the step: ``untrusted`` and the pending :attr:`rounding` check."""
         if self.rounding is None:
             return self.untrusted
-        from .update import rounding_flags  # the updates build on this module
-
         rounding = rounding_flags(*self.rounding)
         return rounding if self.untrusted is None else self.untrusted | rounding
+
+
+def rounding_flags(chol: Tensor, whitened: Tensor, var: Tensor, prediction: Tensor | None, mask: Tensor | None) -> Tensor:
+    """:func:`~difffilter.filters.update.rounding_untrusted` from ``diag S`` ``var [..., m]``; any leading dimensions
+    (``[B, T, ...]``: a block of steps at once, the same flags as step by step)."""
+    eps = torch.finfo(chol.dtype).eps
+    with torch.no_grad():
+        pivots = torch.diagonal(chol, dim1=-2, dim2=-1).detach().square()
+        var = var.detach()
+        v = whitened.detach()
+        s_inv_e = torch.linalg.solve_triangular(chol.detach().mT, v[..., None], upper=True)[..., 0]
+        spread = pivots.reciprocal().sum(-1) + s_inv_e.square().sum(-1)
+        bad = ~((0.5 * chol.shape[-1] * eps) * var.amax(-1) * spread <= 1e-2 + 1e-4 * v.square().sum(-1))
+        if prediction is not None:
+            lost = ~((eps / 1e-2) ** 2 * prediction.detach().square() <= var)
+            bad = bad | (lost if mask is None else lost & mask).any(-1)
+    return bad
 
 
 def slice_controls(controls: Controls, t: int) -> Controls:

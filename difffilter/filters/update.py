@@ -25,7 +25,7 @@ from ..linalg import (
     symmetrize,
     vmapped,
 )
-from ._common import StepInfo, mask_measurement_system
+from ._common import StepInfo, mask_measurement_system, rounding_flags
 from .diffuse import DIFFUSE_COV, DIFFUSE_SCALE, diffuse_update
 from .protocol import Belief
 
@@ -84,23 +84,6 @@ def rounding_terms(
     :attr:`StepInfo.rounding`: the check made later, for many steps at once."""
     var = torch.diagonal(innovation_cov, dim1=-2, dim2=-1).detach()
     return chol.detach(), whitened.detach(), var, None if prediction is None else prediction.detach(), mask
-
-
-def rounding_flags(chol: Tensor, whitened: Tensor, var: Tensor, prediction: Tensor | None, mask: Tensor | None) -> Tensor:
-    """:func:`rounding_untrusted` from ``diag S`` ``var [..., m]``; any leading dimensions
-    (``[B, T, ...]``: a block of steps at once, the same flags as step by step)."""
-    eps = torch.finfo(chol.dtype).eps
-    with torch.no_grad():
-        pivots = torch.diagonal(chol, dim1=-2, dim2=-1).detach().square()
-        var = var.detach()
-        v = whitened.detach()
-        s_inv_e = torch.linalg.solve_triangular(chol.detach().mT, v[..., None], upper=True)[..., 0]
-        spread = pivots.reciprocal().sum(-1) + s_inv_e.square().sum(-1)
-        bad = ~((0.5 * chol.shape[-1] * eps) * var.amax(-1) * spread <= 1e-2 + 1e-4 * v.square().sum(-1))
-        if prediction is not None:
-            lost = ~((eps / 1e-2) ** 2 * prediction.detach().square() <= var)
-            bad = bad | (lost if mask is None else lost & mask).any(-1)
-    return bad
 
 
 class JosephForm(NamedTuple):

@@ -243,6 +243,9 @@ JOBS: tuple[Job, ...] = (
     Job("p004_outage_practitioners", "p00_practitioners.md", 300, _practitioners("p004_outage")),
     # p003_physical: 973 CPU-s measured (/usr/bin/time, 5 seeds, 51 min wall on the loaded machine; eager engine)
     Job("p003_physical_practitioners", "p00_practitioners.md", 973, _practitioners("p003_physical")),
+    # p003_modes / p003_imm_sins: 926 / 866 CPU-s measured (/usr/bin/time, 5 seeds, 30 / 27 min wall, the two side by side)
+    Job("p003_modes_practitioners", "p00_practitioners.md", 926, _practitioners("p003_modes")),
+    Job("p003_imm_sins_practitioners", "p00_practitioners.md", 866, _practitioners("p003_imm_sins")),
     Job(
         "p002_disturbed_practitioners",
         "p00_practitioners.md",

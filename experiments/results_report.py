@@ -190,7 +190,15 @@ FAMILIES: tuple[Family, ...] = (
         "test=P=0.4",
         practitioners=True,
     ),
-    Family("p003_imm_sins", "p003", "paper's own", "paper-faithful IMM", "p003_imm_sins.md", "outputs/p003_final/p003_imm_sins"),
+    Family(
+        "p003_imm_sins",
+        "p003",
+        "paper's own",
+        "paper-faithful IMM",
+        "p003_imm_sins.md",
+        "outputs/p003_final/p003_imm_sins",
+        practitioners=True,
+    ),
     Family("p004_blend", "p004", "paper's own", "the paper's blend and values", "p004_blend.md", f"{_R}/p004_blend", practitioners=True),
     Family(
         "p004_outage",
@@ -225,7 +233,9 @@ FAMILIES: tuple[Family, ...] = (
     Family(
         "p002_infamily_exactref", "p002", "in-family", "in-family walks (G vs exact UKF)", "p002_pdr.md", f"{_R}/p002_infamily_exactref"
     ),
-    Family("p003_modes", "p003", "in-family", "two-level noise modes", "p003_imm_sins.md", "outputs/p003_final/p003_modes"),
+    Family(
+        "p003_modes", "p003", "in-family", "two-level noise modes", "p003_imm_sins.md", "outputs/p003_final/p003_modes", practitioners=True
+    ),
     Family("p004_mems", "p004", "in-family", "MEMS IMU noise", "p004_mems.md", f"{_R}/p004_mems", practitioners=True),
 )
 

@@ -78,9 +78,10 @@ def test_a_changed_csv_fails_the_check_until_rendered(tmp_path):
     data.write_text(data.read_text().replace("0.9613", "0.9612", 1))
     problems = check(root)
     assert "results/p003_imm_sins.md: table p003_modes_rmse: differs from results/data/p003_modes.csv" in problems
-    assert "results/REPORT.md: differs from what results/data gives" in problems
+    # REPORT's p003_modes row reads the family's practitioners file; its own detail page reads this one
+    assert "results/detail/p003_modes.md: differs from what results/data gives" in problems
     changed = render(root)
-    assert check(root) == [] and root / "results" / "REPORT.md" in changed
+    assert check(root) == [] and root / "results" / "detail" / "p003_modes.md" in changed
     assert "0.9612 [0.8548, 1.068]" in (root / "results" / "p003_imm_sins.md").read_text()
 
 
@@ -191,7 +192,7 @@ def test_collect_takes_a_sweeps_summary_csv_and_the_check_passes_after_rendering
     assert results_report.collect(root) == [sweep / "summary.csv"]
     assert "0.9611" in data.read_text() and check(root) != []
     render(root)
-    assert check(root) == [] and "0.9611 [0.8548, 1.068]" in (root / "results" / "REPORT.md").read_text()
+    assert check(root) == [] and "0.9611 [0.8548, 1.068]" in (root / "results" / "detail" / "p003_modes.md").read_text()
     (sweep / "summary.csv").write_text("group,filter\n,x\n")  # not a summary.csv: nothing is overwritten
     with pytest.raises(ValueError, match="columns must be"):
         results_report.collect(root)

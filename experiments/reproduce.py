@@ -281,6 +281,11 @@ JOBS: tuple[Job, ...] = (
         188,
         _learned_adaptive("p002_disturbed_learned_adaptive", "p002_disturbed_rcukf"),
     ),
+    # ("Learned adaptive, more families", session la25b)
+    Job("p004_mems_learned_adaptive", "p00_practitioners.md", 177, _learned_adaptive("p004_mems_learned_adaptive", "p004_mems")),
+    Job("p004_blend_learned_adaptive", "p00_practitioners.md", 168, _learned_adaptive("p004_blend_learned_adaptive", "p004_blend")),
+    Job("p004_outage_learned_adaptive", "p00_practitioners.md", 154, _learned_adaptive("p004_outage_learned_adaptive", "p004_outage")),
+    Job("p002_pdr_learned_adaptive", "p00_practitioners.md", 142, _learned_adaptive("p002_pdr_learned_adaptive", "p002_pdr_rcukf")),
     # issue 25: data efficiency (N = 1, 4, 16 training trajectories) and transfer across p002's
     # families (results/p00_efficiency_transfer.md); the transfer pairs read all three p002 sweeps
     Job(

@@ -29,6 +29,10 @@ FAMILIES = {
     "p001_elevation_learned_adaptive": "p001_elevation_practitioners",
     "p004_urban_learned_adaptive": "p004_urban_practitioners",
     "p002_disturbed_learned_adaptive": "p002_disturbed_practitioners",
+    "p004_mems_learned_adaptive": "p004_mems_practitioners",
+    "p004_blend_learned_adaptive": "p004_blend_practitioners",
+    "p004_outage_learned_adaptive": "p004_outage_practitioners",
+    "p002_pdr_learned_adaptive": "p002_pdr_practitioners",
 }
 #: what a learned adaptive job must share with its family's training (everything but the filter and `learn`)
 SHARED = ("data", "trainer", "optimizer", "scheduler", "loss", "learner", "seed", "dtype", "model", "scenario")

@@ -23,7 +23,6 @@ from ..linalg import (
     psd_sqrt,
     safe_cholesky,
     symmetrize,
-    vmapped,
 )
 from ._common import StepInfo, mask_measurement_system, rounding_flags
 from .diffuse import DIFFUSE_COV, DIFFUSE_SCALE, diffuse_update
@@ -209,14 +208,14 @@ def untrusted_steps(mean: Tensor, cov: Tensor, prior_cov: Tensor, log_likelihood
     # a NaN compares False, so non-finite variances are flagged too; whole-run checks first
     # (one reduction each: nonfinite_rows' sum), per-step reductions only when one fails
     # (inside vmap, where values cannot be read, the per-step reductions always run: same value)
-    if vmapped(log_likelihood) or bool(nonfinite_rows(log_likelihood, 0)):
+    if any_set(nonfinite_rows(log_likelihood, 0)):
         bad = ~torch.isfinite(log_likelihood)
     else:
         bad = torch.zeros(log_likelihood.shape, dtype=torch.bool, device=log_likelihood.device)
     low = ~(post_var >= limit * prior_var)
-    if vmapped(low) or bool(low.any()):
+    if any_set(low):
         bad = bad | low.any(-1)
-    if vmapped(mean) or bool(nonfinite_rows(mean, 0)):
+    if any_set(nonfinite_rows(mean, 0)):
         bad = bad | nonfinite_rows(mean, mean.dim() - 1)
     if exact is not None:
         bad = bad & ~exact

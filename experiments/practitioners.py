@@ -19,8 +19,7 @@ paper's constants, ``hand-tuned``) and adds to ``summary.csv``, per test set (gr
 *learned adaptive* sweep (``experiment=<family>_learned_adaptive``: Sage-Husa with its forgetting
 factor and starting noise learned, a separate training job that also rebuilds the family's
 non-learned rows on the same test runs) to the family's data file as the ``learned-adaptive``
-rows (:func:`join_learned_adaptive`); ``--standalone <CSV>`` instead writes the sweep's own
-data file, every row from that sweep (:func:`summarize_learned_adaptive`).
+rows (:func:`join_learned_adaptive`).
 """
 
 from __future__ import annotations
@@ -34,7 +33,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import argparse  # noqa: E402
 import csv  # noqa: E402
 import math  # noqa: E402
-import shutil  # noqa: E402
 from collections.abc import Sequence  # noqa: E402
 from typing import Any  # noqa: E402
 
@@ -43,7 +41,7 @@ import torch  # noqa: E402
 from experiments.results_tables import FIELDS, METHODS, REFERENCE  # noqa: E402
 from experiments.runner.sweep import Job, _interval, _matrix, load_jobs, summarize_sweep  # noqa: E402
 
-__all__ = ["best_non_learned", "join_learned_adaptive", "main", "summarize_learned_adaptive", "summarize_practitioners"]
+__all__ = ["best_non_learned", "join_learned_adaptive", "main", "summarize_practitioners"]
 
 LEARNED = "learned"
 ADAPTIVE = "learned-adaptive"
@@ -75,10 +73,9 @@ def _tuning_rows(jobs: Sequence[Job], group: str) -> list[dict[str, Any]]:
     return out
 
 
-def summarize_practitioners(sweep_dir: str | Path, *, metric: str = "rmse_pos", prob: float = 0.95, learned: str = LEARNED) -> Path:
-    """Summarise ``sweep_dir`` (module docstring; ``learned`` names the trained row paired with the
-    best non-learned one); returns the ``summary.csv`` path."""
-    _, path = summarize_sweep(sweep_dir, metric=metric, reference=REFERENCE, learned=learned, prob=prob)
+def summarize_practitioners(sweep_dir: str | Path, *, metric: str = "rmse_pos", prob: float = 0.95) -> Path:
+    """Summarise ``sweep_dir`` (module docstring); returns the ``summary.csv`` path."""
+    _, path = summarize_sweep(sweep_dir, metric=metric, reference=REFERENCE, prob=prob)
     with path.open(newline="") as fh:
         rows: list[dict[str, Any]] = list(csv.DictReader(fh))
     jobs = load_jobs(sweep_dir)
@@ -87,17 +84,17 @@ def summarize_practitioners(sweep_dir: str | Path, *, metric: str = "rmse_pos", 
         gjobs = [j for j in jobs if j.group == group]
         extra += _tuning_rows(gjobs, group)
         best = best_non_learned(rows, group, metric)
-        trained = _matrix(gjobs, learned, metric)
+        trained = _matrix(gjobs, LEARNED, metric)
         if best is None or best == REFERENCE or trained is None:
             continue  # against the paper's constants the sweep's own diff rows are the paired ones
         ref, hand = _matrix(gjobs, best, metric), _matrix(gjobs, REFERENCE, metric)
         if ref is None:
             continue
         # the seeds share their test runs when the paper's constants give the same per-run values
-        crossed = hand is not None and bool(torch.allclose(hand, hand[:1].expand_as(hand), rtol=1e-12, atol=0.0, equal_nan=True))
+        crossed = hand is not None and _same_every_seed(hand)
         diff = _interval(trained - ref, crossed, prob)
         base = float(ref[torch.isfinite(ref)].mean())
-        common = {"group": group, "filter": learned, "seeds": trained.shape[0], "runs": trained.shape[1], "reference": best}
+        common = {"group": group, "filter": LEARNED, "seeds": trained.shape[0], "runs": trained.shape[1], "reference": best}
         for qty, iv in (("diff", diff), ("diff_pct", diff.scaled(100.0 / base))):
             extra.append({**common, "quantity": qty, "estimate": iv.estimate, "lo": iv.lo, "hi": iv.hi})
     with path.open("w", newline="") as fh:
@@ -105,6 +102,12 @@ def summarize_practitioners(sweep_dir: str | Path, *, metric: str = "rmse_pos", 
         writer.writeheader()
         writer.writerows(rows + extra)
     return path
+
+
+def _same_every_seed(m: torch.Tensor) -> bool:
+    """Whether every seed's row of ``m [seeds, runs]`` equals the first (the seeds share their
+    test runs and the filter does not depend on the seed)."""
+    return bool(torch.allclose(m, m[:1].expand_as(m), rtol=1e-12, atol=0.0, equal_nan=True))
 
 
 def _rows(common: dict[str, Any], qty: str, iv: Any, reference: str = "") -> dict[str, Any]:
@@ -145,13 +148,13 @@ def join_learned_adaptive(
         }
         if not committed:
             raise ValueError(f"{into} has no {metric} rows for group {group!r} (the sweep's test sets must be the family's)")
-        crossed = bool(torch.allclose(paper, paper[:1].expand_as(paper), rtol=1e-12, atol=0.0, equal_nan=True))
+        crossed = _same_every_seed(paper)
         checked = []
         for job_name, file_name in [(PAPER, REFERENCE), *((n, n) for n in sorted(names))]:
             m = _matrix(gjobs, job_name, metric)
             if m is None or file_name not in committed:
                 continue
-            varies = not bool(torch.allclose(m, m[:1].expand_as(m), rtol=1e-12, atol=0.0, equal_nan=True))
+            varies = not _same_every_seed(m)
             value = _interval(m if varies else m[:1], crossed, prob).estimate
             rel = abs(value - committed[file_name]) / abs(committed[file_name])
             if not rel <= rtol:
@@ -182,19 +185,7 @@ def join_learned_adaptive(
         if LEARNED in committed:
             line += f"; - {LEARNED} (unpaired, means): {100.0 * (iv.estimate - committed[LEARNED]) / committed[LEARNED]:.4g} %"
         lines.append(line)
-        cpu = [v for j in gjobs if math.isfinite(v := float(j.results.get(LEARNED, {}).get("tuning_cpu_s") or "nan"))]
-        if cpu:
-            extra.append(
-                {
-                    **common,
-                    "quantity": "tuning_cpu_s",
-                    "estimate": sum(cpu) / len(cpu),
-                    "lo": min(cpu),
-                    "hi": max(cpu),
-                    "runs": "",
-                    "reference": "",
-                }
-            )
+        extra += [{**r, "filter": ADAPTIVE} for r in _tuning_rows(gjobs, group) if r["filter"] == LEARNED]
     seeds = {j.replicate: j.results.get(LEARNED, {}).get("parameters", "") for j in jobs}
     lines += [f"seed {s}: {p}" for s, p in seeds.items()]
     with Path(into).open("w", newline="") as fh:
@@ -202,50 +193,6 @@ def join_learned_adaptive(
         writer.writeheader()
         writer.writerows(rows + extra)
     return lines
-
-
-#: Row names of a learned adaptive job as its own family's data file reads them.
-ADAPTIVE_NAMES = {LEARNED: ADAPTIVE, REFERENCE: "sage-husa-start", PAPER: REFERENCE}
-
-
-def _renamed_copy(path: Path, out: Path) -> None:
-    with path.open(newline="") as fh:
-        reader = csv.DictReader(fh)
-        fields, rows = list(reader.fieldnames or []), list(reader)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    with out.open("w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=fields)
-        writer.writeheader()
-        writer.writerows({**r, "filter": ADAPTIVE_NAMES.get(r["filter"], r["filter"])} for r in rows)
-
-
-def summarize_learned_adaptive(sweep_dir: str | Path, out: str | Path, *, metric: str = "rmse_pos", prob: float = 0.95) -> Path:
-    """The data file ``out`` of a learned adaptive sweep on its own, for when its rebuilt rows are
-    not the committed family file's (another code state: :func:`join_learned_adaptive` refuses).
-
-    The sweep's files are copied to ``<sweep_dir>_as_family`` with the rows renamed
-    (:data:`ADAPTIVE_NAMES`: its ``learned`` row is ``learned-adaptive``, the family's filter at
-    the paper's values ``hand-tuned``, the adaptive filter at its start values
-    ``sage-husa-start``) and summarised there as a practitioners sweep
-    (:func:`summarize_practitioners` with ``learned="learned-adaptive"``: every row against the
-    paper's constants, learned adaptive - best non-learned paired per run and seed, tuning CPU);
-    the summary is copied to ``out``.  Every row then comes from one code state; the family's
-    plain ``learned`` row is not in it."""
-    root = Path(sweep_dir)
-    mirror = root.with_name(root.name + "_as_family")  # beside the sweep: inside, its jobs would be the sweep's
-    if mirror.exists():
-        shutil.rmtree(mirror)
-    for per_run in root.rglob("per_run.csv"):
-        rel = per_run.parent.relative_to(root)
-        for name in ("per_run.csv", "results.csv"):
-            if (per_run.parent / name).exists():
-                _renamed_copy(per_run.parent / name, mirror / rel / name)
-        if (per_run.parent / ".hydra").is_dir():
-            shutil.copytree(per_run.parent / ".hydra", mirror / rel / ".hydra")
-    path = summarize_practitioners(mirror, metric=metric, prob=prob, learned=ADAPTIVE)
-    Path(out).parent.mkdir(parents=True, exist_ok=True)
-    shutil.copyfile(path, out)
-    return Path(out)
 
 
 def main(argv: Sequence[str] | None = None) -> Path:
@@ -256,15 +203,10 @@ def main(argv: Sequence[str] | None = None) -> Path:
     ap.add_argument("--metric", default="rmse_pos")
     ap.add_argument("--adaptive", help="a learned adaptive sweep to join to --into as the learned-adaptive rows")
     ap.add_argument("--into", help="the family's data file, results/data/<family>_practitioners.csv")
-    ap.add_argument("--standalone", help="with --adaptive: write the sweep's own data file (every row from the sweep, renamed)")
     args = ap.parse_args(argv)
     if args.adaptive:
-        if bool(args.into) == bool(args.standalone) or args.sweep_dir:
-            ap.error("--adaptive takes one of --into <family CSV> or --standalone <CSV>, and no sweep_dir")
-        if args.standalone:
-            out = summarize_learned_adaptive(args.adaptive, args.standalone, metric=args.metric)
-            print(out.read_text())
-            return out
+        if not args.into or args.sweep_dir:
+            ap.error("--adaptive takes --into <family CSV> and no sweep_dir")
         print("\n".join(join_learned_adaptive(args.adaptive, args.into, metric=args.metric)))
         return Path(args.into)
     if not args.sweep_dir:

@@ -103,19 +103,28 @@ def _transfer_sweeps(tmp_path: Path, shift: float = 0.0) -> tuple[dict, dict]:
     return src, tgt
 
 
-def test_transfer_pairs_the_source_model_with_the_targets_rows(tmp_path):
+def _transfer_rows(tmp_path: Path) -> tuple[list, dict, dict]:
+    """The a -> b pair's summary rows over :func:`_transfer_sweeps`, and the sweeps' per-run
+    values stacked ``[seeds, runs]`` (``src``: the source model on the target's test set)."""
     src, tgt = _transfer_sweeps(tmp_path)
     pair = Pair("a->b", "a", ("data.train_size=16", "test=b-test"), "b", ("test=own",))
     rows = read_rows(summarize_transfer(tmp_path, tmp_path / "t.csv", pairs=[pair]))
-    moved = torch.tensor([src[s]["learned"] for s in range(3)], dtype=torch.float64)
-    own = torch.tensor([tgt[s]["learned"] for s in range(3)], dtype=torch.float64)
-    best = torch.tensor([tgt[s]["sage-husa"] for s in range(3)], dtype=torch.float64)
+
+    def stack(values: dict) -> dict:
+        return {k: torch.tensor([values[s][k] for s in sorted(values)], dtype=torch.float64) for k in values[0]}
+
+    return rows, stack(src), stack(tgt)
+
+
+def test_transfer_pairs_the_source_model_with_the_targets_rows(tmp_path):
+    rows, src, tgt = _transfer_rows(tmp_path)
+    moved, own, best = src["learned"], tgt["learned"], tgt["sage-husa"]
     got = _pick(rows, "a->b", "learned on a", "diff", "learned on target")
     assert got.estimate == pytest.approx(float((moved - own).mean()), rel=1e-9)
     assert _pick(rows, "a->b", "learned on a", "diff_pct", "sage-husa (target)").estimate == pytest.approx(
         float((moved - best).mean() / best.mean() * 100), rel=1e-9
     )
-    assert _pick(rows, "a->b", "em (a)", "rmse_pos").estimate == pytest.approx(float(torch.tensor(src[0]["em"]).mean()))
+    assert _pick(rows, "a->b", "em (a)", "rmse_pos").estimate == pytest.approx(float(src["em"][0].mean()))
 
 
 def test_transfer_refuses_sweeps_tested_on_different_runs(tmp_path):
@@ -185,10 +194,7 @@ def test_collect_copies_the_summaries_into_results_data(tmp_path):
 
 
 def test_transfer_gives_the_targets_own_verdict_too(tmp_path):
-    _, tgt = _transfer_sweeps(tmp_path)
-    pair = Pair("a->b", "a", ("data.train_size=16", "test=b-test"), "b", ("test=own",))
-    rows = read_rows(summarize_transfer(tmp_path, tmp_path / "t.csv", pairs=[pair]))
-    own = torch.tensor([tgt[s]["learned"] for s in range(3)], dtype=torch.float64)
-    best = torch.tensor([tgt[s]["sage-husa"] for s in range(3)], dtype=torch.float64)
+    rows, _, tgt = _transfer_rows(tmp_path)
+    own, best = tgt["learned"], tgt["sage-husa"]
     got = _pick(rows, "a->b", "learned on target", "diff", "sage-husa (target)")
     assert got.estimate == pytest.approx(float((own - best).mean()), rel=1e-9)

@@ -160,35 +160,6 @@ def test_overlay_runs_end_to_end(tmp_path, overlay):
         assert float(next(r for r in csv.DictReader(fh) if r["filter"] == "learned")["tuning_cpu_s"]) > 0
 
 
-def test_standalone_file_renames_the_jobs_rows_and_pairs_learned_adaptive(tmp_path):
-    runs = 8
-    hand = [2.0 + 0.05 * r for r in range(runs)]
-    start = [h + 1.0 for h in hand]  # Sage-Husa at its start values: the job's own hand-tuned row
-    textbook = [h - 0.4 for h in hand]
-    adaptive = [[t - 0.3 - 0.01 * s - 0.002 * r for r, t in enumerate(textbook)] for s in range(3)]
-    job = {"learned": adaptive, "paper-constants": [hand] * 3, "textbook": [textbook] * 3}
-    sweep = _sweep(tmp_path / "adaptive", start, job)
-    out = tmp_path / "data" / "x_learned_adaptive.csv"
-    assert main(["--adaptive", str(sweep), "--standalone", str(out)]) == out
-    rows = read_rows(out)
-    value = {r.filter: r.estimate for r in rows if r.quantity == "rmse_pos"}
-    assert value == pytest.approx(
-        {
-            "hand-tuned": sum(hand) / runs,
-            "sage-husa-start": sum(start) / runs,
-            "textbook": sum(textbook) / runs,
-            "learned-adaptive": torch.tensor(adaptive, dtype=torch.float64).mean().item(),
-        },
-        rel=1e-12,
-    )
-    paired = next(r for r in rows if (r.filter, r.quantity, r.reference) == ("learned-adaptive", "diff", "textbook"))
-    a, t = torch.tensor(adaptive, dtype=torch.float64), torch.tensor(textbook, dtype=torch.float64)
-    iv = crossed_interval(a - t, 0.95)
-    assert (paired.estimate, paired.lo, paired.hi) == pytest.approx((iv.estimate, iv.lo, iv.hi), rel=1e-12)
-    assert not any(r.filter in ("learned", "paper-constants") for r in rows)
-    assert next(r for r in rows if r.quantity == "tuning_cpu_s").filter == "learned-adaptive"
-
-
 def test_collect_joins_the_learned_adaptive_rows_again_after_copying_a_practitioners_summary(tmp_path, monkeypatch):
     import experiments.results_report as report
 

@@ -266,6 +266,16 @@ JOBS: tuple[Job, ...] = (
             "python -m experiments.practitioners outputs/practitioners/p002_pdr_rcukf",
         ),
     ),
+    Job(
+        "p002_infamily_exactref_practitioners",
+        "p00_practitioners.md",
+        186,
+        (
+            "python experiments/train.py -m experiment=p002_infamily_practitioners seed=0,1,2,3,4 logger=csv "
+            "hydra.sweep.dir=outputs/practitioners/p002_infamily_exactref",
+            "python -m experiments.practitioners outputs/practitioners/p002_infamily_exactref --oracle 'exact UKF'",
+        ),
+    ),
     # issue 25: the learned adaptive rows (results/p00_practitioners.md, "Learned adaptive"), joined to the
     # committed practitioners' data files (--collect joins them again after copying a practitioners summary)
     Job(

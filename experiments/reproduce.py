@@ -296,6 +296,13 @@ JOBS: tuple[Job, ...] = (
     Job("p004_blend_learned_adaptive", "p00_practitioners.md", 168, _learned_adaptive("p004_blend_learned_adaptive", "p004_blend")),
     Job("p004_outage_learned_adaptive", "p00_practitioners.md", 154, _learned_adaptive("p004_outage_learned_adaptive", "p004_outage")),
     Job("p002_pdr_learned_adaptive", "p00_practitioners.md", 142, _learned_adaptive("p002_pdr_learned_adaptive", "p002_pdr_rcukf")),
+    # (session px25: p002_infamily_exactref, declared in "p002_infamily_exactref")
+    Job(
+        "p002_infamily_exactref_learned_adaptive",
+        "p00_practitioners.md",
+        174,
+        _learned_adaptive("p002_infamily_learned_adaptive", "p002_infamily_exactref"),
+    ),
     # issue 25: data efficiency (N = 1, 4, 16 training trajectories) and transfer across p002's
     # families (results/p00_efficiency_transfer.md); the transfer pairs read all three p002 sweeps
     Job(

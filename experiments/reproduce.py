@@ -303,6 +303,13 @@ JOBS: tuple[Job, ...] = (
         174,
         _learned_adaptive("p002_infamily_learned_adaptive", "p002_infamily_exactref"),
     ),
+    # (session px25: declared in "p003 learned adaptive"; 758 CPU-s measured, /usr/bin/time, 5 seeds, eager engine)
+    Job(
+        "p003_physical_learned_adaptive",
+        "p00_practitioners.md",
+        758,
+        _learned_adaptive("p003_physical_learned_adaptive", "p003_physical"),
+    ),
     # issue 25: data efficiency (N = 1, 4, 16 training trajectories) and transfer across p002's
     # families (results/p00_efficiency_transfer.md); the transfer pairs read all three p002 sweeps
     Job(

@@ -310,6 +310,7 @@ JOBS: tuple[Job, ...] = (
         758,
         _learned_adaptive("p003_physical_learned_adaptive", "p003_physical"),
     ),
+    Job("p003_modes_learned_adaptive", "p00_practitioners.md", 727, _learned_adaptive("p003_modes_learned_adaptive", "p003_modes")),
     # issue 25: data efficiency (N = 1, 4, 16 training trajectories) and transfer across p002's
     # families (results/p00_efficiency_transfer.md); the transfer pairs read all three p002 sweeps
     Job(

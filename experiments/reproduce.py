@@ -288,6 +288,12 @@ JOBS: tuple[Job, ...] = (
     Job("p002_pdr_learned_adaptive", "p00_practitioners.md", 142, _learned_adaptive("p002_pdr_learned_adaptive", "p002_pdr_rcukf")),
     # ("Learned adaptive, remaining families", session la25c)
     Job("p001_colored_learned_adaptive", "p00_practitioners.md", 313, _learned_adaptive("p001_colored_learned_adaptive", "p001_colored")),
+    Job(
+        "p001_multipath_learned_adaptive",
+        "p00_practitioners.md",
+        322,
+        _learned_adaptive("p001_multipath_learned_adaptive", "p001_multipath"),
+    ),
     # no job for p000_nominal / odometer / gps / gyro
     # (every seed's training diverged: the sweep exits non-zero, no row) nor p000_infamily (seed 2 diverged,
     # the join refused the 4-seed rows): the overlays stay for a rerun under a new declaration

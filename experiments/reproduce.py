@@ -294,6 +294,12 @@ JOBS: tuple[Job, ...] = (
         322,
         _learned_adaptive("p001_multipath_learned_adaptive", "p001_multipath"),
     ),
+    Job(
+        "p001_multipath_shared_learned_adaptive",
+        "p00_practitioners.md",
+        308,
+        _learned_adaptive("p001_multipath_shared_learned_adaptive", "p001_multipath_shared"),
+    ),
     # no job for p000_nominal / odometer / gps / gyro
     # (every seed's training diverged: the sweep exits non-zero, no row) nor p000_infamily (seed 2 diverged,
     # the join refused the 4-seed rows): the overlays stay for a rerun under a new declaration

@@ -1,5 +1,7 @@
-"""The real-data protocol for 2-D ranging recordings (``range2`` + odometry, libRSF format):
-folds, training of the sensor extras, selection on validation, test rows with paired intervals.
+"""The real-data protocol for ranging recordings (libRSF format: ``range2`` + odometry, or
+``range3`` with ``odom3`` or without odometry): folds, training of the sensor extras, selection on
+validation, test rows with paired intervals.  The model is :func:`ranging_model`'s (2-D: position
+and heading; 3-D: position and heading with odometry, position and velocity without).
 
 For one fold (train / validation / test pieces, each a recording and a span of its steps):
 
@@ -49,6 +51,7 @@ from difffilter.datasets.ranging import RangingRecording
 from difffilter.filters import EKF, GatedEKF, SageHusa, VBAdaptiveR
 from difffilter.models.heteroscedastic import RobustGate
 from difffilter.models.navigation.ranging2d import make_ranging_model, multilateration
+from difffilter.models.navigation.ranging3d import make_ranging3d_model
 from experiments.holdout import error_statistics, paired_error_table
 
 __all__ = [
@@ -59,6 +62,7 @@ __all__ = [
     "fold_pieces",
     "lead_in_start",
     "piece_tensors",
+    "ranging_model",
     "run_fold",
     "select_candidate",
     "start_belief",
@@ -66,13 +70,23 @@ __all__ = [
     "summary_statistics",
 ]
 
+
 #: ``{row name: factory(recording) -> filter}``: further baselines evaluated on every test piece.
 #: The adaptive filters estimate ``R`` on line from the innovations, started at the file's
 #: variances (untrained hyperparameters, the docs' defaults).  No EM-tuned row: ``fit_em`` refuses
 #: control-dependent noise, which this model's ``R`` and ``Q`` are.
+def ranging_model(rec: RangingRecording, **kwargs: Any) -> torch.nn.Module:
+    """The range model of ``rec``'s kind: :func:`~difffilter.models.navigation.make_ranging_model`
+    (2-D) or :func:`~difffilter.models.navigation.make_ranging3d_model` (3-D, with odometry when
+    the recording has it); ``kwargs`` go to it."""
+    if rec.dim == 2:
+        return make_ranging_model(num_anchors=rec.num_anchors, **kwargs)
+    return make_ranging3d_model(num_anchors=rec.num_anchors, odometry=rec.odometry, **kwargs)
+
+
 EXTRA_BASELINES: dict[str, Callable[[RangingRecording], torch.nn.Module]] = {
-    "sage-husa": lambda rec: SageHusa(EKF(make_ranging_model(num_anchors=rec.num_anchors, bias=None, noise=None, gate=None))),
-    "vb-adaptive-r": lambda rec: VBAdaptiveR(EKF(make_ranging_model(num_anchors=rec.num_anchors, bias=None, noise=None, gate=None))),
+    "sage-husa": lambda rec: SageHusa(EKF(ranging_model(rec, bias=None, noise=None, gate=None))),
+    "vb-adaptive-r": lambda rec: VBAdaptiveR(EKF(ranging_model(rec, bias=None, noise=None, gate=None))),
 }
 
 
@@ -130,23 +144,39 @@ def _heading(rec: RangingRecording, k: int) -> float:
         return rec.heading0
     t = rec.truth
     for j in range(k, min(k + 20, rec.num_steps - 1)):
-        d = t[j + 1] - t[j]
+        d = t[j + 1, :2] - t[j, :2]
         v = rec.odom[j + 1, :2]
         if np.all(np.isfinite(d)) and np.hypot(*d) > 1e-6 and np.hypot(*v) > 1e-6:
             return float(np.arctan2(d[1], d[0]) - np.arctan2(v[1], v[0]))
     return 0.0
 
 
+def _velocity(rec: RangingRecording, k: int) -> list[float]:
+    """Reference velocity at step ``k`` (the motion to the next step with a reference; 0 without one)."""
+    t = rec.truth
+    for j in range(k, min(k + 20, rec.num_steps - 1)):
+        dt = float(rec.times[j + 1] - rec.times[j])
+        if np.all(np.isfinite(t[j : j + 2])) and dt > 0:
+            return [float(v) for v in (t[j + 1] - t[j]) / dt]
+    return [0.0] * rec.dim
+
+
 def start_belief(rec: RangingRecording, k: int, fix: Tensor, pos_var: float = 4.0) -> tuple[Tensor, Tensor]:
-    """Initial mean ``[3]`` (snapshot fix at step ``k``, reference heading) and covariance ``[3, 3]``
-    (``pos_var`` m^2 per position axis, 0.01 rad^2 heading)."""
-    m = torch.tensor([float(fix[k, 0]), float(fix[k, 1]), _heading(rec, k)], dtype=torch.float64)
-    return m, torch.diag(torch.tensor([float(pos_var), float(pos_var), 0.01], dtype=torch.float64))
+    """Initial mean and covariance at step ``k``: the snapshot fix (``pos_var`` m^2 per position
+    axis) and, from the reference, the heading (0.01 rad^2; recordings with odometry) or the
+    velocity (0.25 m^2/s^2; 3-D without odometry).  2-D ``[3]``: ``[x, y, heading]``; 3-D
+    ``[4]`` ``[x, y, z, heading]`` or ``[6]`` ``[x, y, z, v_x, v_y, v_z]``."""
+    pos = [float(v) for v in fix[k, : rec.dim]]
+    extra, var = ([_heading(rec, k)], [0.01]) if rec.odometry else (_velocity(rec, k), [0.25] * rec.dim)
+    m = torch.tensor(pos + extra, dtype=torch.float64)
+    return m, torch.diag(torch.tensor([float(pos_var)] * rec.dim + var, dtype=torch.float64))
 
 
 #: chi-square quantile, 2 degrees of freedom, 0.95: a 2-D Gaussian N(0, s^2 I) puts 95 % of its
 #: mass within radius sqrt(CHI2_2_95) s.
 CHI2_2_95 = -2.0 * math.log(0.05)
+#: the same for 3 degrees of freedom (a 3-D Gaussian's 95 % sphere).
+CHI2_3_95 = 7.814727903251178
 
 
 def _fix(r: RangingRecording) -> Tensor:
@@ -167,7 +197,8 @@ def start_position_variance(pieces: Sequence[Piece], *, floor: float = 0.25) -> 
     e = torch.cat(errs)
     if not len(e):
         raise ValueError("the train pieces hold no step with a reference position: no start variance")
-    return max(float(floor), float(torch.quantile(e, 0.95)) ** 2 / CHI2_2_95)
+    chi2 = CHI2_2_95 if pieces[0].recording.dim == 2 else CHI2_3_95
+    return max(float(floor), float(torch.quantile(e, 0.95)) ** 2 / chi2)
 
 
 def piece_tensors(piece: Piece, *, length: int | None = None, stride: int | None = None, pos_var: float = 4.0) -> dict[str, Any]:
@@ -231,7 +262,8 @@ def _errors(filt: torch.nn.Module, data: Mapping[str, Any], burn_in: int = 0) ->
     then ``burn_in`` more."""
     with torch.no_grad():
         res = filt(data["z"], data["m0"], data["P0"], mask=data["mask"], controls=data["u"])
-    return _scored((res.mean[..., :2] - data["truth"]).norm(dim=-1), data["truth"], int(data.get("skip", 0)) + burn_in)
+    d = data["truth"].shape[-1]
+    return _scored((res.mean[..., :d] - data["truth"]).norm(dim=-1), data["truth"], int(data.get("skip", 0)) + burn_in)
 
 
 def _score(filt: torch.nn.Module, val: Sequence[Mapping[str, Any]], burn_in: int = 0) -> float:
@@ -251,19 +283,25 @@ def select_candidate(scores: Sequence[float]) -> int:
     return min(range(len(scores)), key=lambda i: (scores[i] if math.isfinite(scores[i]) else math.inf, i))
 
 
-def _filters(num_anchors: int, cfg: Mapping[str, Any]) -> dict[str, torch.nn.Module]:
+def _filters(rec: RangingRecording | int, cfg: Mapping[str, Any]) -> dict[str, torch.nn.Module]:
+    """The non-learned rows and the untrained gated filter of ``rec``'s kind (an ``int``: a 2-D
+    recording with that many anchors)."""
     g = dict(cfg["gate"])
-    kw = {"num_anchors": num_anchors}
+    if isinstance(rec, int):
+        num = rec
+        model = lambda **kw: make_ranging_model(num_anchors=num, **kw)  # noqa: E731
+    else:
+        model = lambda **kw: ranging_model(rec, **kw)  # type: ignore[arg-type]  # noqa: E731
     soft = RobustGate(
         kind="reject", threshold=float(g["threshold"]), floor=float(g["floor"]), softness=float(g["softness"]), learnable=True
     )
     return {
-        "hand-tuned": EKF(make_ranging_model(**kw, bias=None, noise=None, gate=None)),
+        "hand-tuned": EKF(model(bias=None, noise=None, gate=None)),
         "hand-tuned-hard-gate": GatedEKF(
-            make_ranging_model(**kw, bias=None, noise=None, gate=None),
+            model(bias=None, noise=None, gate=None),
             gate=RobustGate(kind="reject", threshold=float(g["threshold"]), floor=float(g["floor"])),
         ),
-        "untrained-gate": GatedEKF(make_ranging_model(**kw, bias=cfg["bias"], noise=cfg["noise"], gate=None), gate=soft),
+        "untrained-gate": GatedEKF(model(bias=cfg["bias"], noise=cfg["noise"], gate=None), gate=soft),
     }
 
 
@@ -305,7 +343,8 @@ def _train_seed(
         for chunk in order.chunk(batches):
             u = {k: v[chunk] for k, v in train["u"].items()}
             res = filt(train["z"][chunk], train["m0"][chunk], train["P0"][chunk], mask=train["mask"][chunk], controls=u)
-            sq = (res.mean[:, burn:, :2] - train["truth"][chunk, burn:]).pow(2).sum(-1)
+            d = train["truth"].shape[-1]
+            sq = (res.mean[:, burn:, :d] - train["truth"][chunk, burn:]).pow(2).sum(-1)
             ok = torch.isfinite(sq)
             sq = torch.where(ok, sq, torch.zeros_like(sq))
             count = ok.sum().clamp(min=1)
@@ -341,7 +380,10 @@ def run_fold(
     num_a = {p.recording.num_anchors for ps in pieces.values() for p in ps}
     if len(num_a) != 1:
         raise ValueError(f"the recordings of one fold must have the same anchors, got counts {sorted(num_a)}")
-    a = num_a.pop()
+    kinds = {(p.recording.dim, p.recording.odometry) for ps in pieces.values() for p in ps}
+    if len(kinds) != 1:
+        raise ValueError(f"the recordings of one fold must be of one kind, got (dimension, odometry) {sorted(kinds)}")
+    rep = pieces["train"][0].recording
     win = dict(cfg["windows"])
     burn = int(cfg.get("eval_burn_in", 0))
     for p in (*pieces["val"], *pieces["test"]):
@@ -353,7 +395,7 @@ def run_fold(
     train["u"] = {k: torch.cat([d["u"][k] for d in parts]) for k in parts[0]["u"]}
     lead = cfg.get("eval_lead_in", 0)
     val = [eval_tensors(p, pos_var=pos_var, lead_in=lead, avoid=pieces["test"]) for p in pieces["val"]]
-    base = _filters(a, cfg)
+    base = _filters(rep, cfg)
     start = base["untrained-gate"]
     runs = [_train_seed(start, train, val, cfg, s, log) for s in range(int(cfg["seeds"]))]
     candidates = [

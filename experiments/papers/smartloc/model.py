@@ -120,7 +120,9 @@ def make_smartloc_model(
     return describe(
         StateSpaceModel(dyn, meas),
         layout=SMARTLOC_LAYOUT,
-        learn=[n for n in _LEARN if n != "noise_scale" or noise_from_data] + (["*noise_model.*"] if noise_model is not None else []) + extras,
+        learn=[n for n in _LEARN if n != "noise_scale" or noise_from_data]
+        + (["*noise_model.*"] if noise_model is not None else [])
+        + extras,
         initial_mean=[0.0] * 7,
         initial_var=[s * s for s in sd],
         controls=DriveWindows(data=data),

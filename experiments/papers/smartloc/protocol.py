@@ -319,7 +319,11 @@ def _train_job(job: Mapping[str, Any]) -> dict[str, Any]:
     owners = parameter_owners(filt)
     prior = dict(cfg["prior"])
     signed = extras_priors(cfg, names, owners)
-    priors = {n: LogDistancePrior(reference=getattr(owners[n][0], owners[n][1]).detach(), scale=float(prior["scale"])) for n in names if n not in signed}
+    priors = {
+        n: LogDistancePrior(reference=getattr(owners[n][0], owners[n][1]).detach(), scale=float(prior["scale"]))
+        for n in names
+        if n not in signed
+    }
     priors.update(signed)
     snaps = EpochSnapshots(lambda f: validation_score(f, sets["val"]), names)
     learner = FilterLearner(

@@ -163,7 +163,7 @@ def _horizontal_errors(filt: torch.nn.Module, data: object, state: torch.Tensor)
 
 @pytest.mark.slow
 def test_a_known_lever_arm_and_latency_are_recovered_and_beat_the_model_without_them(tmp_path) -> None:
-    """Synthetic drive (real geometry, speeds 0-7.4 m/s and ~2 rad of turning in 120 epochs)
+    """Synthetic drive (real geometry of a 40-s cut: 194 epochs, speeds 0-7.4 m/s, ~2 rad of turning)
     with lever arm (1.2, -0.8, 0) m and latency 0.15 s: the protocol's learned filter (extras on,
     started at 0) trained on the horizontal position error recovers the horizontal arm within
     0.3 m and the latency within 0.05 s, and on an independent noise draw it is at least twice as
@@ -173,14 +173,14 @@ def test_a_known_lever_arm_and_latency_are_recovered_and_beat_the_model_without_
     separated only by the speed changing, so they trade off (0.3 m ~ 0.05 s x 6 m/s); the up arm
     is not checked - the horizontal loss does not see it and the U state absorbs it."""
     drive = _drive(tmp_path)
-    train, state = _synthetic(drive, 120, seed=1)
-    test, _ = _synthetic(drive, 120, seed=2)
+    train, state = _synthetic(drive, drive.data.num_epochs, seed=1)
+    test, _ = _synthetic(drive, drive.data.num_epochs, seed=2)
     cfg = _cfg()
     filt = protocol.build_filter(cfg, [protocol.Drive(train, drive.wls)], "scale", torch.zeros(0), learned=True)
     raw = [p for n, p in filt.named_parameters() if any(f"parametrizations.{k}." in n for k in EXTRA_NAMES)]
     assert len(raw) == 3
     opt = torch.optim.Adam(raw, lr=0.1)
-    for _ in range(30):
+    for _ in range(40):
         opt.zero_grad()
         _horizontal_errors(filt, train, state).pow(2).mean().backward()
         opt.step()

@@ -12,7 +12,7 @@ a held-out validation block from several seeds, test with paired block-bootstrap
     python experiments/realdata.py evaluate_from=<run> compare_with=<other run>     # + paired differences against the other run's rows
 
 The logic is in experiments.papers.smartloc.protocol / .report (pseudoranges) and
-experiments.ranging.protocol / .report (2-D ranging, conf/realdata_ranging); results.md, summary.json, the
+experiments.ranging.protocol / .report (2-D and 3-D ranging, conf/realdata_ranging); results.md, summary.json, the
 noise-model figures and TensorBoard events go to the Hydra run directory.
 """
 

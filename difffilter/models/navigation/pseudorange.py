@@ -18,6 +18,7 @@ away from the receiver and mark them False in the filter's per-component mask ``
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -261,7 +262,7 @@ class PseudorangeMeasurement(MeasurementModel):
 
     def _elevation_bias(self, u: Controls, like: Tensor) -> Tensor:
         """``c_g / sin(max(el, 5 deg))`` ``[..., K]``; the floor keeps empty slots (elevation 0) finite."""
-        el = torch.deg2rad(_get(u, "elevation").to(like.dtype).clamp_min(5.0))
+        el = _get(u, "elevation").to(like.dtype).clamp_min(5.0) * (math.pi / 180.0)  # not deg2rad: the compiled engine lacks it
         group = _get(u, "constellation").long().clamp(0, self.elevation_bias.numel() - 1)
         return self.elevation_bias.to(like.dtype)[group] / torch.sin(el)
 

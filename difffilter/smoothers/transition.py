@@ -11,7 +11,9 @@ approximation the filter's prediction uses:
 * :class:`~difffilter.filters.UKF` and its subclasses (``SquareRootUKF``, ``RCUKF``): the
   unscented transform of the prediction, ``C = sum_i wc_i (chi_i - x)(f(chi_i) - x-)^T`` over
   the same sigma points (Sarkka's unscented RTS smoother), with the augmented points
-  ``[x; w(; v)]`` when the filter uses ``noise="augmented"``;
+  ``[x; w(; v)]`` when the filter uses ``noise="augmented"``; for a linear ``f`` with additive
+  noise (:func:`~difffilter.filters.ukf.linear_space`) the transform is exact and, as in the
+  filter's prediction, computed without points: ``C = P F^T`` for the base rule's points;
 * :class:`~difffilter.filters.SequentialUpdate`: the wrapped filter's.
 
 Everything is batched over the leading dimension, so a smoother evaluates all ``B * T`` steps
@@ -27,8 +29,8 @@ from ..filters.base import RecursiveFilter
 from ..filters.colored import ColoredNoiseUKF
 from ..filters.ekf import EKF
 from ..filters.sequential import SequentialUpdate
-from ..filters.ukf import UKF, SimplifiedUKF, deviations, expand_controls, weighted_mean
-from ..linalg import block_diag
+from ..filters.ukf import UKF, SimplifiedUKF, _second_moment_exact, centred_points, deviations, expand_controls, linear_space, weighted_mean
+from ..linalg import block_diag, psd_sqrt
 from ..models.base import Controls
 
 __all__ = ["check_smoothable", "is_unscented", "predicting_filter", "transition_cross_covariance"]
@@ -74,6 +76,16 @@ def _unscented_cross(filt: UKF, mean: Tensor, cov: Tensor, u: Controls) -> Tenso
     n = mean.shape[-1]
     dyn = filt.model.dynamics
     u1 = expand_controls(u)
+    lin = linear_space(dyn, u) if filt.noise == "additive" else None
+    if lin is not None:
+        # a linear f: the transform is exact, as in the filter's own prediction; with the base
+        # rule's points the weighted second moment of the deviations is P itself, so C = P F^T
+        # (no square root, no points: the smoother's gains over B * T steps cost one product)
+        if _second_moment_exact(filt.sigma_points):
+            return cov @ lin.mT
+        wc = filt._weights(n, mean)[1]
+        dev = centred_points(filt.sigma_points, psd_sqrt(cov).factor)
+        return (dev * wc[:, None]).mT @ (dev @ lin.mT)
     if filt.noise == "additive":
         chi = filt._points(mean, cov)
         wm, wc = filt._weights(n, mean)

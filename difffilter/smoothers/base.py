@@ -43,12 +43,17 @@ from .result import SmootherResult
 MAX_CHUNK_STATES = 65536
 #: Ways :func:`rts_backward` solves the recursion.
 BACKWARD_METHODS = ("auto", "sequential", "scan")
-#: From this many steps on, ``method="auto"`` scans (measured: results/benchmark_engine.md).
-SCAN_MIN_STEPS = 10**9
+#: ``method="auto"`` scans windows of at least this many steps over at most
+#: :data:`SCAN_MAX_BATCH` trajectories; larger batches amortise the loop's per-step cost, and
+#: there the scan's extra passes over ``[B, T, n, n]`` make it slower (results/benchmark_engine.md:
+#: B = 1, T = 5000: scan 6x faster; B = 256, T = 500: sequential 2.5-4x faster).
+SCAN_MIN_STEPS = 32
+SCAN_MAX_BATCH = 8
 
 __all__ = [
     "BACKWARD_METHODS",
     "MAX_CHUNK_STATES",
+    "SCAN_MAX_BATCH",
     "SCAN_MIN_STEPS",
     "Smoother",
     "flatten_steps",
@@ -163,9 +168,10 @@ def rts_backward(
         space: the filter's dynamics model; its angular states are wrapped (:func:`rts_step`).
         method: ``"sequential"`` (a loop over time), ``"scan"`` (the same affine recursion by a
             reverse associative scan, :func:`~difffilter.filters.scan.scan_rts`: ``O(log T)``
-            batched levels instead of ``T`` small steps) or ``"auto"`` (the scan from
-            :data:`SCAN_MIN_STEPS` steps on, unless angular states need the wrapped step, which
-            is not affine).  Both agree to rounding.
+            batched levels instead of ``T`` small steps) or ``"auto"`` (the scan for at most
+            :data:`SCAN_MAX_BATCH` trajectories of at least :data:`SCAN_MIN_STEPS` steps, unless
+            angular states need the wrapped step, which is not affine).  Both agree to rounding;
+            the sequential loop is one autograd node (:mod:`difffilter.smoothers.backward`).
 
     Returns ``(mean, cov, cross_cov, initial_mean, initial_cov)`` smoothed, with
     ``cross_cov[:, t] = P_{t-1,t|T}``.
@@ -175,7 +181,8 @@ def rts_backward(
     angular = space is not None and bool(space.angular)
     if method == "scan" and angular:
         raise ValueError("method='scan' cannot wrap angular states (the wrapped step is not affine); use 'sequential' or 'auto'")
-    if method == "scan" or (method == "auto" and not angular and mean.shape[1] >= SCAN_MIN_STEPS):
+    small = mean.shape[0] <= SCAN_MAX_BATCH and mean.shape[1] >= SCAN_MIN_STEPS
+    if method == "scan" or (method == "auto" and not angular and small):
         return scan_rts(gains, mean, cov, prior_mean, prior_cov, initial_mean, initial_cov)
     args = (mean, cov, prior_mean, prior_cov, gains, initial_mean, initial_cov)
     if not angular and all(_functorch.maybe_get_level(x) == -1 for x in args):

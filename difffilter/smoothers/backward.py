@@ -112,5 +112,4 @@ def sequential_rts(
     states).  Not for ``torch.func`` transforms or double backward (``rts_backward`` then takes
     its autograd loop).
     """
-    args = [x.contiguous() for x in (mean, cov, prior_mean, prior_cov, gains)]
-    return _SequentialRTS.apply(*args, initial_mean, initial_cov)
+    return _SequentialRTS.apply(mean, cov, prior_mean, prior_cov, gains, initial_mean, initial_cov)

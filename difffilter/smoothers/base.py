@@ -261,13 +261,19 @@ class Smoother(nn.Module):
         """Backward pass over ``result`` of a window that started from the belief ``initial``."""
         raise NotImplementedError
 
-    def per_step(self, fn: Callable[[Tensor, Tensor, Controls], Tensor], mean: Tensor, cov: Tensor, controls: Controls) -> Tensor:
+    def per_step(
+        self, fn: Callable[[Tensor, Tensor, Controls], Tensor], mean: Tensor, cov: Tensor, controls: Controls, *, whole: bool = False
+    ) -> Tensor:
         """``fn(mean, cov, u)`` evaluated on all ``[B, T]`` steps as one flattened batch (in chunks
-        of ``time_chunk`` steps), reshaped to ``[B, T, ...]``; ``mean [B, T, n]``, ``cov [B, T, n, n]``."""
+        of ``time_chunk`` steps, or in one call when ``whole`` says ``fn`` needs no more memory
+        than its inputs), reshaped to ``[B, T, ...]``; ``mean [B, T, n]``, ``cov [B, T, n, n]``."""
         bsz, steps, n = mean.shape
-        chunk = self.time_chunk or max(1, MAX_CHUNK_STATES // bsz)
+        chunk = steps if whole else self.time_chunk or max(1, MAX_CHUNK_STATES // bsz)
         outs = []
         with parametrize.cached():
+            if chunk >= steps:  # one call: no concatenation, no slices to fill with zeros in the backward pass
+                out = fn(mean.reshape(-1, n), cov.reshape(-1, n, n), flatten_steps(controls, 0, steps))
+                return out.reshape(bsz, steps, *out.shape[1:])
             for start in range(0, steps, chunk):
                 stop = min(start + chunk, steps)
                 m = mean[:, start:stop].reshape(-1, n)

@@ -33,7 +33,7 @@ from ..filters.ukf import UKF, SimplifiedUKF, _second_moment_exact, centred_poin
 from ..linalg import block_diag, psd_sqrt
 from ..models.base import Controls
 
-__all__ = ["check_smoothable", "is_unscented", "predicting_filter", "transition_cross_covariance"]
+__all__ = ["check_smoothable", "is_unscented", "needs_points", "predicting_filter", "transition_cross_covariance"]
 
 
 def predicting_filter(filt: RecursiveFilter) -> RecursiveFilter:
@@ -62,6 +62,25 @@ def is_unscented(filt: RecursiveFilter) -> bool:
     """Whether the filter's prediction is an unscented transform (not SimplifiedUKF's Kalman one)."""
     filt = predicting_filter(filt)
     return isinstance(filt, UKF) and not isinstance(filt, SimplifiedUKF)
+
+
+def needs_points(filt: RecursiveFilter, controls: Controls) -> bool:
+    """Whether the cross-covariance of ``filt`` may need more memory than its inputs (sigma points,
+    or an EKF's Jacobians by automatic differentiation), so that a smoother computes it in time
+    chunks; False for the product ``P F^T`` of a linear prediction (a KalmanFilter or
+    SimplifiedUKF, or a UKF whose ``f`` is linear with additive noise)."""
+    filt = predicting_filter(filt)
+    if not is_unscented(filt):
+        return isinstance(filt, EKF)
+    u = controls if controls is None else _first_step(controls)
+    return filt.noise != "additive" or linear_space(filt.model.dynamics, u) is None  # type: ignore[union-attr]
+
+
+def _first_step(controls: Controls) -> Controls:
+    def first(v: Tensor) -> Tensor:
+        return v[:, 0]
+
+    return first(controls) if isinstance(controls, Tensor) else {k: first(v) for k, v in controls.items()}  # type: ignore[union-attr]
 
 
 def _linear_transition(filt: RecursiveFilter, mean: Tensor, u: Controls) -> Tensor:

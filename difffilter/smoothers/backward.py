@@ -29,7 +29,7 @@ def _mv(a: Tensor, v: Tensor) -> Tensor:
 
 class _SequentialRTS(torch.autograd.Function):
     @staticmethod
-    def forward(  # type: ignore[override]
+    def forward(
         ctx: Any, mean: Tensor, cov: Tensor, prior_mean: Tensor, prior_cov: Tensor, gains: Tensor, m0: Tensor, p0: Tensor
     ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
         steps = mean.shape[1]
@@ -52,7 +52,7 @@ class _SequentialRTS(torch.autograd.Function):
 
     @staticmethod
     @once_differentiable
-    def backward(  # type: ignore[override]
+    def backward(
         ctx: Any, d_means: Tensor | None, d_covs: Tensor | None, d_cross: Tensor | None, d_m0: Tensor | None, d_p0: Tensor | None
     ) -> tuple[Tensor | None, ...]:
         prior_mean, prior_cov, gains, s_means, s_covs = ctx.saved_tensors

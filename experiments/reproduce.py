@@ -286,6 +286,23 @@ JOBS: tuple[Job, ...] = (
     Job("p004_blend_learned_adaptive", "p00_practitioners.md", 168, _learned_adaptive("p004_blend_learned_adaptive", "p004_blend")),
     Job("p004_outage_learned_adaptive", "p00_practitioners.md", 154, _learned_adaptive("p004_outage_learned_adaptive", "p004_outage")),
     Job("p002_pdr_learned_adaptive", "p00_practitioners.md", 142, _learned_adaptive("p002_pdr_learned_adaptive", "p002_pdr_rcukf")),
+    # ("Learned adaptive, remaining families", session la25c)
+    Job("p001_colored_learned_adaptive", "p00_practitioners.md", 313, _learned_adaptive("p001_colored_learned_adaptive", "p001_colored")),
+    Job(
+        "p001_multipath_learned_adaptive",
+        "p00_practitioners.md",
+        322,
+        _learned_adaptive("p001_multipath_learned_adaptive", "p001_multipath"),
+    ),
+    Job(
+        "p001_multipath_shared_learned_adaptive",
+        "p00_practitioners.md",
+        308,
+        _learned_adaptive("p001_multipath_shared_learned_adaptive", "p001_multipath_shared"),
+    ),
+    # no job for p000_nominal / odometer / gps / gyro
+    # (every seed's training diverged: the sweep exits non-zero, no row) nor p000_infamily (seed 2 diverged,
+    # the join refused the 4-seed rows): the overlays stay for a rerun under a new declaration
     # issue 25: data efficiency (N = 1, 4, 16 training trajectories) and transfer across p002's
     # families (results/p00_efficiency_transfer.md); the transfer pairs read all three p002 sweeps
     Job(

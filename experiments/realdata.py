@@ -4,6 +4,7 @@ a held-out validation block from several seeds, test with paired block-bootstrap
     python experiments/realdata.py                                   # smartLoc Berlin, folds A and B, 5 seeds
     python experiments/realdata.py folder=/data/drives               # every <name>_Input.txt + <name>_GT.txt of a folder
     python experiments/realdata.py folder=../shared/data/real/librsf_ranging_w3500   # range2 data: the 2-D ranging protocol
+    python experiments/realdata.py folder=tests/assets/librsf/range3    # range3 (+ odom3 or none): the same protocol in 3-D
     python experiments/realdata.py folder=[/data/set1,/data/set2]   # the data sets of several folders (one kind)
     python experiments/realdata.py transfer_from=outputs/realdata/smartloc/<run> folder=/data/other
     python experiments/realdata.py realdata.horizons=[1,2,4]          # stability check (4x the epochs)
@@ -11,7 +12,7 @@ a held-out validation block from several seeds, test with paired block-bootstrap
     python experiments/realdata.py evaluate_from=<run> compare_with=<other run>     # + paired differences against the other run's rows
 
 The logic is in experiments.papers.smartloc.protocol / .report (pseudoranges) and
-experiments.ranging.protocol / .report (2-D ranging, conf/realdata_ranging); results.md, summary.json, the
+experiments.ranging.protocol / .report (2-D and 3-D ranging, conf/realdata_ranging); results.md, summary.json, the
 noise-model figures and TensorBoard events go to the Hydra run directory.
 """
 
@@ -48,7 +49,7 @@ def folder_list(folder: object) -> list[str]:
 
 
 def data_kind(folders: list[str]) -> str:
-    """The one kind (``ranging2d`` / ``pseudorange``) of every folder's data sets; ``ValueError``
+    """The one kind (``ranging2d`` / ``ranging3d`` / ``pseudorange``) of every folder's data sets; ``ValueError``
     naming the folders when they differ."""
     kinds = {f: folder_kind(f) for f in folders}
     if len(set(kinds.values())) > 1:
@@ -63,7 +64,7 @@ def main(cfg: DictConfig) -> None:
     warnings.filterwarnings("ignore", module="pytorch_lightning")
     out = HydraConfig.get().runtime.output_dir
     folders = folder_list(cfg.folder)
-    if folders and data_kind(folders) == "ranging2d":
+    if folders and data_kind(folders) in ("ranging2d", "ranging3d"):
         run_ranging(folders, OmegaConf.to_container(cfg.realdata_ranging, resolve=True), out)  # type: ignore[arg-type]
         print(open(f"{out}/results.md").read())
         log.info("results written to %s", out)

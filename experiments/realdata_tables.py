@@ -6,8 +6,9 @@ Prints, from ``<run>/<fold>/results.csv``: per fold every filter's test median /
 paired block-bootstrap differences to the hand-tuned filter (``d_*``) and to the untrained gated
 filter (``u_*``; *win* / *loss* when the 95 % interval excludes zero, *tie* otherwise); and from
 ``<run>/summary.json`` what validation selected for each learned row, with the validation scores of
-the hand-tuned filter, the untrained start and the best learned (seed, epoch).  Nothing is
-recomputed: the numbers are the run's own.
+the hand-tuned filter, the untrained start and the best learned (seed, epoch); and, for a run that
+learned the sensor-model extras (protocol v4), their values in each selected learned row.  Nothing
+is recomputed: the numbers are the run's own.
 """
 
 from __future__ import annotations
@@ -18,6 +19,8 @@ import json
 from pathlib import Path
 
 __all__ = ["main", "tables"]
+
+_EXTRAS = ("lever_arm", "latency", "elevation_bias")
 
 
 def _verdict(row: dict[str, str], prefix: str, stat: str) -> str:
@@ -58,6 +61,21 @@ def tables(run: str | Path) -> str:
             b = sel.get("best_learned")
             best = f"{b['seed']}, {b['epoch']}, {b['val_score']:.2f}" if b else ""
             out.append(f"| {fold} | {name} | {sel['seed']}, {sel['epoch']} | {sel['val_score']:.2f} | {hand:.2f} | {start:.2f} | {best} |")
+    extras = [
+        (fold, name, sel["values"])
+        for fold, fs in summary["folds"].items()
+        for name, sel in fs["selection"].items()
+        if any(k.endswith(_EXTRAS) for k in sel.get("values", {}))
+    ]
+    if extras:
+        out += [
+            "",
+            "| fold | row | lever arm forward, left, up (m) | latency (s) | elevation bias GPS, GLONASS (m at zenith) |",
+            "|---|---|---|---|---|",
+        ]
+        for fold, name, values in extras:
+            cell = {e: ", ".join(f"{v:+.2f}" for v in next((x for k, x in values.items() if k.endswith(e)), [])) for e in _EXTRAS}
+            out.append(f"| {fold} | {name} | {cell['lever_arm']} | {cell['latency']} | {cell['elevation_bias']} |")
     out.append("")
     out.append(f"Run time: {summary['total_seconds']:.0f} s wall (training {summary['train_seconds']:.0f} s).")
     return "\n".join(out) + "\n"

@@ -311,6 +311,23 @@ JOBS: tuple[Job, ...] = (
         _learned_adaptive("p003_physical_learned_adaptive", "p003_physical"),
     ),
     Job("p003_modes_learned_adaptive", "p00_practitioners.md", 727, _learned_adaptive("p003_modes_learned_adaptive", "p003_modes")),
+    # ("Learned adaptive, remaining families", session la25c)
+    Job("p001_colored_learned_adaptive", "p00_practitioners.md", 313, _learned_adaptive("p001_colored_learned_adaptive", "p001_colored")),
+    Job(
+        "p001_multipath_learned_adaptive",
+        "p00_practitioners.md",
+        322,
+        _learned_adaptive("p001_multipath_learned_adaptive", "p001_multipath"),
+    ),
+    Job(
+        "p001_multipath_shared_learned_adaptive",
+        "p00_practitioners.md",
+        308,
+        _learned_adaptive("p001_multipath_shared_learned_adaptive", "p001_multipath_shared"),
+    ),
+    # no job for p000_nominal / odometer / gps / gyro
+    # (every seed's training diverged: the sweep exits non-zero, no row) nor p000_infamily (seed 2 diverged,
+    # the join refused the 4-seed rows): the overlays stay for a rerun under a new declaration
     # issue 25: data efficiency (N = 1, 4, 16 training trajectories) and transfer across p002's
     # families (results/p00_efficiency_transfer.md); the transfer pairs read all three p002 sweeps
     Job(

@@ -74,7 +74,7 @@ def test_shared_truth_files_and_folder_kinds(tmp_path) -> None:
             lambda ls: [ln.replace(" 0.25 ", " -0.25 ", 1) if i == 65 else ln for i, ln in enumerate(ls)],
             r"Edit_Input.txt:66: range variance must be positive",
         ),
-        (lambda ls: [ln for ln in ls if not ln.startswith("range2")], r"no range2 records"),
+        (lambda ls: [ln for ln in ls if not ln.startswith("range2")], r"no range2 or range3 records"),
         (lambda ls: [ln for ln in ls if not ln.startswith("odom2")], r"no odom2 or odom2diff records"),
     ],
 )

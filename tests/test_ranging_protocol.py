@@ -21,12 +21,12 @@ import torch
 
 from difffilter.datasets import find_recordings, load_ranging
 from difffilter.models.navigation.ranging2d import multilateration
+from experiments.ranging.pieces import _heading
 from experiments.ranging.protocol import (
     EXTRA_BASELINES,
     Piece,
     _errors,
     _filters,
-    _heading,
     eval_tensors,
     fold_pieces,
     lead_in_start,

@@ -42,10 +42,10 @@ __all__ = [
 
 def load(name: str, root: str | Path | None = None, *, download: bool = False) -> RangingRecording | LibrsfFile:
     """Data set ``name`` read from its folder (:func:`~.registry.locate`): a
-    :class:`RangingRecording` for 2-D ranging sets; the raw :class:`LibrsfFile` of the input for
+    :class:`RangingRecording` for 2-D and 3-D ranging sets; the raw :class:`LibrsfFile` of the input for
     pseudorange sets (the GNSS assembly needs a frame and clock model: the smartLoc loader)."""
     folder = locate(name, root, download=download)  # KeyError listing the names for an unknown one
     ds = DATASETS[name]
-    if ds.kind == "ranging2d":
+    if ds.kind in ("ranging2d", "ranging3d"):
         return load_ranging(folder / ds.inputs[0], folder / ds.truth)
     return read_librsf(folder / ds.inputs[0])

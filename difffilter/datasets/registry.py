@@ -67,7 +67,7 @@ class DataSet:
         urls: ``{file name: download address}`` (a subset of ``files``).
         inputs: the libRSF input file(s) of this data set (sensor records).
         truth: the ground-truth file.
-        kind: ``"pseudorange"`` (GNSS) or ``"ranging2d"`` (2-D ranging to anchors).
+        kind: ``"pseudorange"`` (GNSS), ``"ranging2d"`` or ``"ranging3d"`` (2-D / 3-D ranging to anchors).
         licence: licence text shown with the data.
         citation: what users of the data must cite.
         description: one paragraph.

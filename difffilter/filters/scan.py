@@ -45,7 +45,7 @@ from torch import Tensor
 
 from ..linalg import gaussian_log_density, psd_solve, safe_cholesky, symmetrize
 
-__all__ = ["AffineSystem", "associative_scan", "scan_filter", "scan_smoother"]
+__all__ = ["AffineSystem", "associative_scan", "scan_filter", "scan_rts", "scan_smoother"]
 
 Elements = tuple[Tensor, ...]
 
@@ -201,10 +201,29 @@ def scan_smoother(
     Returns ``(mean, cov, cross_cov, initial_mean, initial_cov)`` smoothed, as
     :func:`~difffilter.smoothers.base.rts_backward` (``cross_cov[:, t] = P_{t-1,t|T}``).
     """
+    prev_cov = torch.cat([p0[:, None], cov[:, :-1]], 1)
+    # G_t = P_{t-1} F_t^T (P-_t)^{-1}, the gain between x_{t-1} and x_t (Cholesky solve)
+    gains = psd_solve(symmetrize(prior_cov), (prev_cov @ system.F.mT).mT).mT
+    return scan_rts(gains, mean, cov, prior_mean, prior_cov, m0, p0)
+
+
+def scan_rts(
+    gains: Tensor, mean: Tensor, cov: Tensor, prior_mean: Tensor, prior_cov: Tensor, m0: Tensor, p0: Tensor
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """The RTS backward recursion for given gains, by a reverse parallel scan.
+
+    The recursion ``x_{t-1|T} = x_{t-1} + G_t (x_{t|T} - x-_t)``, ``P_{t-1|T} = P_{t-1} + G_t
+    (P_{t|T} - P-_t) G_t^T`` is affine in the later smoothed moments whatever produced ``G_t``
+    (KF, EKF or unscented gains), so it scans in ``O(log T)`` batched levels.
+
+    Args:
+        gains: ``G_t [B, T, n, n]`` between ``x_{t-1}`` (``x_{-1}`` for ``t = 0``) and ``x_t``.
+        mean, cov, prior_mean, prior_cov, m0, p0: as :func:`scan_smoother`.
+
+    Returns as :func:`scan_smoother`.
+    """
     prev_mean = torch.cat([m0[:, None], mean], 1)  # x_{k|k}, k = -1 .. T-1
     prev_cov = torch.cat([p0[:, None], cov], 1)
-    # G_t = P_{t-1} F_t^T (P-_t)^{-1}, the gain between x_{t-1} and x_t (Cholesky solve)
-    gains = psd_solve(symmetrize(prior_cov), (prev_cov[:, :-1] @ system.F.mT).mT).mT
     g = prev_mean[:, :-1] - _mv(gains, prior_mean)
     ell = symmetrize(prev_cov[:, :-1] - gains @ prior_cov @ gains.mT)
     e = torch.cat([gains, torch.zeros_like(gains[:, :1])], 1)

@@ -24,21 +24,44 @@ of all ``B * T`` steps are computed in single batched calls (optionally in chunk
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any
 
 import torch
 from torch import Tensor, nn
+from torch._C import _functorch
 from torch.nn.utils import parametrize
 
 from ..filters.base import Belief, FilterResult, RecursiveFilter
-from ..linalg import psd_solve, symmetrize
+from ..filters.scan import scan_rts
+from ..linalg import psd_solve, safe_cholesky, symmetrize
 from ..models.base import Controls, DynamicsModel
 from ..threads import scoped_forward
+from .backward import sequential_rts
 from .result import SmootherResult
 
 #: Default bound on the states (batch x time steps) of one batched cross-covariance call.
 MAX_CHUNK_STATES = 65536
+#: Ways :func:`rts_backward` solves the recursion.
+BACKWARD_METHODS = ("auto", "sequential", "scan")
+#: ``method="auto"`` scans windows of at least this many steps over at most
+#: :data:`SCAN_MAX_BATCH` trajectories; larger batches amortise the loop's per-step cost, and
+#: there the scan's extra passes over ``[B, T, n, n]`` make it slower (results/benchmark_engine.md:
+#: B = 1, T = 5000: scan 6x faster; B = 256, T = 500: sequential 2.5-4x faster).
+SCAN_MIN_STEPS = 32
+SCAN_MAX_BATCH = 8
 
-__all__ = ["MAX_CHUNK_STATES", "Smoother", "flatten_steps", "previous_posteriors", "rts_backward", "rts_step", "smoother_gains"]
+__all__ = [
+    "BACKWARD_METHODS",
+    "MAX_CHUNK_STATES",
+    "SCAN_MAX_BATCH",
+    "SCAN_MIN_STEPS",
+    "Smoother",
+    "flatten_steps",
+    "previous_posteriors",
+    "rts_backward",
+    "rts_step",
+    "smoother_gains",
+]
 
 
 def flatten_steps(controls: Controls, start: int, stop: int) -> Controls:
@@ -60,9 +83,43 @@ def previous_posteriors(result: FilterResult, initial: Belief) -> tuple[Tensor, 
     return mean, cov
 
 
+class _GainSolve(torch.autograd.Function):
+    """``G = C P^{-1}`` from the Cholesky factor ``L`` of ``P``, with the solve's own reverse mode:
+    ``dC = dG P^{-1}`` (one more solve with the same factor), ``dP = -G^T dC``; torch's would
+    differentiate the factorisation itself (``cholesky`` backward), which costs several times
+    the solve on the ``B * T`` matrices of a window."""
+
+    @staticmethod
+    def forward(cross: Tensor, cov: Tensor, chol: Tensor) -> Tensor:
+        return torch.cholesky_solve(cross.mT, chol).mT
+
+    @staticmethod
+    def setup_context(ctx: Any, inputs: tuple[Tensor, Tensor, Tensor], output: Tensor) -> None:
+        ctx.save_for_backward(inputs[2], output)
+
+    @staticmethod
+    def backward(ctx: Any, grad: Tensor) -> tuple[Tensor, Tensor, None]:
+        chol, gain = ctx.saved_tensors
+        d_cross = torch.cholesky_solve(grad.mT, chol).mT
+        return d_cross, symmetrize(-(gain.mT @ d_cross)), None
+
+
 def smoother_gains(cross_cov: Tensor, prior_cov: Tensor) -> Tensor:
-    """``G = C (P^-)^{-1}`` ``[..., n, n]`` by a Cholesky solve (never an inverse)."""
-    return psd_solve(symmetrize(prior_cov), cross_cov.mT).mT
+    """``G = C (P^-)^{-1}`` ``[..., n, n]`` by a Cholesky solve (never an inverse).
+
+    With gradients, the solve is differentiated as a solve (:class:`_GainSolve`) when every factor
+    came out without jitter; under a ``torch.func`` transform or after a repair (jitter, or an
+    identity stand-in for a failed factor, whose gradient must not reach ``P``) it is torch's
+    differentiation of the factorisation, as before."""
+    cov = symmetrize(prior_cov)
+    plain = all(_functorch.maybe_get_level(x) == -1 for x in (cross_cov, cov))
+    if not (plain and torch.is_grad_enabled() and (cov.requires_grad or cross_cov.requires_grad)):
+        return psd_solve(cov, cross_cov.mT).mT
+    with torch.no_grad():
+        chol, jitter = safe_cholesky(cov)
+    if bool(jitter.any()):
+        return psd_solve(cov, cross_cov.mT).mT
+    return _GainSolve.apply(cross_cov, cov, chol)
 
 
 def rts_step(
@@ -98,6 +155,8 @@ def rts_backward(
     initial_mean: Tensor,
     initial_cov: Tensor,
     space: DynamicsModel | None = None,
+    *,
+    method: str = "auto",
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """Fixed-interval backward pass.
 
@@ -107,10 +166,27 @@ def rts_backward(
         gains: ``G_t`` ``[B, T, n, n]`` linking ``x_{t-1}`` (``x_{-1}`` for ``t = 0``) and ``x_t``.
         initial_mean, initial_cov: the belief about ``x_{-1}`` ``[B, n]``, ``[B, n, n]``.
         space: the filter's dynamics model; its angular states are wrapped (:func:`rts_step`).
+        method: ``"sequential"`` (a loop over time), ``"scan"`` (the same affine recursion by a
+            reverse associative scan, :func:`~difffilter.filters.scan.scan_rts`: ``O(log T)``
+            batched levels instead of ``T`` small steps) or ``"auto"`` (the scan for at most
+            :data:`SCAN_MAX_BATCH` trajectories of at least :data:`SCAN_MIN_STEPS` steps, unless
+            angular states need the wrapped step, which is not affine).  Both agree to rounding;
+            the sequential loop is one autograd node (:mod:`difffilter.smoothers.backward`).
 
     Returns ``(mean, cov, cross_cov, initial_mean, initial_cov)`` smoothed, with
     ``cross_cov[:, t] = P_{t-1,t|T}``.
     """
+    if method not in BACKWARD_METHODS:
+        raise ValueError(f"method must be one of {list(BACKWARD_METHODS)}, got {method!r}")
+    angular = space is not None and bool(space.angular)
+    if method == "scan" and angular:
+        raise ValueError("method='scan' cannot wrap angular states (the wrapped step is not affine); use 'sequential' or 'auto'")
+    small = mean.shape[0] <= SCAN_MAX_BATCH and mean.shape[1] >= SCAN_MIN_STEPS
+    if method == "scan" or (method == "auto" and not angular and small):
+        return scan_rts(gains, mean, cov, prior_mean, prior_cov, initial_mean, initial_cov)
+    args = (mean, cov, prior_mean, prior_cov, gains, initial_mean, initial_cov)
+    if not angular and all(_functorch.maybe_get_level(x) == -1 for x in args):
+        return sequential_rts(*args)
     # unbind once: indexing [:, t] inside the loop would make every step's backward fill a
     # zero gradient of the whole [B, T, ...] tensor (quadratic in T)
     m_t, p_t, pm_t, pp_t, g_t = (x.unbind(1) for x in (mean, cov, prior_mean, prior_cov, gains))
@@ -185,13 +261,19 @@ class Smoother(nn.Module):
         """Backward pass over ``result`` of a window that started from the belief ``initial``."""
         raise NotImplementedError
 
-    def per_step(self, fn: Callable[[Tensor, Tensor, Controls], Tensor], mean: Tensor, cov: Tensor, controls: Controls) -> Tensor:
+    def per_step(
+        self, fn: Callable[[Tensor, Tensor, Controls], Tensor], mean: Tensor, cov: Tensor, controls: Controls, *, whole: bool = False
+    ) -> Tensor:
         """``fn(mean, cov, u)`` evaluated on all ``[B, T]`` steps as one flattened batch (in chunks
-        of ``time_chunk`` steps), reshaped to ``[B, T, ...]``; ``mean [B, T, n]``, ``cov [B, T, n, n]``."""
+        of ``time_chunk`` steps, or in one call when ``whole`` says ``fn`` needs no more memory
+        than its inputs), reshaped to ``[B, T, ...]``; ``mean [B, T, n]``, ``cov [B, T, n, n]``."""
         bsz, steps, n = mean.shape
-        chunk = self.time_chunk or max(1, MAX_CHUNK_STATES // bsz)
+        chunk = steps if whole else self.time_chunk or max(1, MAX_CHUNK_STATES // bsz)
         outs = []
         with parametrize.cached():
+            if chunk >= steps:  # one call: no concatenation, no slices to fill with zeros in the backward pass
+                out = fn(mean.reshape(-1, n), cov.reshape(-1, n, n), flatten_steps(controls, 0, steps))
+                return out.reshape(bsz, steps, *out.shape[1:])
             for start in range(0, steps, chunk):
                 stop = min(start + chunk, steps)
                 m = mean[:, start:stop].reshape(-1, n)

@@ -10,7 +10,7 @@ from ..filters.ukf import UKF
 from ..models.base import Controls, DynamicsModel
 from .base import Smoother, previous_posteriors, rts_backward, smoother_gains
 from .result import SmootherResult
-from .transition import check_smoothable, predicting_filter, transition_cross_covariance
+from .transition import check_smoothable, needs_points, predicting_filter, transition_cross_covariance
 
 __all__ = ["RTSSmoother", "UnscentedRTSSmoother", "faded_prior_cov"]
 
@@ -80,7 +80,7 @@ class RTSSmoother(Smoother):
     def gains(self, result: FilterResult, initial: Belief, controls: Controls = None) -> tuple[Tensor, Tensor]:
         """Smoother gains ``G_t [B, T, n, n]`` and the prior covariances they use."""
         prev_mean, prev_cov = previous_posteriors(result, initial)
-        cross = self.per_step(self.cross_covariance, prev_mean, prev_cov, controls)
+        cross = self.per_step(self.cross_covariance, prev_mean, prev_cov, controls, whole=not needs_points(self.filter, controls))
         prior_cov = self.effective_prior_cov(result, prev_mean, controls)
         return smoother_gains(cross, prior_cov), prior_cov
 

@@ -11,7 +11,9 @@ approximation the filter's prediction uses:
 * :class:`~difffilter.filters.UKF` and its subclasses (``SquareRootUKF``, ``RCUKF``): the
   unscented transform of the prediction, ``C = sum_i wc_i (chi_i - x)(f(chi_i) - x-)^T`` over
   the same sigma points (Sarkka's unscented RTS smoother), with the augmented points
-  ``[x; w(; v)]`` when the filter uses ``noise="augmented"``;
+  ``[x; w(; v)]`` when the filter uses ``noise="augmented"``; for a linear ``f`` with additive
+  noise (:func:`~difffilter.filters.ukf.linear_space`) the transform is exact and, as in the
+  filter's prediction, computed without points: ``C = P F^T`` for the base rule's points;
 * :class:`~difffilter.filters.SequentialUpdate`: the wrapped filter's.
 
 Everything is batched over the leading dimension, so a smoother evaluates all ``B * T`` steps
@@ -27,11 +29,11 @@ from ..filters.base import RecursiveFilter
 from ..filters.colored import ColoredNoiseUKF
 from ..filters.ekf import EKF
 from ..filters.sequential import SequentialUpdate
-from ..filters.ukf import UKF, SimplifiedUKF, deviations, expand_controls, weighted_mean
-from ..linalg import block_diag
+from ..filters.ukf import UKF, SimplifiedUKF, _second_moment_exact, centred_points, deviations, expand_controls, linear_space, weighted_mean
+from ..linalg import block_diag, psd_sqrt
 from ..models.base import Controls
 
-__all__ = ["check_smoothable", "is_unscented", "predicting_filter", "transition_cross_covariance"]
+__all__ = ["check_smoothable", "is_unscented", "needs_points", "predicting_filter", "transition_cross_covariance"]
 
 
 def predicting_filter(filt: RecursiveFilter) -> RecursiveFilter:
@@ -62,6 +64,25 @@ def is_unscented(filt: RecursiveFilter) -> bool:
     return isinstance(filt, UKF) and not isinstance(filt, SimplifiedUKF)
 
 
+def needs_points(filt: RecursiveFilter, controls: Controls) -> bool:
+    """Whether the cross-covariance of ``filt`` may need more memory than its inputs (sigma points,
+    or an EKF's Jacobians by automatic differentiation), so that a smoother computes it in time
+    chunks; False for the product ``P F^T`` of a linear prediction (a KalmanFilter or
+    SimplifiedUKF, or a UKF whose ``f`` is linear with additive noise)."""
+    filt = predicting_filter(filt)
+    if not is_unscented(filt):
+        return isinstance(filt, EKF)
+    u = controls if controls is None else _first_step(controls)
+    return filt.noise != "additive" or linear_space(filt.model.dynamics, u) is None  # type: ignore[union-attr]
+
+
+def _first_step(controls: Controls) -> Controls:
+    def first(v: Tensor) -> Tensor:
+        return v[:, 0]
+
+    return first(controls) if isinstance(controls, Tensor) else {k: first(v) for k, v in controls.items()}  # type: ignore[union-attr]
+
+
 def _linear_transition(filt: RecursiveFilter, mean: Tensor, u: Controls) -> Tensor:
     if isinstance(filt, EKF):
         return filt.transition_jacobian(mean, u)
@@ -74,6 +95,16 @@ def _unscented_cross(filt: UKF, mean: Tensor, cov: Tensor, u: Controls) -> Tenso
     n = mean.shape[-1]
     dyn = filt.model.dynamics
     u1 = expand_controls(u)
+    lin = linear_space(dyn, u) if filt.noise == "additive" else None
+    if lin is not None:
+        # a linear f: the transform is exact, as in the filter's own prediction; with the base
+        # rule's points the weighted second moment of the deviations is P itself, so C = P F^T
+        # (no square root, no points: the smoother's gains over B * T steps cost one product)
+        if _second_moment_exact(filt.sigma_points):
+            return cov @ lin.mT
+        wc = filt._weights(n, mean)[1]
+        dev = centred_points(filt.sigma_points, psd_sqrt(cov).factor)
+        return (dev * wc[:, None]).mT @ (dev @ lin.mT)
     if filt.noise == "additive":
         chi = filt._points(mean, cov)
         wm, wc = filt._weights(n, mean)

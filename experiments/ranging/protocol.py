@@ -1,5 +1,7 @@
-"""The real-data protocol for 2-D ranging recordings (``range2`` + odometry, libRSF format):
-folds, training of the sensor extras, selection on validation, test rows with paired intervals.
+"""The real-data protocol for ranging recordings (libRSF format: ``range2`` + odometry, or
+``range3`` with ``odom3`` or without odometry): folds, training of the sensor extras, selection on
+validation, test rows with paired intervals.  The model is :func:`ranging_model`'s (2-D: position
+and heading; 3-D: position and heading with odometry, position and velocity without).
 
 For one fold (train / validation / test pieces, each a recording and a span of its steps):
 
@@ -48,8 +50,11 @@ from torch import Tensor
 from difffilter.datasets.ranging import RangingRecording
 from difffilter.filters import EKF, GatedEKF, SageHusa, VBAdaptiveR
 from difffilter.models.heteroscedastic import RobustGate
-from difffilter.models.navigation.ranging2d import make_ranging_model, multilateration
+from difffilter.models.navigation.ranging2d import make_ranging_model
+from difffilter.models.navigation.ranging3d import make_ranging3d_model
 from experiments.holdout import error_statistics, paired_error_table
+
+from .pieces import Piece, _fix, start_belief, start_position_variance
 
 __all__ = [
     "EXTRA_BASELINES",
@@ -59,6 +64,7 @@ __all__ = [
     "fold_pieces",
     "lead_in_start",
     "piece_tensors",
+    "ranging_model",
     "run_fold",
     "select_candidate",
     "start_belief",
@@ -66,23 +72,24 @@ __all__ = [
     "summary_statistics",
 ]
 
+
 #: ``{row name: factory(recording) -> filter}``: further baselines evaluated on every test piece.
 #: The adaptive filters estimate ``R`` on line from the innovations, started at the file's
 #: variances (untrained hyperparameters, the docs' defaults).  No EM-tuned row: ``fit_em`` refuses
 #: control-dependent noise, which this model's ``R`` and ``Q`` are.
+def ranging_model(rec: RangingRecording, **kwargs: Any) -> torch.nn.Module:
+    """The range model of ``rec``'s kind: :func:`~difffilter.models.navigation.make_ranging_model`
+    (2-D) or :func:`~difffilter.models.navigation.make_ranging3d_model` (3-D, with odometry when
+    the recording has it); ``kwargs`` go to it."""
+    if rec.dim == 2:
+        return make_ranging_model(num_anchors=rec.num_anchors, **kwargs)
+    return make_ranging3d_model(num_anchors=rec.num_anchors, odometry=rec.odometry, **kwargs)
+
+
 EXTRA_BASELINES: dict[str, Callable[[RangingRecording], torch.nn.Module]] = {
-    "sage-husa": lambda rec: SageHusa(EKF(make_ranging_model(num_anchors=rec.num_anchors, bias=None, noise=None, gate=None))),
-    "vb-adaptive-r": lambda rec: VBAdaptiveR(EKF(make_ranging_model(num_anchors=rec.num_anchors, bias=None, noise=None, gate=None))),
+    "sage-husa": lambda rec: SageHusa(EKF(ranging_model(rec, bias=None, noise=None, gate=None))),
+    "vb-adaptive-r": lambda rec: VBAdaptiveR(EKF(ranging_model(rec, bias=None, noise=None, gate=None))),
 }
-
-
-@dataclass(frozen=True)
-class Piece:
-    """Steps ``[first, stop)`` of a recording."""
-
-    recording: RangingRecording
-    first: int
-    stop: int
 
 
 def fold_pieces(recordings: Sequence[RangingRecording], spec: Mapping[str, Any]) -> dict[str, list[Piece]]:
@@ -105,69 +112,6 @@ def fold_pieces(recordings: Sequence[RangingRecording], spec: Mapping[str, Any])
         a, b = (float(x) for x in spec[role])
         out[role] = [Piece(r, int(round(a * r.num_steps)), int(round(b * r.num_steps))) for r in recordings]
     return out
-
-
-def _hold(x: Tensor) -> Tensor:
-    """NaN rows ``[T, 2]`` replaced by the previous finite row (the first finite one before it)."""
-    ok = torch.isfinite(x).all(-1)
-    if not bool(ok.any()):
-        raise ValueError("no step with 3 or more ranges: the snapshot fix is undefined")
-    idx = torch.arange(len(x))
-    src = torch.where(ok, idx, torch.zeros_like(idx))
-    src = torch.cummax(src, 0).values
-    first = int(torch.nonzero(ok)[0])
-    src = torch.where(idx < first, torch.full_like(idx, first), src)
-    return x[src]
-
-
-def _heading(rec: RangingRecording, k: int) -> float:
-    """Reference heading at step ``k``: the truth file's ``angle`` record, else the direction of
-    the reference motion over the next step minus the direction of the body-frame odometry
-    velocity that produced it (a robot may drive backwards or sideways in its body frame)."""
-    if rec.heading is not None and math.isfinite(float(rec.heading[k])):
-        return float(rec.heading[k])
-    if k == 0 and rec.heading0 is not None:
-        return rec.heading0
-    t = rec.truth
-    for j in range(k, min(k + 20, rec.num_steps - 1)):
-        d = t[j + 1] - t[j]
-        v = rec.odom[j + 1, :2]
-        if np.all(np.isfinite(d)) and np.hypot(*d) > 1e-6 and np.hypot(*v) > 1e-6:
-            return float(np.arctan2(d[1], d[0]) - np.arctan2(v[1], v[0]))
-    return 0.0
-
-
-def start_belief(rec: RangingRecording, k: int, fix: Tensor, pos_var: float = 4.0) -> tuple[Tensor, Tensor]:
-    """Initial mean ``[3]`` (snapshot fix at step ``k``, reference heading) and covariance ``[3, 3]``
-    (``pos_var`` m^2 per position axis, 0.01 rad^2 heading)."""
-    m = torch.tensor([float(fix[k, 0]), float(fix[k, 1]), _heading(rec, k)], dtype=torch.float64)
-    return m, torch.diag(torch.tensor([float(pos_var), float(pos_var), 0.01], dtype=torch.float64))
-
-
-#: chi-square quantile, 2 degrees of freedom, 0.95: a 2-D Gaussian N(0, s^2 I) puts 95 % of its
-#: mass within radius sqrt(CHI2_2_95) s.
-CHI2_2_95 = -2.0 * math.log(0.05)
-
-
-def _fix(r: RangingRecording) -> Tensor:
-    t64 = lambda a: torch.as_tensor(np.ascontiguousarray(a), dtype=torch.float64)  # noqa: E731
-    return _hold(multilateration(t64(r.ranges), t64(r.range_var), torch.as_tensor(r.mask), t64(r.anchors)))
-
-
-def start_position_variance(pieces: Sequence[Piece], *, floor: float = 0.25) -> float:
-    """Start variance (m^2 per axis) from the snapshot fixes' errors on ``pieces`` (the train
-    pieces: the reference is used where training may use it): ``q95(|error|)^2 / CHI2_2_95``,
-    the isotropic Gaussian whose 95 % circle is the fixes' 95th percentile error (a mean square
-    would follow the rare catastrophic fixes instead of the typical start), at least ``floor``."""
-    errs = []
-    for p in pieces:
-        r = p.recording
-        e = (_fix(r)[p.first : p.stop] - torch.as_tensor(r.truth[p.first : p.stop])).norm(dim=-1)
-        errs.append(e[torch.isfinite(e)])
-    e = torch.cat(errs)
-    if not len(e):
-        raise ValueError("the train pieces hold no step with a reference position: no start variance")
-    return max(float(floor), float(torch.quantile(e, 0.95)) ** 2 / CHI2_2_95)
 
 
 def piece_tensors(piece: Piece, *, length: int | None = None, stride: int | None = None, pos_var: float = 4.0) -> dict[str, Any]:
@@ -231,7 +175,8 @@ def _errors(filt: torch.nn.Module, data: Mapping[str, Any], burn_in: int = 0) ->
     then ``burn_in`` more."""
     with torch.no_grad():
         res = filt(data["z"], data["m0"], data["P0"], mask=data["mask"], controls=data["u"])
-    return _scored((res.mean[..., :2] - data["truth"]).norm(dim=-1), data["truth"], int(data.get("skip", 0)) + burn_in)
+    d = data["truth"].shape[-1]
+    return _scored((res.mean[..., :d] - data["truth"]).norm(dim=-1), data["truth"], int(data.get("skip", 0)) + burn_in)
 
 
 def _score(filt: torch.nn.Module, val: Sequence[Mapping[str, Any]], burn_in: int = 0) -> float:
@@ -251,19 +196,25 @@ def select_candidate(scores: Sequence[float]) -> int:
     return min(range(len(scores)), key=lambda i: (scores[i] if math.isfinite(scores[i]) else math.inf, i))
 
 
-def _filters(num_anchors: int, cfg: Mapping[str, Any]) -> dict[str, torch.nn.Module]:
+def _filters(rec: RangingRecording | int, cfg: Mapping[str, Any]) -> dict[str, torch.nn.Module]:
+    """The non-learned rows and the untrained gated filter of ``rec``'s kind (an ``int``: a 2-D
+    recording with that many anchors)."""
     g = dict(cfg["gate"])
-    kw = {"num_anchors": num_anchors}
+    if isinstance(rec, int):
+        num = rec
+        model = lambda **kw: make_ranging_model(num_anchors=num, **kw)  # noqa: E731
+    else:
+        model = lambda **kw: ranging_model(rec, **kw)  # type: ignore[arg-type]  # noqa: E731
     soft = RobustGate(
         kind="reject", threshold=float(g["threshold"]), floor=float(g["floor"]), softness=float(g["softness"]), learnable=True
     )
     return {
-        "hand-tuned": EKF(make_ranging_model(**kw, bias=None, noise=None, gate=None)),
+        "hand-tuned": EKF(model(bias=None, noise=None, gate=None)),
         "hand-tuned-hard-gate": GatedEKF(
-            make_ranging_model(**kw, bias=None, noise=None, gate=None),
+            model(bias=None, noise=None, gate=None),
             gate=RobustGate(kind="reject", threshold=float(g["threshold"]), floor=float(g["floor"])),
         ),
-        "untrained-gate": GatedEKF(make_ranging_model(**kw, bias=cfg["bias"], noise=cfg["noise"], gate=None), gate=soft),
+        "untrained-gate": GatedEKF(model(bias=cfg["bias"], noise=cfg["noise"], gate=None), gate=soft),
     }
 
 
@@ -305,7 +256,8 @@ def _train_seed(
         for chunk in order.chunk(batches):
             u = {k: v[chunk] for k, v in train["u"].items()}
             res = filt(train["z"][chunk], train["m0"][chunk], train["P0"][chunk], mask=train["mask"][chunk], controls=u)
-            sq = (res.mean[:, burn:, :2] - train["truth"][chunk, burn:]).pow(2).sum(-1)
+            d = train["truth"].shape[-1]
+            sq = (res.mean[:, burn:, :d] - train["truth"][chunk, burn:]).pow(2).sum(-1)
             ok = torch.isfinite(sq)
             sq = torch.where(ok, sq, torch.zeros_like(sq))
             count = ok.sum().clamp(min=1)
@@ -341,7 +293,10 @@ def run_fold(
     num_a = {p.recording.num_anchors for ps in pieces.values() for p in ps}
     if len(num_a) != 1:
         raise ValueError(f"the recordings of one fold must have the same anchors, got counts {sorted(num_a)}")
-    a = num_a.pop()
+    kinds = {(p.recording.dim, p.recording.odometry) for ps in pieces.values() for p in ps}
+    if len(kinds) != 1:
+        raise ValueError(f"the recordings of one fold must be of one kind, got (dimension, odometry) {sorted(kinds)}")
+    rep = pieces["train"][0].recording
     win = dict(cfg["windows"])
     burn = int(cfg.get("eval_burn_in", 0))
     for p in (*pieces["val"], *pieces["test"]):
@@ -353,7 +308,7 @@ def run_fold(
     train["u"] = {k: torch.cat([d["u"][k] for d in parts]) for k in parts[0]["u"]}
     lead = cfg.get("eval_lead_in", 0)
     val = [eval_tensors(p, pos_var=pos_var, lead_in=lead, avoid=pieces["test"]) for p in pieces["val"]]
-    base = _filters(a, cfg)
+    base = _filters(rep, cfg)
     start = base["untrained-gate"]
     runs = [_train_seed(start, train, val, cfg, s, log) for s in range(int(cfg["seeds"]))]
     candidates = [

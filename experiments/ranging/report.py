@@ -74,7 +74,8 @@ def extras(filt: torch.nn.Module) -> dict[str, list[float]]:
         out["range_bias"] = [float(v) for v in meas.range_bias.detach().reshape(-1)]
     if getattr(meas, "noise_mode", None) is not None:
         out["noise_scale"] = [float(v) for v in meas.noise_scale.detach().reshape(-1)]
-    out["odom_scale"] = [float(dyn.odom_scale.detach())]
+    if hasattr(dyn, "odom_scale"):  # a 3-D recording without odometry has none
+        out["odom_scale"] = [float(dyn.odom_scale.detach())]
     out["process_psd"] = [float(v) for v in dyn.process_psd.detach().reshape(-1)]
     gate = getattr(filt, "gate", None) or getattr(meas, "gate", None)
     if gate is not None:

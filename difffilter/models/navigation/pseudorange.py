@@ -9,6 +9,8 @@ Per-step inputs ``u`` (dict; every entry broadcasts against the state's leading 
 * ``"pr_var" [..., K]`` (``"prr_var"`` for rates): per-satellite noise variances when the model
   takes its noise from the data.
 * ``"pr_obs" [..., K]``: the observed pseudoranges, for the robust outlier gate.
+* ``"elevation" [..., K]`` (deg) and ``"constellation" [..., K]`` (group index): for the
+  elevation-dependent bias (option ``elevation_bias``).
 
 Satellites missing in an epoch keep a slot of the fixed ``K``: give them any finite position
 away from the receiver and mark them False in the filter's per-component mask ``[B, T, K]``.
@@ -16,6 +18,7 @@ away from the receiver and mark them False in the filter's per-component mask ``
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -24,7 +27,7 @@ from torch import Tensor, nn
 
 from ... import geometry as geo
 from ..._util import control
-from ...params import Positive, register_constrained, register_covariance
+from ...params import Bounded, Positive, register_constrained, register_covariance
 from ..base import Controls, MeasurementModel
 from ..heteroscedastic import RobustGate
 from .antenna import antenna_offset, has_antenna, planar_rotation, register_antenna
@@ -88,6 +91,12 @@ class PseudorangeMeasurement(MeasurementModel):
     measured position to ``p + C(yaw) l - latency v``, ``v`` the odometry velocity
     (``u["speed"]`` along the yaw); both are learnable by name when given.
 
+    Bias: ``elevation_bias`` ``[G]`` (m, one per constellation group ``u["constellation"]``)
+    adds ``c_g / sin(max(el, 5 deg))`` to each pseudorange (a residual tropospheric or multipath
+    bias that grows at low elevation), learnable by name, :class:`~difffilter.params.Bounded` to
+    ``+-max_elevation_bias``.  A constant per-constellation bias is not a parameter: the clock
+    bias and inter-system bias states absorb it.
+
     Noise: ``R = sigma^2 I`` registered with ``R_structure`` (default ``"scalar"``: one learnable
     level, since a slot is not tied to one satellite), or, with ``noise_from_data=True``,
     ``R = noise_scale * diag(u["pr_var"](, u["prr_var"]))`` with learnable ``noise_scale``, or,
@@ -120,6 +129,8 @@ class PseudorangeMeasurement(MeasurementModel):
         noise_model: nn.Module | None = None,
         lever_arm: Sequence[float] | None = None,
         latency: float | None = None,
+        elevation_bias: Sequence[float] | None = None,
+        max_elevation_bias: float = 10.0,
         dtype: torch.dtype = torch.float64,
     ) -> None:
         super().__init__()
@@ -161,6 +172,14 @@ class PseudorangeMeasurement(MeasurementModel):
         if latency is not None and rates:
             raise ValueError("latency is not modelled for pseudorange rates")
         register_antenna(self, lever_arm=lever_arm, latency=latency, dtype=dtype)
+        self.has_elevation_bias = elevation_bias is not None
+        if elevation_bias is not None:
+            eb = torch.as_tensor(elevation_bias, dtype=dtype).reshape(-1)
+            if eb.numel() == 0 or not bool((eb.abs() < float(max_elevation_bias)).all()):
+                raise ValueError(
+                    f"elevation_bias must be one number per constellation group (m) inside +-{max_elevation_bias}, got {eb.tolist()}"
+                )
+            register_constrained(self, "elevation_bias", eb, Bounded(-float(max_elevation_bias), float(max_elevation_bias)))
         self.robust_gate = None if robust is None else RobustGate(kind=robust, threshold=gate, floor=gate_floor, dtype=dtype)
         self.set_gate_softness(gate_softness)
         if gate_learnable:
@@ -241,6 +260,12 @@ class PseudorangeMeasurement(MeasurementModel):
     def _isb_flags(self, u: Controls, like: Tensor) -> Tensor:
         return _get(u, "glonass").to(like.dtype)
 
+    def _elevation_bias(self, u: Controls, like: Tensor) -> Tensor:
+        """``c_g / sin(max(el, 5 deg))`` ``[..., K]``; the floor keeps empty slots (elevation 0) finite."""
+        el = _get(u, "elevation").to(like.dtype).clamp_min(5.0) * (math.pi / 180.0)  # not deg2rad: the compiled engine lacks it
+        group = _get(u, "constellation").long().clamp(0, self.elevation_bias.numel() - 1)
+        return self.elevation_bias.to(like.dtype)[group] / torch.sin(el)
+
     def forward(self, x: Tensor, u: Controls = None) -> Tensor:
         lay = self.layout
         p, s, diff, rng = self._geometry(x, u)
@@ -258,6 +283,8 @@ class PseudorangeMeasurement(MeasurementModel):
         rho = rho + x[..., lay.clock_bias, None]
         if lay.isb is not None:
             rho = rho + self._isb_flags(u, x) * x[..., lay.isb, None]
+        if self.has_elevation_bias:
+            rho = rho + self._elevation_bias(u, x)
         if not self.rates:
             return rho
         assert lay.velocity is not None

@@ -171,8 +171,10 @@ def make_ranging_model(
 
 
 def multilateration(ranges: Tensor, var: Tensor, mask: Tensor, anchors: Tensor, *, iterations: int = 15) -> Tensor:
-    """Per-step weighted least-squares position ``[T, 2]`` from ranges ``[T, A]`` (Gauss-Newton
-    from the anchors' centroid, weights ``1 / var``); NaN where fewer than 3 ranges."""
+    """Per-step weighted least-squares position ``[T, d]`` from ranges ``[T, A]`` to anchors
+    ``[T, A, d]`` (``d`` = 2 or 3; Gauss-Newton from the anchors' centroid, weights ``1 / var``);
+    NaN where fewer than ``d + 1`` ranges."""
+    dim = anchors.shape[-1]
     w = mask.to(ranges.dtype) / var
     p = (anchors * mask[..., None]).sum(-2) / mask.sum(-1, keepdim=True).clamp(min=1)
     p = p + 1e-3  # off the centroid exactly, where a symmetric layout gives a zero gradient
@@ -181,7 +183,7 @@ def multilateration(ranges: Tensor, var: Tensor, mask: Tensor, anchors: Tensor, 
         r = d.norm(dim=-1).clamp(min=1e-9)
         jac = d / r[..., None]
         res = torch.where(mask, ranges - r, torch.zeros_like(r))
-        jtj = (jac[..., :, None] * jac[..., None, :] * w[..., None, None]).sum(-3) + 1e-9 * torch.eye(2, dtype=ranges.dtype)
+        jtj = (jac[..., :, None] * jac[..., None, :] * w[..., None, None]).sum(-3) + 1e-9 * torch.eye(dim, dtype=ranges.dtype)
         jtr = (jac * (w * res)[..., None]).sum(-2)
         p = p + torch.linalg.solve(jtj, jtr)
-    return torch.where((mask.sum(-1) >= 3)[..., None], p, torch.full_like(p, math.nan))
+    return torch.where((mask.sum(-1) >= dim + 1)[..., None], p, torch.full_like(p, math.nan))

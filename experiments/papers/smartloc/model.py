@@ -5,6 +5,7 @@ initial beliefs of windows of the drive (:func:`smartloc_initial_belief`)."""
 from __future__ import annotations
 
 import functools
+from collections.abc import Sequence
 
 import numpy as np
 import torch
@@ -46,6 +47,9 @@ def make_smartloc_model(
     gate_softness: float | None = None,
     gate_learnable: bool = False,
     noise_model: torch.nn.Module | None = None,
+    lever_arm: Sequence[float] | None = None,
+    latency: float | None = None,
+    elevation_bias: Sequence[float] | None = None,
     **dynamics_kwargs: float,
 ) -> torch.nn.Module:
     """Odometry + pseudorange model of the README's tightly coupled filter.
@@ -74,6 +78,11 @@ def make_smartloc_model(
     ``noise_model`` (a variance module, :mod:`difffilter.models.heteroscedastic`, reading
     ``elevation``, ``cn0``, ``constellation``, ``pr_var`` from the batch controls) replaces
     ``noise_scale * pr_var`` (``noise_from_data`` is then ignored).
+
+    Extras (:mod:`experiments.papers.smartloc.extras`; ``None``: not modelled): ``lever_arm``
+    (m; forward, left, up), ``latency`` (s) and ``elevation_bias`` (m per constellation group)
+    of :class:`~difffilter.models.navigation.pseudorange.PseudorangeMeasurement`, learnable by
+    those names (the odometry gives the heading and speed they need).
     """
     if not isinstance(gate_gradient, bool):
         raise TypeError(f"gate_gradient must be a bool, got {type(gate_gradient).__name__}")
@@ -101,13 +110,19 @@ def make_smartloc_model(
         gate_softness=gate_softness,
         gate_learnable=gate_learnable,
         noise_model=noise_model,
+        lever_arm=lever_arm,
+        latency=latency,
+        elevation_bias=elevation_bias,
         dtype=dtype,
     )
+    extras = [n for n, v in (("lever_arm", lever_arm), ("latency", latency), ("elevation_bias", elevation_bias)) if v is not None]
     sd = [30.0, 30.0, 2.0, float(np.radians(10.0)), 30.0, 2.0, 10.0]  # smartloc_initial_belief's spreads
     return describe(
         StateSpaceModel(dyn, meas),
         layout=SMARTLOC_LAYOUT,
-        learn=[n for n in _LEARN if n != "noise_scale" or noise_from_data] + (["*noise_model.*"] if noise_model is not None else []),
+        learn=[n for n in _LEARN if n != "noise_scale" or noise_from_data]
+        + (["*noise_model.*"] if noise_model is not None else [])
+        + extras,
         initial_mean=[0.0] * 7,
         initial_var=[s * s for s in sd],
         controls=DriveWindows(data=data),

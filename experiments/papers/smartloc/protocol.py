@@ -62,6 +62,7 @@ from experiments.holdout import (
 )
 
 from .data import SmartLocData, find_drives, load_drive
+from .extras import extras_options, extras_priors, learn_patterns
 from .model import make_smartloc_model, smartloc_initial_belief
 from .variants import noise_model, start_coefficients
 from .wls import WlsSolution, single_epoch_wls
@@ -199,6 +200,7 @@ def build_filter(cfg: Mapping[str, Any], drives: Sequence[Drive], variant: str, 
         gate_softness=float(gate["softness"]) if learned and gate.get("softness") else None,
         gate_learnable=bool(learned and gate.get("learnable")),
         gate_gradient=bool(gate.get("gradient", True)) if learned else True,
+        **(extras_options(cfg, len(drives[0].data.systems)) if learned else {}),
         **{k: float(hand[k]) for k in DYNAMICS},
     )
     filt = EKF(model)
@@ -313,10 +315,16 @@ def _train_job(job: Mapping[str, Any]) -> dict[str, Any]:
     sets = fold_data(cfg, drives, job["fold"])
     coef = torch.tensor(job["coefficients"], dtype=torch.float64)
     filt = build_filter(cfg, drives, job["variant"], coef, learned=True)
-    names = learned_names(filt, cfg["learn"])
+    names = learned_names(filt, learn_patterns(cfg))
     owners = parameter_owners(filt)
     prior = dict(cfg["prior"])
-    priors = {n: LogDistancePrior(reference=getattr(owners[n][0], owners[n][1]).detach(), scale=float(prior["scale"])) for n in names}
+    signed = extras_priors(cfg, names, owners)
+    priors = {
+        n: LogDistancePrior(reference=getattr(owners[n][0], owners[n][1]).detach(), scale=float(prior["scale"]))
+        for n in names
+        if n not in signed
+    }
+    priors.update(signed)
     snaps = EpochSnapshots(lambda f: validation_score(f, sets["val"]), names)
     learner = FilterLearner(
         filt.double(),
@@ -367,7 +375,7 @@ def start_candidate(cfg: Mapping[str, Any], drives: Sequence[Drive], fold: str, 
     """The unperturbed start as a candidate (its validation score and snapshot)."""
     sets = fold_data(cfg, drives, fold)
     filt = build_filter(cfg, drives, variant, coefficients, learned=True)
-    snaps = EpochSnapshots(lambda f: validation_score(f, sets["val"]), learned_names(filt, cfg["learn"]))
+    snaps = EpochSnapshots(lambda f: validation_score(f, sets["val"]), learned_names(filt, learn_patterns(cfg)))
     snaps.record(filt)
     return {"fold": fold, "variant": variant, "seed": "start", "scores": snaps.scores, "extras": snaps.extras, "snapshots": snaps.snapshots}
 

@@ -266,6 +266,16 @@ JOBS: tuple[Job, ...] = (
             "python -m experiments.practitioners outputs/practitioners/p002_pdr_rcukf",
         ),
     ),
+    Job(
+        "p002_infamily_exactref_practitioners",
+        "p00_practitioners.md",
+        186,
+        (
+            "python experiments/train.py -m experiment=p002_infamily_practitioners seed=0,1,2,3,4 logger=csv "
+            "hydra.sweep.dir=outputs/practitioners/p002_infamily_exactref",
+            "python -m experiments.practitioners outputs/practitioners/p002_infamily_exactref --oracle 'exact UKF'",
+        ),
+    ),
     # issue 25: the learned adaptive rows (results/p00_practitioners.md, "Learned adaptive"), joined to the
     # committed practitioners' data files (--collect joins them again after copying a practitioners summary)
     Job(
@@ -286,6 +296,21 @@ JOBS: tuple[Job, ...] = (
     Job("p004_blend_learned_adaptive", "p00_practitioners.md", 168, _learned_adaptive("p004_blend_learned_adaptive", "p004_blend")),
     Job("p004_outage_learned_adaptive", "p00_practitioners.md", 154, _learned_adaptive("p004_outage_learned_adaptive", "p004_outage")),
     Job("p002_pdr_learned_adaptive", "p00_practitioners.md", 142, _learned_adaptive("p002_pdr_learned_adaptive", "p002_pdr_rcukf")),
+    # (session px25: p002_infamily_exactref, declared in "p002_infamily_exactref")
+    Job(
+        "p002_infamily_exactref_learned_adaptive",
+        "p00_practitioners.md",
+        174,
+        _learned_adaptive("p002_infamily_learned_adaptive", "p002_infamily_exactref"),
+    ),
+    # (session px25: declared in "p003 learned adaptive"; 758 CPU-s measured, /usr/bin/time, 5 seeds, eager engine)
+    Job(
+        "p003_physical_learned_adaptive",
+        "p00_practitioners.md",
+        758,
+        _learned_adaptive("p003_physical_learned_adaptive", "p003_physical"),
+    ),
+    Job("p003_modes_learned_adaptive", "p00_practitioners.md", 727, _learned_adaptive("p003_modes_learned_adaptive", "p003_modes")),
     # ("Learned adaptive, remaining families", session la25c)
     Job("p001_colored_learned_adaptive", "p00_practitioners.md", 313, _learned_adaptive("p001_colored_learned_adaptive", "p001_colored")),
     Job(

@@ -231,7 +231,13 @@ FAMILIES: tuple[Family, ...] = (
         practitioners=True,
     ),
     Family(
-        "p002_infamily_exactref", "p002", "in-family", "in-family walks (G vs exact UKF)", "p002_pdr.md", f"{_R}/p002_infamily_exactref"
+        "p002_infamily_exactref",
+        "p002",
+        "in-family",
+        "in-family walks (G vs exact UKF)",
+        "p002_pdr.md",
+        f"{_R}/p002_infamily_exactref",
+        practitioners=True,
     ),
     Family(
         "p003_modes", "p003", "in-family", "two-level noise modes", "p003_imm_sins.md", "outputs/p003_final/p003_modes", practitioners=True

@@ -33,6 +33,11 @@ FAMILIES = {
     "p004_blend_learned_adaptive": "p004_blend_practitioners",
     "p004_outage_learned_adaptive": "p004_outage_practitioners",
     "p002_pdr_learned_adaptive": "p002_pdr_practitioners",
+    "p002_infamily_learned_adaptive": "p002_infamily_practitioners",
+    # p003: Sage-Husa around the single simplified UKF of the practitioners' row, not the IMM bank
+    "p003_physical_learned_adaptive": "p003_physical_practitioners",
+    "p003_modes_learned_adaptive": "p003_modes_practitioners",
+    "p003_imm_sins_learned_adaptive": "p003_imm_sins_practitioners",
     "p000_nominal_learned_adaptive": "p000_nominal_practitioners",
     "p000_odometer_learned_adaptive": "p000_odometer_practitioners",
     "p000_gps_learned_adaptive": "p000_gps_practitioners",

@@ -13,7 +13,7 @@ import torch
 
 from difffilter import geometry as geo
 from difffilter.evaluate.metrics import mode_switch_delay
-from difffilter.filters import SimplifiedUKF
+from difffilter.filters import SageHusa, SimplifiedUKF
 from difffilter.mixers import IMM
 from experiments.papers.p003 import (
     LOAD_LIMITS,
@@ -30,6 +30,7 @@ from experiments.papers.p003 import (
     p003_imm,
     p003_learner,
     p003_oracle,
+    p003_single,
     random_phases,
     reference_imm,
     simulate_p003,
@@ -213,6 +214,21 @@ def test_learned_layout_with_log_scaled_r_groups():
     assert one.filter.filters[0].model.measurement.parametrizations.R.original.shape == (1,)
     with pytest.raises(ValueError, match="r_groups"):
         p003_learner(copy.deepcopy(hand), "nll", r_groups="per_satellite")
+
+
+def test_learned_layout_of_an_adaptive_filter_around_one_mode():
+    # the learned adaptive job: Sage-Husa around p003_single, its inner model in the family's layout
+    filt = SageHusa(p003_single(model={"num_satellites": 4}), b=0.98)
+    q0, r0 = filt.model.dynamics.Q.detach().clone(), filt.model.measurement.R.detach().clone()
+    learner = p003_learner(filt, "nll", q_groups="imu_white", r_groups="range_rate", learn=["b", "Q", "R"])
+    dyn, meas = learner.filter.inner.model.dynamics, learner.filter.inner.model.measurement
+    assert dyn.parametrizations.Q.original.shape == (2,) and meas.parametrizations.R.original.shape == (2,)
+    torch.testing.assert_close(dyn.Q, q0)
+    with torch.no_grad():
+        meas.parametrizations.R.original.copy_(torch.tensor([math.log(0.1), math.log(4.0)], dtype=f64))
+    r = torch.diagonal(learner.filter.model.measurement.R)  # the wrapper's model is the inner's
+    torch.testing.assert_close(r, torch.cat([0.1 * torch.diagonal(r0)[:4], 4.0 * torch.diagonal(r0)[4:]]))
+    assert {n.split(".")[-2] for n, _ in learner.filter.named_parameters()} == {"b", "Q", "R"}
 
 
 def test_switch_delays_per_run_against_enumeration():

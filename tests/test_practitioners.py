@@ -111,6 +111,19 @@ def test_summary_pairs_learned_with_the_best_non_learned_row(tmp_path):
     assert not any(r.reference == "hand-tuned" for r in rows) and not math.isnan(diff.lo)
 
 
+def test_gap_closed_is_measured_against_the_named_oracle_row(tmp_path):
+    # p002_infamily_exactref: G against "exact UKF", not against the row called "oracle"
+    hand, exact, oracle = [3.0, 4.0, 5.0, 6.0], [1.0, 2.0, 3.0, 2.0], [2.0, 3.0, 4.0, 5.0]
+    learned = [[e + 0.5 for e in exact], [e + 1.0 for e in exact]]
+    per_seed = {"hand-tuned": [hand] * 2, "learned": learned, "exact UKF": [exact] * 2, "oracle": [oracle] * 2}
+    _write_sweep(tmp_path, per_seed, {})
+    gap = next(r for r in read_rows(summarize_practitioners(tmp_path, oracle="exact UKF")) if r.quantity == "gap_closed")
+    mean = sum(map(sum, learned)) / 8
+    assert gap.estimate == pytest.approx((sum(hand) / 4 - mean) / (sum(hand) / 4 - sum(exact) / 4), rel=1e-12)
+    default = next(r for r in read_rows(summarize_practitioners(tmp_path)) if r.quantity == "gap_closed")
+    assert default.estimate == pytest.approx((sum(hand) / 4 - mean) / (sum(hand) / 4 - sum(oracle) / 4), rel=1e-12)
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("overlay", OVERLAYS)
 def test_overlay_runs_end_to_end(tmp_path, overlay):

@@ -127,7 +127,9 @@ def _log_groups(module: torch.nn.Module, name: str, groups: torch.Tensor) -> Non
 
 def group_scale_q(imm: Filter, q_groups: str | None, r_groups: str | None = None) -> Filter:
     """Re-parametrize every mode's ``Q`` (``q_groups``) and ``R`` (``r_groups``) of ``imm`` in
-    place as :func:`p003_learner` describes (``None``: that one is left alone); returns ``imm``."""
+    place as :func:`p003_learner` describes (``None``: that one is left alone); returns ``imm``.
+    A filter without modes (no ``filters``) is treated as one mode: its own model, or the model of
+    the filter it wraps (``inner``, e.g. an adaptive noise filter around :func:`p003_single`)."""
     if q_groups not in (None, "imu_white"):
         raise ValueError(f"q_groups must be None or 'imu_white', got {q_groups!r}")
     if r_groups not in (None, "one", "range_rate"):
@@ -136,7 +138,7 @@ def group_scale_q(imm: Filter, q_groups: str | None, r_groups: str | None = None
         return imm
     modes = getattr(imm, "filters", None)
     if modes is None:
-        raise TypeError(f"q_groups/r_groups need an IMM of SINS mode filters, got {type(imm).__name__}")
+        modes = [getattr(imm, "inner", imm)]
     for mode in modes:
         dyn, meas = mode.model.dynamics, mode.model.measurement
         if not isinstance(dyn, SinsErrorDynamics) or not isinstance(meas, SinsPseudorangeMeasurement):

@@ -75,6 +75,8 @@ class Family:
         practitioners: whether the family also ran with the practitioners' rows (issue 25,
             ``results/p00_practitioners.md``): its summary row then comes from
             ``results/data/<name>_practitioners.csv`` (sweep ``outputs/practitioners/<name>``).
+        adaptive_outcome: what the learned adaptive cell says when its job ran but left no row
+            (e.g. training diverged); "" shows *not run*.
     """
 
     name: str
@@ -85,6 +87,7 @@ class Family:
     sweep: str
     group: str = ""
     practitioners: bool = False
+    adaptive_outcome: str = ""
 
     def practitioners_family(self) -> Family:
         """The family's practitioners sweep as a family of its own (its data file and detail page)."""
@@ -101,6 +104,8 @@ class Family:
 _R = "outputs/rerun_logit"
 #: Where the practitioners sweeps (``experiments/reproduce.py`` jobs ``<family>_practitioners``) write.
 PRACTITIONERS_ROOT = "outputs/practitioners"
+#: the learned adaptive jobs that ran and left no row (results/p00_practitioners.md, session la25c)
+_DIVERGED = "ran, no row: training diverged in every seed"
 FAMILIES: tuple[Family, ...] = (
     Family(
         "p000_gyro",
@@ -111,6 +116,7 @@ FAMILIES: tuple[Family, ...] = (
         "outputs/final/p000_gyro",
         "test=scripted",
         practitioners=True,
+        adaptive_outcome=_DIVERGED,
     ),
     Family(
         "p000_gps",
@@ -121,6 +127,7 @@ FAMILIES: tuple[Family, ...] = (
         "outputs/final/p000_gps",
         "test=scripted",
         practitioners=True,
+        adaptive_outcome=_DIVERGED,
     ),
     Family(
         "p000_odometer",
@@ -131,6 +138,7 @@ FAMILIES: tuple[Family, ...] = (
         "outputs/final/p000_odometer",
         "test=scripted",
         practitioners=True,
+        adaptive_outcome=_DIVERGED,
     ),
     Family(
         "p001_elevation",
@@ -170,6 +178,7 @@ FAMILIES: tuple[Family, ...] = (
         "outputs/final/p000_nominal",
         "test=scripted",
         practitioners=True,
+        adaptive_outcome=_DIVERGED,
     ),
     Family(
         "p001_colored",
@@ -210,7 +219,14 @@ FAMILIES: tuple[Family, ...] = (
         practitioners=True,
     ),
     Family(
-        "p000_infamily", "p000", "in-family", "CA truth, q and R off", "p000_gpsdr.md", "outputs/final/p000_infamily", practitioners=True
+        "p000_infamily",
+        "p000",
+        "in-family",
+        "CA truth, q and R off",
+        "p000_gpsdr.md",
+        "outputs/final/p000_infamily",
+        practitioners=True,
+        adaptive_outcome="ran, no row: one seed diverged, the join refused the other four",
     ),
     Family(
         "p001_multipath",
@@ -279,8 +295,10 @@ def summary_cells(fam: Family, rows: Sequence[Row], metric: str = "rmse_pos") ->
         diff_cell, verdict = "no paired interval", "-"
     else:
         diff_cell, verdict = fmt_ci(diff.estimate, diff.lo, diff.hi), paired_verdict(diff.lo, diff.hi)
-    adaptive_cell = "not run"
-    if value["learned-adaptive"] is not None:
+    adaptive_cell = fam.adaptive_outcome or "not run"
+    if value["learned-adaptive"] is None:
+        shown[-1] = adaptive_cell
+    else:
         la = _paired(rows, g, "learned-adaptive", best) if best else None
         adaptive_cell = "no paired interval" if la is None else f"{fmt_ci(la.estimate, la.lo, la.hi)} ({paired_verdict(la.lo, la.hi)})"
     anees = _get(rows, g, "learned", "anees_all", _get_dof(rows, g))
@@ -382,6 +400,7 @@ def build_report(families: Sequence[Family] = FAMILIES, root: Path = ROOT) -> st
     ]
     tally: dict[str, dict[str, int]] = {}
     adaptive: list[str] = []
+    no_row: list[str] = []
     for fam in families:
         shown = fam.practitioners_family() if fam.practitioners else fam
         cells = summary_cells(shown, read_rows(_source(shown, root)))
@@ -391,6 +410,8 @@ def build_report(families: Sequence[Family] = FAMILIES, root: Path = ROOT) -> st
         la_cell = cells[_HEADER.index("learned adaptive - best non-learned, % [95 %] (verdict)")]
         if la_cell.endswith(")"):
             adaptive.append(f"{fam.name} {la_cell.rsplit('(', 1)[1].rstrip(')')}")
+        elif fam.adaptive_outcome and la_cell == fam.adaptive_outcome:
+            no_row.append(f"{fam.name} ({fam.adaptive_outcome.removeprefix('ran, no row: ')})")
     out += [""] + [
         f"Verdicts of learned against the best non-learned method, {kind} families: "
         + ", ".join(f"{n} {v}" for v, n in sorted(counts.items()))
@@ -401,6 +422,8 @@ def build_report(families: Sequence[Family] = FAMILIES, root: Path = ROOT) -> st
         out.append(
             "Verdicts of the learned adaptive filter against the best non-learned method, where it ran: " + ", ".join(adaptive) + "."
         )
+    if no_row:
+        out.append("Learned adaptive jobs that ran and left no row: " + ", ".join(no_row) + ".")
     out += [
         "",
         "Not in the table: the real drive (smartLoc Berlin, `results/smartloc_real.md`: median/RMS error per fold,",

@@ -164,6 +164,18 @@ def test_summary_row_verdict_on_synthetic_rows(tmp_path, pct, verdict):
     assert row["ANEES verdict"] == "consistent" and row["learned ANEES [95 %] (d; band)"].startswith("8.1 [7.9, 8.3] (d 8; band ")
 
 
+def test_learned_adaptive_cell_says_a_job_left_no_row_and_yields_to_a_row(tmp_path):
+    fam = Family("x", "p009", "mis-specified", "synthetic", "x.md", "outputs/x", adaptive_outcome="ran, no row: diverged")
+    rows = _family_rows((-10.0, -12.0, -8.0))
+    row = dict(zip(results_report._HEADER, summary_cells(fam, read_rows(_write(tmp_path / "x.csv", rows))), strict=True))
+    assert row["learned adaptive"] == row["learned adaptive - best non-learned, % [95 %] (verdict)"] == "ran, no row: diverged"
+    la = {"filter": "learned-adaptive", "quantity": "rmse_pos", "estimate": 2.5, "lo": 2.4, "hi": 2.6, "seeds": 5, "runs": 30}
+    pct = {"filter": "learned-adaptive", "quantity": "diff_pct", "estimate": 25.0, "lo": 20.0, "hi": 30.0, "seeds": 5, "runs": 30}
+    row = dict(zip(results_report._HEADER, summary_cells(fam, read_rows(_write(tmp_path / "y.csv", [*rows, la, pct]))), strict=True))
+    assert row["learned adaptive"] == "2.5 [2.4, 2.6]"
+    assert row["learned adaptive - best non-learned, % [95 %] (verdict)"] == "25 [20, 30] (loss)"
+
+
 def test_summary_row_against_a_better_non_learned_method(tmp_path):
     fam = Family("x", "p009", "mis-specified", "synthetic", "x.md", "outputs/x")
     em = {"filter": "em", "quantity": "rmse_pos", "estimate": 1.5, "lo": 1.4, "hi": 1.6, "seeds": 5, "runs": 30}

@@ -18,11 +18,25 @@ from ...params import register_constrained
 from ..base import Controls, DynamicsModel, MeasurementModel, StateSpaceModel
 from ..heteroscedastic import RobustGate
 
-__all__ = ["OdometryDynamics2D", "RangeMeasurement2D", "make_ranging_model", "multilateration"]
+__all__ = ["OdometryDynamics2D", "RangeMeasurement2D", "heading_jacobian", "make_ranging_model", "multilateration"]
 
 
 def _rot(theta: Tensor) -> tuple[Tensor, Tensor]:
     return torch.cos(theta), torch.sin(theta)
+
+
+def heading_jacobian(x: Tensor, u: Controls, *, heading: int) -> Tensor:
+    """``d f / d x`` ``[..., n, n]`` of odometry dead reckoning whose body-frame velocity (control
+    ``odom``, forward and left first) is rotated by the heading ``x[..., heading]`` into the first
+    two (x, y) components; every other component moves independently of the state."""
+    odom, dt = control(u, "odom").to(x.dtype), control(u, "dt").to(x.dtype)[..., 0]
+    c, s = _rot(x[..., heading])
+    vx, vy = odom[..., 0], odom[..., 1]
+    n = x.shape[-1]
+    f = torch.eye(n, dtype=x.dtype, device=x.device).expand(*torch.broadcast_shapes(x.shape[:-1], dt.shape), n, n).clone()
+    f[..., 0, heading] = (-s * vx - c * vy) * dt
+    f[..., 1, heading] = (c * vx - s * vy) * dt
+    return f
 
 
 class OdometryDynamics2D(DynamicsModel):
@@ -58,14 +72,7 @@ class OdometryDynamics2D(DynamicsModel):
         return torch.stack([x[..., 0] + (c * vx - s * vy) * dt, x[..., 1] + (s * vx + c * vy) * dt, x[..., 2] + w * dt], -1)
 
     def jacobian(self, x: Tensor, u: Controls = None) -> Tensor:
-        odom, dt = control(u, "odom").to(x.dtype), control(u, "dt").to(x.dtype)[..., 0]
-        c, s = _rot(x[..., 2])
-        vx, vy = odom[..., 0], odom[..., 1]
-        shape = torch.broadcast_shapes(x.shape[:-1], dt.shape)
-        f = torch.eye(3, dtype=x.dtype, device=x.device).expand(*shape, 3, 3).clone()
-        f[..., 0, 2] = (-s * vx - c * vy) * dt
-        f[..., 1, 2] = (c * vx - s * vy) * dt
-        return f
+        return heading_jacobian(x, u, heading=2)
 
     def process_noise(self, x: Tensor, u: Controls = None) -> Tensor:
         cov, dt = control(u, "odom_cov").to(x.dtype), control(u, "dt").to(x.dtype)[..., 0]

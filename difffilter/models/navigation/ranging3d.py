@@ -21,7 +21,7 @@ from ...constraints import Positive
 from ...params import register_constrained
 from ..base import Controls, DynamicsModel, StateSpaceModel
 from ..heteroscedastic import RobustGate
-from .ranging2d import RangeMeasurement2D
+from .ranging2d import RangeMeasurement2D, heading_jacobian
 
 __all__ = ["ConstantVelocity3D", "OdometryDynamics3D", "RangeMeasurement3D", "make_ranging3d_model"]
 
@@ -71,14 +71,7 @@ class OdometryDynamics3D(DynamicsModel):
         return x + (self._g(x, dt) @ odom[..., None])[..., 0]
 
     def jacobian(self, x: Tensor, u: Controls = None) -> Tensor:
-        odom, dt = control(u, "odom").to(x.dtype), control(u, "dt").to(x.dtype)[..., 0]
-        c, s = torch.cos(x[..., 3]), torch.sin(x[..., 3])
-        vx, vy = odom[..., 0], odom[..., 1]
-        shape = torch.broadcast_shapes(x.shape[:-1], dt.shape)
-        f = torch.eye(4, dtype=x.dtype, device=x.device).expand(*shape, 4, 4).clone()
-        f[..., 0, 3] = (-s * vx - c * vy) * dt
-        f[..., 1, 3] = (c * vx - s * vy) * dt
-        return f
+        return heading_jacobian(x, u, heading=3)
 
     def process_noise(self, x: Tensor, u: Controls = None) -> Tensor:
         cov, dt = control(u, "odom_cov").to(x.dtype), control(u, "dt").to(x.dtype)[..., 0]

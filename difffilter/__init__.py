@@ -1,7 +1,19 @@
 """difffilter: batched, differentiable Kalman-family filters in PyTorch."""
 
+# _openmp first: it sets OpenMP's wait policy before anything imports torch;
 # engines: registers the DIFFFILTER_ENGINE policy every plain filter call asks
-from . import engines, filters, func, linalg, mixers, models, params, sim, smoothers
+from . import (
+    _openmp,  # noqa: F401
+    engines,
+    filters,
+    func,
+    linalg,
+    mixers,
+    models,
+    params,
+    sim,
+    smoothers,
+)
 from ._util import as_dtype, document_init
 from .filters import (
     EKF,

@@ -13,11 +13,14 @@ experiments.runner.experiment.run_experiment.
 
 from __future__ import annotations
 
+import importlib
 import sys
 from pathlib import Path
 
 # The research tree (experiments/) is not installed: make it importable from the repository root.
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+# difffilter before torch, so that OpenMP's idle workers sleep instead of spinning (difffilter/_openmp.py)
+importlib.import_module("difffilter")
 
 import logging  # noqa: E402
 

@@ -21,7 +21,7 @@ PACKAGE = ROOT / "difffilter"
 #: Floors from the bottom up.  Modules of one floor may import each other; ``smoothers`` is the
 #: floor a smoother package takes when it exists.
 FLOORS: list[set[str]] = [
-    {"_util", "constraints", "geometry", "linalg", "params", "selection", "threads"},
+    {"_openmp", "_util", "constraints", "geometry", "linalg", "params", "selection", "threads"},
     {"datasets"},  # file formats and the data-set registry: numpy only, below every model
     {"models"},
     {"filters"},

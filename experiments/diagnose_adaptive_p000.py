@@ -115,18 +115,19 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--b", type=float, default=0.98, help="Sage-Husa forgetting factor")
     ap.add_argument("--rho", type=float, default=0.98, help="VB-AKF forgetting factor")
+    ap.add_argument("--split", default="test", choices=["test", "train", "val"], help="which drives (train/val: 150 s random drives)")
     args = ap.parse_args()
     torch.set_num_threads(1)
     with initialize_config_dir(config_dir=CONF, version_base="1.3"):
         cfg = compose("train", overrides=["experiment=p000_nominal_practitioners", "seed=0"])
     dtype = as_dtype(cfg.dtype)
-    test = instantiate(cfg.data, _convert_="all").dataset("test")
+    test = instantiate(cfg.data, _convert_="all").dataset(args.split)
     params = _plain(cfg.experiment.hand_tuned)
     specs = _plain(cfg.experiment.baselines)
     sh = build_filter(specs["sage-husa"]["filter"], dtype=dtype, params=params, b=args.b)
     vb = build_filter(specs["vb-akf"]["filter"], dtype=dtype, params=params, rho=args.rho)
     model_r = sh.model_r(test.initial_mean, None)[0]
-    print(f"p000_nominal test (scripted) drives: {tuple(test.measurements.shape)}; model R diag {torch.diagonal(model_r).tolist()}")
+    print(f"p000_nominal {args.split} drives: {tuple(test.measurements.shape)}; model R diag {torch.diagonal(model_r).tolist()}")
     fallbacks: list[torch.Tensor] = []
     orig_pd = sage_husa_module.is_positive_definite
 

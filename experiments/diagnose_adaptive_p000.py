@@ -2,7 +2,8 @@
 
 Builds the test set of ``experiment=p000_nominal_practitioners`` (seed 0: p000's scripted drive, 30
 runs x 5000 steps) as the experiment does, runs the overlay's wrapped filter (p000's UKF, Julier
-kappa -5, update points redrawn) with fixed R, under Sage-Husa (b) and under VB-AKF (rho), and
+kappa -5, update points redrawn) with fixed R (also on the compiled engine, with p000's own UKF
+beside it), under Sage-Husa (b) and under VB-AKF (rho), and
 prints for each diverging run: the first step where the state covariance P stops being positive
 definite, where the adapted R does, where the position error passes 50 m; the smallest eigenvalue
 of R and of the unscented measurement spread before that; the gyro variance R[2,2] against the
@@ -10,14 +11,19 @@ model's; the estimated and true speed; and how often Sage-Husa's safeguard took 
 
     PYTHONPATH=$PWD OMP_NUM_THREADS=1 python experiments/diagnose_adaptive_p000.py [--b 0.98] [--rho 0.98]
 
-About 10 s of CPU (1 thread).
+About 37 s of CPU (1 thread).
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import sys
+from pathlib import Path
 from typing import Any
+
+# the repository root first, so that `experiments.*` imports when run as a script
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 # eager: the trace hooks below must see real tensors, not the compiled engine's traced ones
 os.environ["DIFFFILTER_ENGINE"] = "eager"

@@ -311,6 +311,13 @@ JOBS: tuple[Job, ...] = (
         _learned_adaptive("p003_physical_learned_adaptive", "p003_physical"),
     ),
     Job("p003_modes_learned_adaptive", "p00_practitioners.md", 727, _learned_adaptive("p003_modes_learned_adaptive", "p003_modes")),
+    # (declared in "p003 learned adaptive"; run by the lead at 488a2e7 after that declaration's start deadline: 633 CPU-s)
+    Job(
+        "p003_imm_sins_learned_adaptive",
+        "p00_practitioners.md",
+        633,
+        _learned_adaptive("p003_imm_sins_learned_adaptive", "p003_imm_sins"),
+    ),
     # ("Learned adaptive, remaining families", session la25c)
     Job("p001_colored_learned_adaptive", "p00_practitioners.md", 313, _learned_adaptive("p001_colored_learned_adaptive", "p001_colored")),
     Job(

@@ -9,9 +9,9 @@ definite, where the adapted R does, where the position error passes 50 m; the sm
 of R and of the unscented measurement spread before that; the gyro variance R[2,2] against the
 model's; the estimated and true speed; and how often Sage-Husa's safeguard took its biased form.
 
-    PYTHONPATH=$PWD OMP_NUM_THREADS=1 python experiments/diagnose_adaptive_p000.py [--b 0.98] [--rho 0.98]
+    PYTHONPATH=$PWD OMP_NUM_THREADS=1 python experiments/diagnose_adaptive_p000.py [--b 0.98] [--rho 0.98] [--kappa 0]
 
-About 37 s of CPU (1 thread).
+About 37 s of CPU (1 thread); about 62 s with --kappa.
 """
 
 from __future__ import annotations
@@ -122,6 +122,12 @@ def main() -> None:
     ap.add_argument("--b", type=float, default=0.98, help="Sage-Husa forgetting factor")
     ap.add_argument("--rho", type=float, default=0.98, help="VB-AKF forgetting factor")
     ap.add_argument("--split", default="test", choices=["test", "train", "val"], help="which drives (train/val: 150 s random drives)")
+    ap.add_argument(
+        "--kappa",
+        type=float,
+        default=None,
+        help="also run Sage-Husa and VB-AKF around the same UKF with this Julier kappa (0: no negative weight)",
+    )
     args = ap.parse_args()
     torch.set_num_threads(1)
     with initialize_config_dir(config_dir=CONF, version_base="1.3"):
@@ -159,6 +165,13 @@ def main() -> None:
     fb = torch.stack(fallbacks, 1)
     print(f"Sage-Husa safeguard: unbiased candidate not PD (biased form used) at {int(fb.sum())} of {fb.numel()} trajectory-steps")
     trace(f"VB-AKF rho={args.rho}", vb, test, model_r, 1 + vb.iterations)
+    if args.kappa is not None:
+        for name, knob in (("sage-husa", {"b": args.b}), ("vb-akf", {"rho": args.rho})):
+            spec = specs[name]["filter"]
+            spec["inner"]["sigma_points"]["kappa"] = args.kappa
+            filt = build_filter(spec, dtype=dtype, params=params, **knob)
+            calls = 1 + getattr(filt, "iterations", 0)
+            trace(f"{name} {knob} around the redrawn UKF with Julier kappa {args.kappa}", filt, test, model_r, calls)
 
 
 if __name__ == "__main__":

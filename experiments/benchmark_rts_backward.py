@@ -11,8 +11,6 @@ largest differences between the two paths' outputs (results/benchmark_engine.md,
 from __future__ import annotations
 
 import sys
-import time
-from collections.abc import Callable
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -24,16 +22,7 @@ from difffilter.smoothers.base import rts_backward  # noqa: E402
 from experiments.benchmarks.cases import make_difffilter  # noqa: E402
 from experiments.benchmarks.gpsdr import simulate_gpsdr  # noqa: E402
 from experiments.benchmarks.runner import BenchSettings  # noqa: E402
-
-
-def best_of(fn: Callable[[], object], repeats: int = 2) -> float:
-    fn()
-    best = float("inf")
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - start)
-    return best
+from experiments.benchmarks.timing import best_of  # noqa: E402
 
 
 def compare(batch: int, steps: int, dtype: torch.dtype) -> None:

@@ -9,8 +9,6 @@ JSON line of seconds per filter and mode (options ``batch=``, ``steps=``: conf/r
 from __future__ import annotations
 
 import json
-import time
-from collections.abc import Callable
 
 import hydra
 import torch
@@ -18,6 +16,7 @@ from omegaconf import DictConfig
 
 from difffilter.filters import EKF, UKF, KalmanFilter
 from difffilter.models import LinearModel
+from experiments.benchmarks.timing import best_of
 
 
 def _model(dt: float = 0.1) -> LinearModel:
@@ -27,16 +26,6 @@ def _model(dt: float = 0.1) -> LinearModel:
     h[0, 0] = 1.0
     h[1, 2] = 1.0
     return LinearModel(F=torch.block_diag(f1, f1), H=h, Q=torch.block_diag(g1, g1), R=torch.eye(2, dtype=torch.float64))
-
-
-def _best(fn: Callable[[], None], repeats: int = 5) -> float:
-    fn()
-    best = float("inf")
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - start)
-    return best
 
 
 def main(batch: int = 64, steps: int = 200) -> dict[str, float]:
@@ -57,8 +46,8 @@ def main(batch: int = 64, steps: int = 200) -> dict[str, float]:
         def train(flt: torch.nn.Module = flt) -> None:
             flt(z, m0, p0).log_likelihood.sum().backward()
 
-        out[f"{name}_forward"] = _best(forward)
-        out[f"{name}_train"] = _best(train)
+        out[f"{name}_forward"] = best_of(forward, 5)
+        out[f"{name}_train"] = best_of(train, 5)
     return out
 
 

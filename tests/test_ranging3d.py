@@ -18,7 +18,14 @@ import torch
 
 from difffilter.datasets import folder_kind, load_ranging
 from difffilter.models.motion import ConstantVelocity
-from difffilter.models.navigation import ConstantVelocity3D, OdometryDynamics3D, RangeMeasurement3D, make_ranging3d_model, multilateration
+from difffilter.models.navigation import (
+    ConstantVelocity3D,
+    OdometryDynamics3D,
+    RangeMeasurement3D,
+    make_ranging3d_model,
+    make_ranging_model,
+    multilateration,
+)
 from experiments.ranging.protocol import Piece, piece_tensors, ranging_model
 from experiments.ranging.report import run_ranging
 
@@ -160,3 +167,11 @@ def test_realdata_runs_on_a_range3_folder_with_and_without_odometry(tmp_path) ->
     fold = res["R3x/A"]
     assert fold.learned.model.dynamics.state_dim == 6 and {r["filter"] for r in fold.rows} >= {"hand-tuned", "learned", "untrained-gate"}
     assert (tmp_path / "bare_out" / "R3x" / "A" / "results.csv").is_file()
+
+
+def test_both_range_models_name_a_bad_gate() -> None:
+    for make, kwargs in ((make_ranging_model, {}), (make_ranging3d_model, {"odometry": False})):
+        with pytest.raises(ValueError, match="gate must be 'soft', 'hard' or None, got 'median'"):
+            make(num_anchors=4, gate="median", **kwargs)
+        soft, none = make(num_anchors=4, gate="soft", **kwargs), make(num_anchors=4, gate=None, **kwargs)
+        assert soft.measurement.gate is not None and none.measurement.gate is None

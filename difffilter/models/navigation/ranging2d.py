@@ -18,7 +18,7 @@ from ...params import register_constrained
 from ..base import Controls, DynamicsModel, MeasurementModel, StateSpaceModel
 from ..heteroscedastic import RobustGate
 
-__all__ = ["OdometryDynamics2D", "RangeMeasurement2D", "heading_jacobian", "make_ranging_model", "multilateration"]
+__all__ = ["OdometryDynamics2D", "RangeMeasurement2D", "heading_jacobian", "make_ranging_model", "multilateration", "range_gate"]
 
 
 def _rot(theta: Tensor) -> tuple[Tensor, Tensor]:
@@ -149,6 +149,18 @@ class RangeMeasurement2D(MeasurementModel):
         return self.gate.inflate(r, control(u, "z_obs").to(x.dtype) - self(x, u))
 
 
+def range_gate(gate: str | None, *, threshold: float, floor: float, softness: float, dtype: torch.dtype) -> RobustGate | None:
+    """The range models' gate: ``"soft"`` a smooth reject gate whose threshold, floor and softness
+    learn, ``"hard"`` a fixed reject gate at ``threshold``, ``None`` none (ValueError otherwise)."""
+    if gate not in ("soft", "hard", None):
+        raise ValueError(f"gate must be 'soft', 'hard' or None, got {gate!r}")
+    if gate == "soft":
+        return RobustGate(kind="reject", threshold=threshold, floor=floor, softness=softness, learnable=True, dtype=dtype)
+    if gate == "hard":
+        return RobustGate(kind="reject", threshold=threshold, floor=floor)
+    return None
+
+
 def make_ranging_model(
     *,
     num_anchors: int,
@@ -165,13 +177,7 @@ def make_ranging_model(
     """The odometry + range model: ``gate="soft"`` a smooth learnable reject gate (threshold,
     floor, softness learnable), ``"hard"`` a fixed chi-square gate at ``gate_threshold``, ``None``
     no gate."""
-    if gate not in ("soft", "hard", None):
-        raise ValueError(f"gate must be 'soft', 'hard' or None, got {gate!r}")
-    robust = None
-    if gate == "soft":
-        robust = RobustGate(kind="reject", threshold=gate_threshold, floor=gate_floor, softness=gate_softness, learnable=True, dtype=dtype)
-    elif gate == "hard":
-        robust = RobustGate(kind="reject", threshold=gate_threshold, floor=gate_floor)
+    robust = range_gate(gate, threshold=gate_threshold, floor=gate_floor, softness=gate_softness, dtype=dtype)
     dyn = OdometryDynamics2D(odom_scale=odom_scale, process_psd=process_psd, dtype=dtype)
     meas = RangeMeasurement2D(num_anchors=num_anchors, bias=bias, noise=noise, gate=robust, dtype=dtype)
     return StateSpaceModel(dyn, meas)

@@ -20,8 +20,7 @@ from ..._util import control
 from ...constraints import Positive
 from ...params import register_constrained
 from ..base import Controls, DynamicsModel, StateSpaceModel
-from ..heteroscedastic import RobustGate
-from .ranging2d import RangeMeasurement2D, heading_jacobian
+from .ranging2d import RangeMeasurement2D, heading_jacobian, range_gate
 
 __all__ = ["ConstantVelocity3D", "OdometryDynamics3D", "RangeMeasurement3D", "make_ranging3d_model"]
 
@@ -155,13 +154,7 @@ def make_ranging3d_model(
     ``process_psd`` ``(1e-4, 1e-4, 1e-4, 1e-6)``) or :class:`ConstantVelocity3D` (default
     ``process_psd`` ``(1, 1, 1)`` m^2/s^3); ``gate`` as
     :func:`~difffilter.models.navigation.ranging2d.make_ranging_model`."""
-    if gate not in ("soft", "hard", None):
-        raise ValueError(f"gate must be 'soft', 'hard' or None, got {gate!r}")
-    robust = None
-    if gate == "soft":
-        robust = RobustGate(kind="reject", threshold=gate_threshold, floor=gate_floor, softness=gate_softness, learnable=True, dtype=dtype)
-    elif gate == "hard":
-        robust = RobustGate(kind="reject", threshold=gate_threshold, floor=gate_floor)
+    robust = range_gate(gate, threshold=gate_threshold, floor=gate_floor, softness=gate_softness, dtype=dtype)
     dyn: DynamicsModel
     if odometry:
         dyn = OdometryDynamics3D(odom_scale=odom_scale, process_psd=tuple(process_psd or (1e-4, 1e-4, 1e-4, 1e-6)), dtype=dtype)  # type: ignore[arg-type]

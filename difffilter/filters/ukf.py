@@ -25,6 +25,7 @@ __all__ = [
     "deviations",
     "linear_image",
     "linear_space",
+    "second_moment_exact",
     "offset_untrusted",
     "state_add",
     "weighted_mean",
@@ -108,7 +109,7 @@ def offset_untrusted(mean: Tensor, cov: Tensor, zhat: Tensor, pzz: Tensor, maha:
     return ~(loss * maha.clamp_min(1.0).sqrt() <= 1e-2)
 
 
-def _second_moment_exact(points: SigmaPoints) -> bool:
+def second_moment_exact(points: SigmaPoints) -> bool:
     """Whether ``points`` are the base rule's ``0, +-gamma L_i`` with covariance weights
     ``1 / (2 gamma^2)`` off the centre (every set here: Julier, MerweScaled, Cubature), whose
     weighted second moment of the deviations is ``L L^T`` exactly; a subclass with its own
@@ -192,7 +193,7 @@ class UKF(RecursiveFilter):
         q, r = self._noise_matrices(mean, u)
         out: Belief = dict(belief)
         lin = linear_space(f, u) if self.noise == "additive" and self.redraw_after_predict else None
-        if lin is not None and _second_moment_exact(self.sigma_points):
+        if lin is not None and second_moment_exact(self.sigma_points):
             # the points' weighted second moment is P itself (weights 1 / (2 gamma^2) on 0, +-gamma L_i),
             # so the transform of a linear map is F P F^T: no square root, no points
             xm, new_cov = f(mean, u), symmetrize(lin @ cov @ lin.mT + q)

@@ -83,6 +83,13 @@ def previous_posteriors(result: FilterResult, initial: Belief) -> tuple[Tensor, 
     return mean, cov
 
 
+def _plain(*tensors: Tensor) -> bool:
+    """Whether none of ``tensors`` is wrapped by a ``torch.func`` transform: the hand-written
+    reverse modes here (:class:`_GainSolve`, :func:`~difffilter.smoothers.backward.sequential_rts`)
+    are for plain autograd only."""
+    return all(_functorch.maybe_get_level(x) == -1 for x in tensors)
+
+
 class _GainSolve(torch.autograd.Function):
     """``G = C P^{-1}`` from the Cholesky factor ``L`` of ``P``, with the solve's own reverse mode:
     ``dC = dG P^{-1}`` (one more solve with the same factor), ``dP = -G^T dC``; torch's would
@@ -112,8 +119,7 @@ def smoother_gains(cross_cov: Tensor, prior_cov: Tensor) -> Tensor:
     identity stand-in for a failed factor, whose gradient must not reach ``P``) it is torch's
     differentiation of the factorisation, as before."""
     cov = symmetrize(prior_cov)
-    plain = all(_functorch.maybe_get_level(x) == -1 for x in (cross_cov, cov))
-    if not (plain and torch.is_grad_enabled() and (cov.requires_grad or cross_cov.requires_grad)):
+    if not (_plain(cross_cov, cov) and torch.is_grad_enabled() and (cov.requires_grad or cross_cov.requires_grad)):
         return psd_solve(cov, cross_cov.mT).mT
     with torch.no_grad():
         chol, jitter = safe_cholesky(cov)
@@ -185,7 +191,7 @@ def rts_backward(
     if method == "scan" or (method == "auto" and not angular and small):
         return scan_rts(gains, mean, cov, prior_mean, prior_cov, initial_mean, initial_cov)
     args = (mean, cov, prior_mean, prior_cov, gains, initial_mean, initial_cov)
-    if not angular and all(_functorch.maybe_get_level(x) == -1 for x in args):
+    if not angular and _plain(*args):
         return sequential_rts(*args)
     # unbind once: indexing [:, t] inside the loop would make every step's backward fill a
     # zero gradient of the whole [B, T, ...] tensor (quadratic in T)

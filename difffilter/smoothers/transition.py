@@ -29,9 +29,10 @@ from ..filters.base import RecursiveFilter
 from ..filters.colored import ColoredNoiseUKF
 from ..filters.ekf import EKF
 from ..filters.sequential import SequentialUpdate
-from ..filters.ukf import UKF, SimplifiedUKF, _second_moment_exact, centred_points, deviations, expand_controls, linear_space, weighted_mean
+from ..filters.ukf import UKF, SimplifiedUKF, centred_points, deviations, expand_controls, linear_space, second_moment_exact, weighted_mean
 from ..linalg import block_diag, psd_sqrt
 from ..models.base import Controls
+from .base import flatten_steps
 
 __all__ = ["check_smoothable", "is_unscented", "needs_points", "predicting_filter", "transition_cross_covariance"]
 
@@ -72,15 +73,7 @@ def needs_points(filt: RecursiveFilter, controls: Controls) -> bool:
     filt = predicting_filter(filt)
     if not is_unscented(filt):
         return isinstance(filt, EKF)
-    u = controls if controls is None else _first_step(controls)
-    return filt.noise != "additive" or linear_space(filt.model.dynamics, u) is None  # type: ignore[union-attr]
-
-
-def _first_step(controls: Controls) -> Controls:
-    def first(v: Tensor) -> Tensor:
-        return v[:, 0]
-
-    return first(controls) if isinstance(controls, Tensor) else {k: first(v) for k, v in controls.items()}  # type: ignore[union-attr]
+    return filt.noise != "additive" or linear_space(filt.model.dynamics, flatten_steps(controls, 0, 1)) is None  # type: ignore[union-attr]
 
 
 def _linear_transition(filt: RecursiveFilter, mean: Tensor, u: Controls) -> Tensor:
@@ -100,7 +93,7 @@ def _unscented_cross(filt: UKF, mean: Tensor, cov: Tensor, u: Controls) -> Tenso
         # a linear f: the transform is exact, as in the filter's own prediction; with the base
         # rule's points the weighted second moment of the deviations is P itself, so C = P F^T
         # (no square root, no points: the smoother's gains over B * T steps cost one product)
-        if _second_moment_exact(filt.sigma_points):
+        if second_moment_exact(filt.sigma_points):
             return cov @ lin.mT
         wc = filt._weights(n, mean)[1]
         dev = centred_points(filt.sigma_points, psd_sqrt(cov).factor)

@@ -125,8 +125,14 @@ def cache_dir() -> Path:
 
 
 def _compiler() -> str | None:
-    for name in (os.environ.get("CXX"), "g++", "c++", "clang++"):
-        if name and shutil.which(name):
+    return _find_compiler(os.environ.get("CXX"), os.environ.get("PATH"))
+
+
+@functools.lru_cache(maxsize=8)
+def _find_compiler(cxx: str | None, path: str | None) -> str | None:
+    # cached per (CXX, PATH): the search stats every PATH entry, and the engine policy asks on every call
+    for name in (cxx, "g++", "c++", "clang++"):
+        if name and shutil.which(name, path=path):
             return name
     return None
 

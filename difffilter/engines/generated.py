@@ -10,6 +10,7 @@ processes (:mod:`.cache`).
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Callable
 from typing import Any
 
@@ -20,9 +21,11 @@ from ..filters.base import Belief, FilterResult, RecursiveFilter
 from ..filters.update import untrusted_steps
 from ..models.base import Controls
 from ..threads import caller_threads
+from .build import CompileError
 from .cache import load_or_trace
+from .graph import UnsupportedOp
 from .kernel import SequenceProgram, lanes, run_sequence
-from .shared import SharedGainMean, shared_covariance_run, shares_covariance
+from .shared import SharedGainMean, SharedGainRecorder, shared_covariance_run, shares_covariance
 from .trace import StepLayout, fingerprint
 
 __all__ = ["GeneratedEngine"]
@@ -57,6 +60,7 @@ class GeneratedEngine:
         #: how the last call ran: "per trajectory" or "shared covariance"
         self.last_path: str | None = None
         self._mean_engine: GeneratedEngine | None = None
+        self._cov_engine: GeneratedEngine | None = None
         self.threads = threads
         self.reuse_buffers = reuse_buffers
         self._programs: dict[Any, SequenceProgram] = {}
@@ -77,15 +81,21 @@ class GeneratedEngine:
         A Kalman filter whose covariances are the same for every trajectory runs its covariance
         recursion once (:mod:`.shared`); ``shared_covariance=False`` turns that off."""
         if self.shared_covariance and shares_covariance(self.filter, mask, belief, controls):
-            self.last_path = "shared covariance"
-            if self._mean_engine is None:
-                self._mean_engine = GeneratedEngine(
-                    SharedGainMean(self.filter.model), threads=self.threads, reuse_buffers=self.reuse_buffers
-                )
-            mean_engine = self._mean_engine
-            return shared_covariance_run(
-                self.filter, z, mask, belief, lambda *a: self._fields(*a)[0], lambda *a: mean_engine._fields(*a)[0]
-            )  # type: ignore[arg-type]
+            if self._mean_engine is None or self._cov_engine is None:
+                opts = {"threads": self.threads, "reuse_buffers": self.reuse_buffers, "shared_covariance": False}
+                self._cov_engine = GeneratedEngine(SharedGainRecorder(self.filter), **opts)  # type: ignore[arg-type]
+                self._mean_engine = GeneratedEngine(SharedGainMean(self.filter.model), **opts)
+            cov_engine, mean_engine = self._cov_engine, self._mean_engine
+            try:
+                out = shared_covariance_run(
+                    self.filter, z, mask, belief, lambda *a: cov_engine._fields(*a)[0], lambda *a: mean_engine._fields(*a)[0]
+                )  # type: ignore[arg-type]
+            except (UnsupportedOp, CompileError) as exc:  # the per-trajectory kernel below may still run it
+                warnings.warn(f"difffilter: the shared-covariance kernels cannot run ({exc}); running per trajectory", stacklevel=2)
+                self.shared_covariance = False
+            else:
+                self.last_path = "shared covariance"
+                return out
         self.last_path = "per trajectory"
         field, prog = self._fields(z, mask, belief, controls)
         mean, cov, prior_cov, loglik = field("mean"), field("cov"), field("prior_cov"), field("log_likelihood")

@@ -11,6 +11,9 @@ the mean recursion runs per trajectory:
 ``m+_t = (I - K_t D_t H) F m+_{t-1} + K_t D_t z_t`` (``D_t`` the mask), one small matrix
 product per step for the whole batch; the innovations, log-likelihoods and normalised
 innovations squared follow for all steps at once from the shared Cholesky factors of ``S_t``.
+The batch-one run also computes the per-step gain, Cholesky factor and log-determinant
+(:class:`SharedGainRecorder`), so that they and their gradients come from its kernel rather than
+from some twenty small batched torch operations and their autograd nodes per call.
 The result equals the per-trajectory recursion up to rounding.
 """
 
@@ -28,7 +31,7 @@ from ..filters.update import untrusted_steps
 from ..linalg import gaussian_log_density, nonfinite_rows, safe_cholesky
 from ..models.base import Controls, LinearModel
 
-__all__ = ["MIN_SHARED_BATCH", "SharedGainMean", "shares_covariance", "shared_covariance_run"]
+__all__ = ["MIN_SHARED_BATCH", "SharedGainMean", "SharedGainRecorder", "shares_covariance", "shared_covariance_run"]
 
 #: ``fields_of(z, mask, belief, controls) -> field``: a generated-kernel run, ``field(name)`` its output ``[B, T, ...]``
 FieldsOf = Callable[[Tensor, "Tensor | None", Belief, Controls], Callable[[str], Tensor]]
@@ -96,35 +99,73 @@ class SharedGainMean(RecursiveFilter):
         return {"mean": new_mean, "cov": belief["cov"]}, StepInfo(loglik, maha, num_obs)
 
 
+#: belief entries :class:`SharedGainRecorder` adds: the gain ``K_t`` ``[n m]`` (row-major), the
+#: Cholesky factor of the masked ``S_t`` ``[m m]`` and its log-determinant ``[1]``
+GAIN_KEYS = ("shared_chol", "shared_gain", "shared_logdet")
+
+
+def shared_gain(filt: KalmanFilter, prior: Belief, mask: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
+    """``(K [B, n, m], L [B, m, m], log det S [B])`` of the update of ``prior`` (mean ``[B, n]``,
+    cov ``[B, n, n]``): the masked innovation covariance ``S``, its Cholesky factor (repaired as
+    the update repairs it) and the gain ``P- H^T S^{-1}`` by two triangular solves."""
+    mean, cov = prior["mean"], prior["cov"]
+    h = filt.measurement_jacobian(mean, None).to(cov.dtype)
+    pht = cov @ h.mT  # [B, n, m]
+    s = h @ pht + filt.measurement_noise_cov(mean, None)
+    e = torch.zeros(*pht.shape[:-2], pht.shape[-1], dtype=cov.dtype, device=cov.device)
+    _, s_m, pht_m, _ = mask_measurement_system(e, s, pht, mask)
+    chol = safe_cholesky(s_m).factor
+    w = torch.linalg.solve_triangular(chol, pht_m.mT, upper=False)  # [B, m, n]
+    gain = torch.linalg.solve_triangular(chol.mT, w, upper=True).mT  # [B, n, m]
+    logdet = 2.0 * torch.log(torch.diagonal(chol, dim1=-2, dim2=-1)).sum(-1)
+    return gain, chol, logdet
+
+
+class SharedGainRecorder(RecursiveFilter):
+    """``filt``'s own steps (the wrapped filter's ``predict``/``update``, unchanged), with the
+    update's gain, Cholesky factor and log-determinant (:func:`shared_gain`) added to the belief
+    as :data:`GAIN_KEYS`, so that a generated kernel of it outputs them per step."""
+
+    def __init__(self, filt: KalmanFilter) -> None:
+        super().__init__(filt.model)
+        self.inner = filt
+
+    def predict(self, belief: Belief, u: Controls) -> Belief:
+        return self.inner.predict(belief, u)
+
+    def update(self, belief: Belief, z: Tensor, mask: Tensor | None, u: Controls) -> tuple[Belief, StepInfo]:
+        post, info = self.inner.update(belief, z, mask, u)
+        gain, chol, logdet = shared_gain(self.inner, belief, mask)
+        batch = gain.shape[0]
+        extra = dict(zip(GAIN_KEYS, (chol.reshape(batch, -1), gain.reshape(batch, -1), logdet[:, None]), strict=True))
+        return {**post, **extra}, info
+
+    def finalize_belief(self, belief: Belief) -> Belief:
+        return self.inner.finalize_belief(belief)
+
+    def record(self, belief: Belief) -> dict[str, Tensor]:
+        return self.inner.record(belief)
+
+
 def shared_covariance_run(
     filt: KalmanFilter, z: Tensor, mask: Tensor | None, belief: Belief, fields_of: FieldsOf, mean_fields_of: MeanFieldsOf
 ) -> FilterResult:
     """The filter's result with the covariance recursion run once.
 
-    ``fields_of(z, mask, belief, controls)`` runs ``filt``'s generated kernel and returns
-    ``field(name)``, the per-step output ``name`` ``[B, T, ...]``; it is called at batch one.
-    ``mean_fields_of(z, mask, belief, None, common)`` does the same for :class:`SharedGainMean`
-    on ``filt``'s model, on the whole batch, with its controls ``common`` given once ``[T, ...]``.
+    ``fields_of(z, mask, belief, controls)`` runs the generated kernel of
+    :class:`SharedGainRecorder` of ``filt`` and returns ``field(name)``, the per-step output
+    ``name`` ``[B, T, ...]``; it is called at batch one.  ``mean_fields_of(z, mask, belief, None,
+    common)`` does the same for :class:`SharedGainMean` on ``filt``'s model, on the whole batch,
+    with its controls ``common`` given once ``[T, ...]``.
     """
-    bsz, steps, mdim = z.shape
-    dtype = z.dtype
+    bsz, steps = z.shape[:2]
     m1 = None if mask is None else mask[:1]
     one = {"mean": belief["mean"][:1].detach(), "cov": belief["cov"][:1]}
     field = fields_of(z[:1].detach(), m1, one, None)
     prior_cov, post_cov = field("prior_cov")[0], field("cov")[0]  # [T, n, n]
     step_flag = field("step_untrusted")[0] != 0  # [T]
-    h = filt.model.measurement.matrix(None).to(dtype)
-    r = filt.measurement_noise_cov(belief["mean"][:1], None)[0]
-    # the update's own gain and factor, for all steps at once (batch dimension = time)
-    pht = prior_cov @ h.mT  # [T, n, m]
-    s = h @ pht + r
-    mask_t = None if mask is None else mask[0]  # [T, m]
-    _, s_m, pht_m, _ = mask_measurement_system(torch.zeros(steps, mdim, dtype=dtype), s, pht, mask_t)
-    chol = safe_cholesky(s_m).factor
-    w = torch.linalg.solve_triangular(chol, pht_m.mT, upper=False)  # [T, m, n]
-    gain = torch.linalg.solve_triangular(chol.mT, w, upper=True).mT  # [T, n, m]
-    logdet = 2.0 * torch.log(torch.diagonal(chol, dim1=-2, dim2=-1)).sum(-1)  # [T]: once, not per trajectory
-    shared = {"chol": chol.reshape(steps, -1), "gain": gain.reshape(steps, -1), "logdet": logdet[:, None]}
+    # the update's own gain, factor and log-determinant, per step (computed once, not per trajectory)
+    shared = {name: field(key)[0] for name, key in zip(("chol", "gain", "logdet"), GAIN_KEYS, strict=True)}
     mean_belief = {"mean": belief["mean"], "cov": belief["mean"].new_zeros(1, 1, 1).expand(bsz, 1, 1)}
     mf = mean_fields_of(z, mask, mean_belief, None, shared)
     post, prior, loglik = mf("mean"), mf("prior_mean"), mf("log_likelihood")

@@ -252,8 +252,9 @@ class Filter(nn.Module):
         if cov.dtype != dtype:
             raise TypeError(f"initial_cov dtype {cov.dtype} differs from measurements dtype {dtype}")
         if cov.shape == (n, n):
-            cov = cov.expand(bsz, n, n)
-        elif cov.shape != (bsz, n, n):
+            # one matrix for the whole batch: checked once, not once per trajectory
+            return (check_covariance("initial_cov", cov, n) if values else cov).expand(bsz, n, n)
+        if cov.shape != (bsz, n, n):
             raise ValueError(f"initial_cov must have shape [{n}, {n}] or [B, {n}, {n}] = [{bsz}, {n}, {n}], got {tuple(cov.shape)}")
         if not values:
             return cov

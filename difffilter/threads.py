@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import inspect
 import os
 import threading
 import weakref
@@ -176,6 +177,12 @@ class _Exit(torch.autograd.Function):
         ctx.hold.release()
         # zeros, not ``grad * 0``: a non-finite gradient must not reach what the link came from
         return None, torch.zeros((), dtype=grad.dtype, device=grad.device), None
+
+
+# Function.apply binds every call's arguments to ``forward``'s signature when ``setup_context`` is
+# defined; a signature stored on the function is read instead of rebuilt (~60 us per filter call)
+for _fn in (_Enter, _Exit):
+    _fn.forward.__signature__ = inspect.signature(_fn.forward)  # type: ignore[attr-defined]
 
 
 def _tensors(value: Any) -> Iterator[Tensor]:

@@ -138,3 +138,34 @@ def test_controls_shared_by_the_batch_are_read_once_per_step() -> None:
         torch.testing.assert_close(getattr(out, name), getattr(ref, name), rtol=1e-10, atol=1e-10)
     for a, b in zip(grads, ref_grads, strict=True):
         torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-10)
+
+
+@pytest.mark.parametrize("masked", [False, True])
+def test_batch_one_kernel_records_the_updates_gain_factor_and_log_determinant(masked: bool) -> None:
+    """The shared path takes each step's ``K``, Cholesky factor of ``S`` and ``log det S`` from the
+    batch-one kernel (SharedGainRecorder): they equal the closed form on the reference filter's
+    prior covariances, ``K = P H_o^T (H_o P H_o^T + R_oo)^{-1}`` over the observed rows ``o``."""
+    from difffilter.engines.generated import GeneratedEngine
+
+    model = _model()
+    filt = KalmanFilter(model)
+    z, m0, p0, mask = _data(batch=1)
+    mask = mask if masked else None
+    ref = filt(z, m0, p0, mask=mask)
+    engine = GeneratedEngine(shared.SharedGainRecorder(filt), shared_covariance=False)
+    zc, mask3, mean0, cov0 = filt.check_inputs(z, m0, p0, mask, None)
+    field, _ = engine._fields(zc, mask3, filt.start_belief(mean0, cov0), None)
+    n, m = 4, 3
+    h, r = model.measurement.matrix(None).detach(), model.measurement.measurement_noise(None, None).detach()
+    gains, chols, logdets = field("shared_gain")[0], field("shared_chol")[0], field("shared_logdet")[0, :, 0]
+    for t in range(z.shape[1]):
+        obs = torch.ones(m, dtype=torch.bool) if mask is None else mask[0, t]
+        p = ref.prior_cov[0, t].detach()
+        s_oo = h[obs] @ p @ h[obs].T + r[obs][:, obs]
+        k = torch.zeros(n, m, dtype=F64)
+        k[:, obs] = torch.linalg.solve(s_oo, h[obs] @ p).T
+        low = chols[t].reshape(m, m)
+        torch.testing.assert_close(gains[t].reshape(n, m), k, rtol=1e-10, atol=1e-12)
+        torch.testing.assert_close((low @ low.T)[obs][:, obs], s_oo, rtol=1e-10, atol=1e-12)
+        assert torch.equal(low, torch.tril(low))
+        torch.testing.assert_close(logdets[t], torch.logdet(s_oo), rtol=1e-10, atol=1e-12)

@@ -167,7 +167,13 @@ class GeneratedEngine:
 
         def field(name: str) -> Tensor:
             gi, offset, shape = prog.traced.fields[name]
-            out = outs[gi][:, offset : offset + math.prod(shape), :bsz].reshape(steps, *shape, bsz).movedim(-1, 0)
+            out, size = outs[gi], math.prod(shape)
+            # slice only what is not the whole buffer: a slice's backward zero-fills a gradient buffer
+            if offset or size != out.shape[1]:
+                out = out[:, offset : offset + size]
+            if bsz != out.shape[2]:
+                out = out[..., :bsz]
+            out = out.reshape(steps, *shape, bsz).movedim(-1, 0)
             kind = prog.traced.dtypes.get(name, dtype)
             return out if kind == dtype else out.to(kind)
 

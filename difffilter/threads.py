@@ -181,8 +181,8 @@ class _Exit(torch.autograd.Function):
 
 # Function.apply binds every call's arguments to ``forward``'s signature when ``setup_context`` is
 # defined; a signature stored on the function is read instead of rebuilt (~60 us per filter call)
-for _fn in (_Enter, _Exit):
-    _fn.forward.__signature__ = inspect.signature(_fn.forward)  # type: ignore[attr-defined]
+_Enter.forward.__signature__ = inspect.signature(_Enter.forward)  # type: ignore[attr-defined]
+_Exit.forward.__signature__ = inspect.signature(_Exit.forward)  # type: ignore[attr-defined]
 
 
 def _tensors(value: Any) -> Iterator[Tensor]:

@@ -89,7 +89,7 @@ def test_3d_models_match_autodiff() -> None:
     for n, pos in ((4, (0, 1, 2)), (6, (0, 2, 4)), (7, (5, 1, 3))):
         meas = RangeMeasurement3D(state_dim=n, position=pos, num_anchors=4, bias="anchor", noise="anchor")
         xn = torch.randn(n, generator=gen, dtype=F64)
-        torch.testing.assert_close(meas.jacobian(xn, anchors), torch.autograd.functional.jacobian(lambda xx: meas(xx, anchors), xn))
+        torch.testing.assert_close(meas.jacobian(xn, anchors), torch.autograd.functional.jacobian(lambda xx, h=meas: h(xx, anchors), xn))
         want_r = np.linalg.norm(xn.numpy()[list(pos)] - anchors["anchors"].numpy(), axis=-1)
         torch.testing.assert_close(meas(xn, anchors), torch.as_tensor(want_r), rtol=1e-12, atol=1e-9)
     with pytest.raises(ValueError, match="process_psd"):

@@ -240,8 +240,9 @@ def merge_rows(sweep_dir: str | Path, into: str | Path, *, metric: str = "rmse_p
     Refuses (``ValueError``, nothing written) unless the sweep shares the paper's constants with the
     file and every row of the filters both have (every quantity; estimate, lo and hi) equals the
     file's to ``rtol`` relative, apart from the CPU rows and the learned filters' pairing with the
-    best non-learned row; and when the file already has learned adaptive rows (join those after:
-    they are paired with the best row, which the merge may change).  Per test set (group), where the
+    best non-learned row; and, when it would add rows, if the file already has learned adaptive
+    rows (join those after: they are paired with the best row, which the merge may change).  A
+    sweep merged before adds nothing: its rows are checked and the file is left as it is.  Per test set (group), where the
     best non-learned row (:func:`best_non_learned`) of the merged rows is a new one, the learned
     row's pairing rows become the sweep's (learned - that row, paired per test run and seed in the
     sweep, whose learned row was just checked to be the file's); otherwise the file's stay.
@@ -251,12 +252,12 @@ def merge_rows(sweep_dir: str | Path, into: str | Path, *, metric: str = "rmse_p
         new: list[dict[str, Any]] = list(csv.DictReader(fh))
     with Path(into).open(newline="") as fh:
         old: list[dict[str, Any]] = list(csv.DictReader(fh))
-    if any(r["filter"].startswith(ADAPTIVE) for r in old):
-        raise ValueError(f"{into} has learned adaptive rows: merge first, then join those (they pair with the best row)")
     shared = {r["filter"] for r in old} & {r["filter"] for r in new}
     added = list(dict.fromkeys(r["filter"] for r in new if r["filter"] not in shared))
-    if REFERENCE not in shared or not added:
-        raise ValueError(f"{sweep_dir} must share {REFERENCE!r} with {into} and add filters; shares {sorted(shared)}, adds {added}")
+    if REFERENCE not in shared:
+        raise ValueError(f"{sweep_dir} must share {REFERENCE!r} with {into} (the same test runs); it shares {sorted(shared)}")
+    if added and any(r["filter"].startswith(ADAPTIVE) for r in old):
+        raise ValueError(f"{into} has learned adaptive rows: merge first, then join those (they pair with the best row)")
 
     def checked(rows: list[dict[str, Any]]) -> dict[tuple[str, str, str, str], dict[str, Any]]:
         return {_key(r): r for r in rows if r["filter"] in shared and r["quantity"] != "tuning_cpu_s" and not _pairing(r)}
@@ -276,8 +277,10 @@ def merge_rows(sweep_dir: str | Path, into: str | Path, *, metric: str = "rmse_p
                 x, y = float(r[col]), float(theirs[key][col])
                 if math.isfinite(x) and math.isfinite(y) and max(abs(x), abs(y)) > 0:
                     worst = max(worst, abs(x - y) / max(abs(x), abs(y)))
-    rows = [*old, *(r for r in new if r["filter"] in added)]
     lines = [f"shared rows reproduced: {len(mine)} ({', '.join(sorted(shared))}), largest relative difference {worst:.2g}"]
+    if not added:  # merged before: the check above was the whole job
+        return [*lines, f"nothing new in {sweep_dir}: {into} unchanged"]
+    rows = [*old, *(r for r in new if r["filter"] in added)]
     for group in dict.fromkeys(r["group"] for r in new):
         best = best_non_learned(rows, group, metric)
         lines.append(f"{group or 'test'}: best non-learned {best}")

@@ -101,6 +101,9 @@ def test_merge_adds_the_new_rows_and_pairs_learned_with_a_new_best(tmp_path):
     pair = next(r for r in rows if (r.filter, r.quantity, r.reference) == ("learned", "diff", "sage-husa-k0"))
     iv = crossed_interval(torch.tensor(LEARNED, dtype=torch.float64) - torch.tensor(k0, dtype=torch.float64), 0.95)
     assert (pair.estimate, pair.lo, pair.hi) == pytest.approx((iv.estimate, iv.lo, iv.hi), rel=1e-12) and pair.lo > 0
+    # merged again (a rerun): the rows are checked, the file is left as it is
+    text = data.read_text()
+    assert "unchanged" in merge_rows(tmp_path / "k0", data)[-1] and data.read_text() == text
 
 
 def test_merge_keeps_the_files_pairing_when_the_new_rows_are_not_the_best(tmp_path):
@@ -149,6 +152,13 @@ def test_learned_adaptive_k0_joins_under_its_name_paired_with_a_kappa_0_best(tmp
     moved = {**job, "sage-husa-k0": [[v + 1e-6 for v in k0[0]]] * 3}
     with pytest.raises(ValueError, match="'sage-husa-k0'.*no pairing"):
         join_learned_adaptive(_adaptive_sweep(tmp_path / "moved", moved), data, name="learned-adaptive-k0")
+    # the kappa 0 sweep merged again after the join (a rerun): checked, nothing changed; new rows refused
+    text = data.read_text()
+    merge_rows(tmp_path / "k0", data)
+    assert data.read_text() == text
+    _write_sweep(tmp_path / "more", {"hand-tuned": [HAND] * 3, "learned": LEARNED, "vb-akf-k0": k0}, {})
+    with pytest.raises(ValueError, match="learned adaptive rows: merge first"):
+        merge_rows(tmp_path / "more", data)
 
 
 def test_report_counts_the_kappa_0_rows_for_the_best_and_shows_them_in_their_columns(tmp_path):

@@ -119,6 +119,20 @@ def _learned_adaptive(experiment: str, family: str, root: str = "outputs/practit
     )
 
 
+def _kappa0(family: str, root: str = "outputs/practitioners") -> tuple[str, ...]:
+    """p000's adaptive rows around a kappa 0 UKF (issue 25): their sweep merged into the family's data
+    file, then the learned adaptive kappa 0 sweep joined to it (in this order: the join pairs with the
+    best row, which the merge may change)."""
+    k0, adaptive, into = f"{root}/{family}_k0", f"{root}/{family}_learned_adaptive_k0", f"results/data/{family}_practitioners.csv"
+    return (
+        f"python experiments/train.py -m experiment={family}_practitioners_k0 seed=0,1,2,3,4 logger=csv hydra.sweep.dir={k0}",
+        f"python -m experiments.practitioners {k0}",
+        f"python -m experiments.practitioners --merge {k0} --into {into}",
+        f"python experiments/train.py -m experiment={family}_learned_adaptive_k0 seed=0,1,2,3,4 logger=csv hydra.sweep.dir={adaptive}",
+        f"python -m experiments.practitioners --adaptive {adaptive} --name learned-adaptive-k0 --into {into}",
+    )
+
+
 def _p003(experiment: str) -> tuple[str, str]:
     return (
         f"python experiments/train.py -m experiment={experiment} seed=0,1,2,3,4 learner.init_perturbation=0.3 logger=csv "

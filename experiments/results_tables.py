@@ -59,6 +59,7 @@ __all__ = [
     "render_paired",
     "render_table",
     "render_text",
+    "render_times",
     "unmarked_tables",
 ]
 
@@ -316,6 +317,33 @@ def render_paired(rows: Sequence[Row], opts: dict[str, str]) -> str:
     return _table(header, lines)
 
 
+def render_times(paths: Sequence[Path]) -> str:
+    """The jobs of ``experiments/reproduce.py``'s ``times.tsv`` files (``job, status, wall_s,
+    cpu_s``; its closing ``all`` line is the run's total): one row per job, the total last in
+    minutes.
+
+    Raises:
+        ValueError: a file without that header, or a line that is not four tab-separated fields.
+    """
+    lines, total = [], None
+    for path in paths:
+        with open(path) as fh:
+            rows = list(csv.reader(fh, delimiter="\t"))
+        if not rows or rows[0] != ["job", "status", "wall_s", "cpu_s"]:
+            raise ValueError(f"{path}: not a reproduce.py times.tsv (header job, status, wall_s, cpu_s)")
+        for n, row in enumerate(rows[1:], start=2):
+            if len(row) != 4:
+                raise ValueError(f"{path}:{n}: expected 4 tab-separated fields, got {len(row)}")
+            if row[0] == "all":
+                total = row
+            elif row[0] != "job":  # a resumed run appends another header
+                lines.append([row[0], "ok" if row[1] == "0" else f"exit {row[1]}", f"{float(row[2]):.0f}", f"{float(row[3]):.0f}"])
+    if total is not None:
+        wall, cpu = (f"**{float(v) / 60:.1f} min**" for v in total[2:])
+        lines.append([f"**all {len(lines)} jobs** ({total[1]})", "", wall, cpu])
+    return _table(["job", "status", "wall (s)", "CPU (s)"], lines)
+
+
 RENDERERS = {"metric": render_metric, "anees": render_anees, "paired": render_paired}
 
 
@@ -342,9 +370,11 @@ def render_table(args: str, root: Path = ROOT) -> str:
     sources, opts = parse_args(args)
     if not sources:
         raise ValueError(f"marker {args!r}: no source=")
+    if opts.get("renderer") == "times":
+        return render_times([root / s for s in sources])
     renderer = RENDERERS.get(opts.get("renderer", ""))
     if renderer is None:
-        raise ValueError(f"marker {args!r}: renderer must be one of {sorted(RENDERERS)}")
+        raise ValueError(f"marker {args!r}: renderer must be one of {sorted([*RENDERERS, 'times'])}")
     rows = [r for s in sources for r in read_rows(root / s)]
     return renderer(rows, opts)
 

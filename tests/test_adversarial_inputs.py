@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from difffilter.filters import UKF, KalmanFilter
-from difffilter.models import ConstantVelocity, LinearModel
+from difffilter.models import ConstantAcceleration, ConstantVelocity, CurrentStatistical, LinearModel, Singer
 from difffilter.models.base import StateSpaceModel
 from difffilter.params import check_covariance
 
@@ -63,13 +63,45 @@ def test_constant_velocity_dt_is_validated(dt):
         ConstantVelocity(dt=dt)
 
 
-@pytest.mark.parametrize("bad", [float("nan"), float("inf"), -0.5, 0.0])
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), -0.5])
 def test_per_step_dt_is_validated_and_the_batch_element_named(bad):
     flt = cv_filter()
     dt = torch.ones(3, 6, 1, dtype=F64)
     dt[2, 4, 0] = bad
-    with pytest.raises(ValueError, match=r"controls\['dt'\] must be finite and positive.*\[b, t\] = \[2, 4\].*batch elements \[2\]"):
+    with pytest.raises(ValueError, match=r"controls\['dt'\] must be finite and non-negative.*\[b, t\] = \[2, 4\].*batch elements \[2\]"):
         run(flt, controls={"dt": dt})
+
+
+def test_a_zero_per_step_interval_is_no_time_passing():
+    """``dt = 0`` (a trajectory whose first step starts at its given belief) is accepted: identity
+    transition, zero process noise, finite gradients; the filter's first posterior is then the
+    plain Kalman update of the initial belief (closed form)."""
+    gen = torch.Generator().manual_seed(0)
+    for dyn in (
+        ConstantVelocity(axes=2, q=0.7, dtype=F64),
+        ConstantVelocity(axes=2, q=0.7, noise="discrete", dtype=F64),
+        ConstantAcceleration(axes=2, q=0.3, dtype=F64),
+        Singer(axes=2, tau=5.0, sigma_a=0.4, dtype=F64),
+        CurrentStatistical(axes=2, tau=5.0, dtype=F64),
+    ):
+        x = torch.randn(3, dyn.state_dim, generator=gen, dtype=F64)
+        u = {"dt": torch.zeros(3, 1, dtype=F64)}
+        torch.testing.assert_close(dyn(x, u), x, rtol=0, atol=0)
+        q = dyn.process_noise(x, u)
+        torch.testing.assert_close(q, torch.zeros_like(q), rtol=0, atol=0)
+        (dyn(x, u).sum() + q.sum()).backward()
+        assert all(bool(torch.isfinite(p.grad).all()) for p in dyn.parameters() if p.grad is not None), type(dyn).__name__
+    flt = cv_filter()
+    z = make_data(3, 6, 1)
+    dt = torch.ones(3, 6, 1, dtype=F64)
+    dt[:, 0] = 0.0
+    m0, p0 = torch.tensor([1.0, -0.5], dtype=F64), torch.tensor([[2.0, 0.3], [0.3, 1.0]], dtype=F64)
+    res = flt(z, m0, p0, controls={"dt": dt})
+    h, r = torch.tensor([[1.0, 0.0]], dtype=F64), torch.eye(1, dtype=F64)
+    gain = p0 @ h.T / (h @ p0 @ h.T + r)
+    want = m0 + (gain @ (z[:, 0, :, None] - (h @ m0)[:, None]))[..., 0]
+    torch.testing.assert_close(res.mean[:, 0], want, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(res.cov[:, 0], (p0 - gain @ h @ p0).expand(3, 2, 2), rtol=1e-12, atol=1e-12)
 
 
 def test_empty_batch_or_time_axis():

@@ -98,7 +98,7 @@ def test_renderer_is_deterministic(tmp_path):
 def test_marker_errors_are_reported_not_raised(tmp_path):
     _write(tmp_path / "d.csv", [{"filter": "hand-tuned", "quantity": "rmse_pos", "estimate": 1.0}])
     bad = "<!-- table: t renderer=nope source=d.csv -->\n| x |\n|---|\n<!-- /table -->\n"
-    want = "table t: marker 'renderer=nope source=d.csv': renderer must be one of ['anees', 'metric', 'paired']"
+    want = "table t: marker 'renderer=nope source=d.csv': renderer must be one of ['anees', 'metric', 'paired', 'times']"
     assert check_text(bad, tmp_path) == [want]
     missing = "<!-- table: t renderer=metric source=gone.csv -->\n<!-- /table -->\n"
     assert check_text(missing, tmp_path)[0].startswith("table t: [Errno 2]")
@@ -240,3 +240,24 @@ def test_summary_row_learned_adaptive_column_pairs_with_the_best_non_learned_row
     pct = {"filter": "learned-adaptive", "quantity": "diff_pct", "estimate": 10.0, "lo": 4.0, "hi": 16.0}
     row = dict(zip(results_report._HEADER, summary_cells(fam, read_rows(_write(tmp_path / "z.csv", [*rows, la, pct]))), strict=True))
     assert row[column] == "10 [4, 16] (loss)" and row["verdict"] == "win"
+
+
+def test_times_renderer_tables_a_reproduce_run(tmp_path):
+    """``renderer=times``: one row per job of reproduce.py's times.tsv, the run's total in minutes;
+    a file that is not one is refused with its path (and line)."""
+    tsv = "job\tstatus\twall_s\tcpu_s\np003_modes\t0\t600.4\t590.6\np000_gyro\t1\t100.0\t98.0\nall\t1 failed\t720.0\t688.6\n"
+    (tmp_path / "t.tsv").write_text(tsv)
+    text = "<!-- table: t renderer=times source=t.tsv -->\n<!-- /table -->\n"
+    got = render_text(text, tmp_path).splitlines()
+    assert got[1:6] == [
+        "| job | status | wall (s) | CPU (s) |",
+        "|---|---|---|---|",
+        "| p003_modes | ok | 600 | 591 |",
+        "| p000_gyro | exit 1 | 100 | 98 |",
+        "| **all 2 jobs** (1 failed) |  | **12.0 min** | **11.5 min** |",
+    ]
+    assert check_text(render_text(text, tmp_path), tmp_path) == []
+    (tmp_path / "bad.tsv").write_text("job,status\n")
+    assert "not a reproduce.py times.tsv" in check_text(text.replace("t.tsv", "bad.tsv"), tmp_path)[0]
+    (tmp_path / "short.tsv").write_text("job\tstatus\twall_s\tcpu_s\nx\t0\t1\n")
+    assert "short.tsv:2: expected 4 tab-separated fields" in check_text(text.replace("t.tsv", "short.tsv"), tmp_path)[0]

@@ -241,16 +241,20 @@ class _Kinematic(DynamicsModel):
         return t
 
     def validate_controls(self, controls: Controls) -> None:
-        """``controls["dt"]`` (when given) must be finite and positive in every batch element."""
+        """``controls["dt"]`` (when given) must be finite and non-negative in every batch element.
+
+        A zero interval is allowed: no time passes, the transition is the identity and the
+        process noise zero (two samples at one instant, or a trajectory whose first step starts
+        at its given belief)."""
         if not isinstance(controls, dict) or "dt" not in controls:
             return
         dt = controls["dt"]
-        bad = ~(torch.isfinite(dt) & (dt > 0))
+        bad = ~(torch.isfinite(dt) & (dt >= 0))
         if bool(bad.any()):
             b, t = (int(i) for i in bad.nonzero()[0][:2])
             rows = sorted({int(i) for i in bad.nonzero()[:, 0]})[:10]
             raise ValueError(
-                f"controls['dt'] must be finite and positive, got {float(dt[b, t].flatten()[0])} at [b, t] = [{b}, {t}] "
+                f"controls['dt'] must be finite and non-negative, got {float(dt[b, t].flatten()[0])} at [b, t] = [{b}, {t}] "
                 f"(batch elements {rows})"
             )
 

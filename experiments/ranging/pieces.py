@@ -1,21 +1,43 @@
 """Pieces of ranging recordings and how the protocol (:mod:`.protocol`) starts a trajectory on one:
-the snapshot multilateration fix, the reference heading (recordings with odometry) or velocity
-(3-D without odometry), and the start position variance estimated on the train pieces."""
+the model of a recording's kind and its state layout, the snapshot multilateration fix, the
+reference heading (recordings with odometry) or velocity (3-D without odometry), and the start
+position variance estimated on the train pieces."""
 
 from __future__ import annotations
 
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
 from torch import Tensor
 
 from difffilter.datasets.ranging import RangingRecording
-from difffilter.models.navigation.ranging2d import multilateration
+from difffilter.models.layout import StateLayout, model_defaults
+from difffilter.models.navigation.ranging2d import make_ranging_model, multilateration
+from difffilter.models.navigation.ranging3d import make_ranging3d_model
 
-__all__ = ["CHI2_2_95", "CHI2_3_95", "Piece", "start_belief", "start_position_variance"]
+__all__ = ["CHI2_2_95", "CHI2_3_95", "Piece", "ranging_model", "start_belief", "start_position_variance", "state_layout"]
+
+
+def ranging_model(rec: RangingRecording, **kwargs: Any) -> torch.nn.Module:
+    """The range model of ``rec``'s kind: :func:`~difffilter.models.navigation.make_ranging_model`
+    (2-D) or :func:`~difffilter.models.navigation.make_ranging3d_model` (3-D, with odometry when
+    the recording has it); ``kwargs`` go to it."""
+    if rec.dim == 2:
+        return make_ranging_model(num_anchors=rec.num_anchors, **kwargs)
+    return make_ranging3d_model(num_anchors=rec.num_anchors, odometry=rec.odometry, **kwargs)
+
+
+def state_layout(rec: RangingRecording) -> StateLayout:
+    """The state layout of :func:`ranging_model`'s model for ``rec`` (its ``defaults.layout``:
+    which state components are the position, the heading, the velocity)."""
+    defaults = model_defaults(ranging_model(rec, gate=None))
+    if defaults is None:  # pragma: no cover - both factories describe their models
+        raise ValueError(f"the range model of {rec.name} carries no state layout (model.defaults)")
+    return defaults.layout
 
 
 @dataclass(frozen=True)
@@ -67,15 +89,32 @@ def _velocity(rec: RangingRecording, k: int) -> list[float]:
     return [0.0] * rec.dim
 
 
-def start_belief(rec: RangingRecording, k: int, fix: Tensor, pos_var: float = 4.0) -> tuple[Tensor, Tensor]:
-    """Initial mean and covariance at step ``k``: the snapshot fix (``pos_var`` m^2 per position
-    axis) and, from the reference, the heading (0.01 rad^2; recordings with odometry) or the
-    velocity (0.25 m^2/s^2; 3-D without odometry).  2-D ``[3]``: ``[x, y, heading]``; 3-D
-    ``[4]`` ``[x, y, z, heading]`` or ``[6]`` ``[x, y, z, v_x, v_y, v_z]``."""
-    pos = [float(v) for v in fix[k, : rec.dim]]
-    extra, var = ([_heading(rec, k)], [0.01]) if rec.odometry else (_velocity(rec, k), [0.25] * rec.dim)
-    m = torch.tensor(pos + extra, dtype=torch.float64)
-    return m, torch.diag(torch.tensor([float(pos_var)] * rec.dim + var, dtype=torch.float64))
+def start_belief(
+    rec: RangingRecording, k: int, fix: Tensor, pos_var: float = 4.0, layout: StateLayout | None = None
+) -> tuple[Tensor, Tensor]:
+    """Initial mean ``[n]`` and covariance ``[n, n]`` at step ``k`` in the state layout of the
+    recording's model (``layout``; default :func:`state_layout`): the snapshot fix at the position
+    indices (``pos_var`` m^2 per axis) and, from the reference, the heading at the angle index
+    (0.01 rad^2; recordings with odometry) or the velocity at the components named ``v<axis>``
+    (0.25 m^2/s^2; 3-D without odometry).  2-D ``[x, y, heading]``; 3-D ``[x, y, z, heading]``
+    or ``[x, v_x, y, v_y, z, v_z]``."""
+    layout = state_layout(rec) if layout is None else layout
+    pos = list(layout.position)
+    if len(pos) != rec.dim:
+        raise ValueError(f"layout has {len(pos)} position components, the recording {rec.name} is {rec.dim}-D")
+    m = torch.zeros(layout.dim, dtype=torch.float64)
+    var = torch.zeros(layout.dim, dtype=torch.float64)
+    m[pos], var[pos] = fix[k, : rec.dim].to(torch.float64), float(pos_var)
+    if rec.odometry:
+        if len(layout.angles) != 1:
+            raise ValueError(f"a recording with odometry needs one heading in the layout, got angles {list(layout.angles)}")
+        m[layout.angles[0]], var[layout.angles[0]] = _heading(rec, k), 0.01
+    else:
+        vel = layout.index(*(f"v{layout.names[i]}" for i in pos))
+        m[vel], var[vel] = torch.tensor(_velocity(rec, k), dtype=torch.float64), 0.25
+    if not bool((var > 0).all()):
+        raise ValueError(f"the start belief leaves state components {[layout.names[i] for i in range(layout.dim) if var[i] <= 0]} unset")
+    return m, torch.diag(var)
 
 
 #: chi-square quantile, 2 degrees of freedom, 0.95: a 2-D Gaussian N(0, s^2 I) puts 95 % of its

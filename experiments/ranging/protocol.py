@@ -51,10 +51,9 @@ from difffilter.datasets.ranging import RangingRecording
 from difffilter.filters import EKF, GatedEKF, SageHusa, VBAdaptiveR
 from difffilter.models.heteroscedastic import RobustGate
 from difffilter.models.navigation.ranging2d import make_ranging_model
-from difffilter.models.navigation.ranging3d import make_ranging3d_model
 from experiments.holdout import error_statistics, paired_error_table
 
-from .pieces import Piece, _fix, start_belief, start_position_variance
+from .pieces import Piece, _fix, ranging_model, start_belief, start_position_variance, state_layout
 
 __all__ = [
     "EXTRA_BASELINES",
@@ -69,6 +68,7 @@ __all__ = [
     "select_candidate",
     "start_belief",
     "start_position_variance",
+    "state_layout",
     "summary_statistics",
 ]
 
@@ -77,15 +77,6 @@ __all__ = [
 #: The adaptive filters estimate ``R`` on line from the innovations, started at the file's
 #: variances (untrained hyperparameters, the docs' defaults).  No EM-tuned row: ``fit_em`` refuses
 #: control-dependent noise, which this model's ``R`` and ``Q`` are.
-def ranging_model(rec: RangingRecording, **kwargs: Any) -> torch.nn.Module:
-    """The range model of ``rec``'s kind: :func:`~difffilter.models.navigation.make_ranging_model`
-    (2-D) or :func:`~difffilter.models.navigation.make_ranging3d_model` (3-D, with odometry when
-    the recording has it); ``kwargs`` go to it."""
-    if rec.dim == 2:
-        return make_ranging_model(num_anchors=rec.num_anchors, **kwargs)
-    return make_ranging3d_model(num_anchors=rec.num_anchors, odometry=rec.odometry, **kwargs)
-
-
 EXTRA_BASELINES: dict[str, Callable[[RangingRecording], torch.nn.Module]] = {
     "sage-husa": lambda rec: SageHusa(EKF(ranging_model(rec, bias=None, noise=None, gate=None))),
     "vb-adaptive-r": lambda rec: VBAdaptiveR(EKF(ranging_model(rec, bias=None, noise=None, gate=None))),
@@ -116,7 +107,8 @@ def fold_pieces(recordings: Sequence[RangingRecording], spec: Mapping[str, Any])
 
 def piece_tensors(piece: Piece, *, length: int | None = None, stride: int | None = None, pos_var: float = 4.0) -> dict[str, Any]:
     """Batch-first tensors of a piece cut into windows (``length=None``: one trajectory), each
-    started by :func:`start_belief` with ``pos_var``."""
+    started by :func:`start_belief` with ``pos_var``; ``"position"`` holds the position indices
+    of the model's state (:func:`state_layout`), which the errors are taken on."""
     r = piece.recording
     t64 = lambda a: torch.as_tensor(np.ascontiguousarray(a), dtype=torch.float64)  # noqa: E731
     size = piece.stop - piece.first if length is None else int(length)
@@ -124,11 +116,12 @@ def piece_tensors(piece: Piece, *, length: int | None = None, stride: int | None
     if not starts:
         raise ValueError(f"piece [{piece.first}, {piece.stop}) of {r.name} holds no window of {size} steps")
     fix = _fix(r)
+    layout = state_layout(r)
     cut = lambda a: torch.stack([a[s : s + size] for s in starts])  # noqa: E731
     u = {"odom": cut(t64(r.odom)), "odom_cov": cut(t64(r.odom_cov)), "dt": cut(t64(r.dt))[..., None]}
     u.update(anchors=cut(t64(r.anchors)), range_var=cut(t64(r.range_var)), z_obs=cut(t64(r.ranges)))
     u["dt"][:, 0] = 0.0  # the window starts at its first step's belief
-    beliefs = [start_belief(r, s, fix, pos_var) for s in starts]
+    beliefs = [start_belief(r, s, fix, pos_var, layout) for s in starts]
     return {
         "z": cut(t64(r.ranges)),
         "mask": cut(torch.as_tensor(r.mask)),
@@ -137,6 +130,7 @@ def piece_tensors(piece: Piece, *, length: int | None = None, stride: int | None
         "P0": torch.stack([b[1] for b in beliefs]),
         "truth": cut(t64(r.truth)),
         "fix": cut(fix),
+        "position": list(layout.position),
     }
 
 
@@ -175,8 +169,7 @@ def _errors(filt: torch.nn.Module, data: Mapping[str, Any], burn_in: int = 0) ->
     then ``burn_in`` more."""
     with torch.no_grad():
         res = filt(data["z"], data["m0"], data["P0"], mask=data["mask"], controls=data["u"])
-    d = data["truth"].shape[-1]
-    return _scored((res.mean[..., :d] - data["truth"]).norm(dim=-1), data["truth"], int(data.get("skip", 0)) + burn_in)
+    return _scored((res.mean[..., data["position"]] - data["truth"]).norm(dim=-1), data["truth"], int(data.get("skip", 0)) + burn_in)
 
 
 def _score(filt: torch.nn.Module, val: Sequence[Mapping[str, Any]], burn_in: int = 0) -> float:
@@ -256,8 +249,7 @@ def _train_seed(
         for chunk in order.chunk(batches):
             u = {k: v[chunk] for k, v in train["u"].items()}
             res = filt(train["z"][chunk], train["m0"][chunk], train["P0"][chunk], mask=train["mask"][chunk], controls=u)
-            d = train["truth"].shape[-1]
-            sq = (res.mean[:, burn:, :d] - train["truth"][chunk, burn:]).pow(2).sum(-1)
+            sq = (res.mean[:, burn:, train["position"]] - train["truth"][chunk, burn:]).pow(2).sum(-1)
             ok = torch.isfinite(sq)
             sq = torch.where(ok, sq, torch.zeros_like(sq))
             count = ok.sum().clamp(min=1)
@@ -306,6 +298,7 @@ def run_fold(
     parts = [piece_tensors(p, length=int(win["length"]), stride=int(win["stride"]), pos_var=pos_var) for p in pieces["train"]]
     train = {k: torch.cat([d[k] for d in parts]) for k in ("z", "mask", "m0", "P0", "truth")}
     train["u"] = {k: torch.cat([d["u"][k] for d in parts]) for k in parts[0]["u"]}
+    train["position"] = parts[0]["position"]
     lead = cfg.get("eval_lead_in", 0)
     val = [eval_tensors(p, pos_var=pos_var, lead_in=lead, avoid=pieces["test"]) for p in pieces["val"]]
     base = _filters(rep, cfg)

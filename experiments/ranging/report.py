@@ -76,7 +76,9 @@ def extras(filt: torch.nn.Module) -> dict[str, list[float]]:
         out["noise_scale"] = [float(v) for v in meas.noise_scale.detach().reshape(-1)]
     if hasattr(dyn, "odom_scale"):  # a 3-D recording without odometry has none
         out["odom_scale"] = [float(dyn.odom_scale.detach())]
-    out["process_psd"] = [float(v) for v in dyn.process_psd.detach().reshape(-1)]
+    # process noise density: the odometry models' process_psd, the constant-velocity model's q (3-D without odometry)
+    psd = dyn.process_psd if hasattr(dyn, "process_psd") else dyn.q
+    out["process_psd"] = [float(v) for v in psd.detach().reshape(-1)]
     gate = getattr(filt, "gate", None) or getattr(meas, "gate", None)
     if gate is not None:
         out["gate_threshold"] = [float(torch.as_tensor(gate.threshold).detach())]

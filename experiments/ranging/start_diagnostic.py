@@ -61,7 +61,7 @@ def main() -> None:
             for row, filt in rows.items():
                 with torch.no_grad():
                     res = filt(data["z"], m0, data["P0"], mask=data["mask"], controls=data["u"])
-                e = (res.mean[..., :2] - data["truth"]).norm(dim=-1)
+                e = (res.mean[..., data["position"]] - data["truth"]).norm(dim=-1)
                 prof = " ".join(f"{float(e[:, a:b].median()):6.2f}" for a, b in BINS)
                 print(f"{name:20s} {heading:26s} {row:36s} {prof}", flush=True)
 

@@ -6,16 +6,16 @@ Each model lives in its own module (one concept per file); this package re-expor
   bias and Sagnac term (p001, the smartLoc drive); :mod:`.clock` - the receiver dynamics that
   go with them.
 * :mod:`.ranging2d` - 2-D ranging to fixed anchors with odometry (range bias, noise scale, robust gate).
-* :mod:`.ranging3d` - 3-D ranging to fixed anchors, with 3-D odometry or constant velocity.
+* :mod:`.ranging3d` - 3-D ranging to fixed anchors, with 3-D odometry or the library's constant
+  velocity (:class:`~difffilter.models.motion.ConstantVelocity`).
 """
 
 from .clock import ConstantVelocityClock, OdometryClockDynamics, clock_process_noise
 from .pseudorange import GnssStateLayout, PseudorangeMeasurement
 from .ranging2d import OdometryDynamics2D, RangeMeasurement2D, make_ranging_model, multilateration
-from .ranging3d import ConstantVelocity3D, OdometryDynamics3D, RangeMeasurement3D, make_ranging3d_model
+from .ranging3d import OdometryDynamics3D, RangeMeasurement3D, make_ranging3d_model
 
 __all__ = [
-    "ConstantVelocity3D",
     "ConstantVelocityClock",
     "GnssStateLayout",
     "OdometryClockDynamics",

@@ -15,10 +15,16 @@ from torch import Tensor
 from ..._util import control
 from ...constraints import Bounded, Positive
 from ...params import register_constrained
+from ...selection import parameter_owners
 from ..base import Controls, DynamicsModel, MeasurementModel, StateSpaceModel
 from ..heteroscedastic import RobustGate
+from ..layout import StateLayout, describe
 
 __all__ = ["OdometryDynamics2D", "RangeMeasurement2D", "heading_jacobian", "make_ranging_model", "multilateration", "range_gate"]
+
+
+# The state of OdometryDynamics2D: the position first, the heading last.
+_LAYOUT = StateLayout(names=("x", "y", "theta"), units=("m", "m", "rad"), position=(0, 1), angles=(2,))
 
 
 def _rot(theta: Tensor) -> tuple[Tensor, Tensor]:
@@ -176,11 +182,14 @@ def make_ranging_model(
 ) -> StateSpaceModel:
     """The odometry + range model: ``gate="soft"`` a smooth learnable reject gate (threshold,
     floor, softness learnable), ``"hard"`` a fixed chi-square gate at ``gate_threshold``, ``None``
-    no gate."""
+    no gate.  The model carries ``defaults`` (:func:`~difffilter.models.layout.describe`): the
+    state's layout ``[x, y, theta]`` (``defaults.layout.position`` = ``(0, 1)``) and every
+    parameter as ``learn``."""
     robust = range_gate(gate, threshold=gate_threshold, floor=gate_floor, softness=gate_softness, dtype=dtype)
     dyn = OdometryDynamics2D(odom_scale=odom_scale, process_psd=process_psd, dtype=dtype)
     meas = RangeMeasurement2D(num_anchors=num_anchors, bias=bias, noise=noise, gate=robust, dtype=dtype)
-    return StateSpaceModel(dyn, meas)
+    model = StateSpaceModel(dyn, meas)
+    return describe(model, layout=_LAYOUT, learn=list(parameter_owners(model)), name="ranging2d")  # type: ignore[return-value]
 
 
 def multilateration(ranges: Tensor, var: Tensor, mask: Tensor, anchors: Tensor, *, iterations: int = 15) -> Tensor:

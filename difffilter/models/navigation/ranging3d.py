@@ -3,15 +3,21 @@ with ``odom3`` odometry or without any.
 
 * With odometry, state ``x = [p_x, p_y, p_z, psi]`` (m; heading about the vertical, rad):
   :class:`OdometryDynamics3D`, driven by the body-frame velocity and the yaw rate of the record.
-* Without odometry, state ``x = [p_x, p_y, p_z, v_x, v_y, v_z]``: :class:`ConstantVelocity3D`
-  (white-noise acceleration).
+* Without odometry, the library's constant-velocity model
+  :class:`~difffilter.models.motion.ConstantVelocity` ``(axes=3)`` (white-noise acceleration),
+  state axis by axis ``x = [p_x, v_x, p_y, v_y, p_z, v_z]``.
 
 The measurement is :class:`~difffilter.models.navigation.ranging2d.RangeMeasurement2D`'s range
-model on the first three state components (:class:`RangeMeasurement3D`: per anchor range bias,
-noise scale on the file's variances, robust gate).
+model on the three state components named by ``position`` (:class:`RangeMeasurement3D`: per
+anchor range bias, noise scale on the file's variances, robust gate), so it serves either state.
+:func:`make_ranging3d_model` builds both and records the state's layout as
+``model.defaults.layout`` (:class:`~difffilter.models.layout.StateLayout`: ``position`` gives the
+position indices, ``(0, 1, 2)`` with odometry, ``(0, 2, 4)`` without).
 """
 
 from __future__ import annotations
+
+from collections.abc import Sequence
 
 import torch
 from torch import Tensor
@@ -19,10 +25,16 @@ from torch import Tensor
 from ..._util import control
 from ...constraints import Positive
 from ...params import register_constrained
+from ...selection import parameter_owners
 from ..base import Controls, DynamicsModel, StateSpaceModel
+from ..layout import StateLayout, describe
+from ..motion import ConstantVelocity
 from .ranging2d import RangeMeasurement2D, heading_jacobian, range_gate
 
-__all__ = ["ConstantVelocity3D", "OdometryDynamics3D", "RangeMeasurement3D", "make_ranging3d_model"]
+__all__ = ["OdometryDynamics3D", "RangeMeasurement3D", "make_ranging3d_model"]
+
+# The state of OdometryDynamics3D: the position first, the heading last.
+_ODOMETRY_LAYOUT = StateLayout(names=("x", "y", "z", "psi"), units=("m", "m", "m", "rad"), position=(0, 1, 2), angles=(3,))
 
 
 class OdometryDynamics3D(DynamicsModel):
@@ -79,61 +91,33 @@ class OdometryDynamics3D(DynamicsModel):
         return 0.5 * (q + q.mT)
 
 
-class ConstantVelocity3D(DynamicsModel):
-    """``x = [p, v]`` (3 + 3), ``p_k = p_{k-1} + v_{k-1} dt``, ``v_k = v_{k-1}``, with continuous
-    white acceleration of spectral density ``q`` per axis (``process_psd [3]``, m^2/s^3):
-    ``Q = q [[dt^3/3, dt^2/2], [dt^2/2, dt]]`` per axis.  Controls: ``dt [..., 1]``.
-    Learnable: ``process_psd`` (``Positive(1e-12)``)."""
-
-    state_dim = 6
-    process_psd: Tensor
-
-    def __init__(self, *, process_psd: tuple[float, float, float] = (1.0, 1.0, 1.0), dtype: torch.dtype = torch.float64) -> None:
-        super().__init__()
-        if len(process_psd) != 3 or min(process_psd) <= 0:
-            raise ValueError(f"process_psd must be three positive numbers, got {process_psd}")
-        register_constrained(self, "process_psd", torch.tensor([float(q) for q in process_psd], dtype=dtype), Positive(1e-12))
-
-    def jacobian(self, x: Tensor, u: Controls = None) -> Tensor:
-        dt = control(u, "dt").to(x.dtype)[..., 0]
-        shape = torch.broadcast_shapes(x.shape[:-1], dt.shape)
-        f = torch.eye(6, dtype=x.dtype, device=x.device).expand(*shape, 6, 6).clone()
-        for i in range(3):
-            f[..., i, 3 + i] = dt.expand(shape)
-        return f
-
-    def forward(self, x: Tensor, u: Controls = None) -> Tensor:
-        dt = control(u, "dt").to(x.dtype)
-        return torch.cat([x[..., :3] + x[..., 3:] * dt, x[..., 3:] + 0.0 * dt], -1)
-
-    def process_noise(self, x: Tensor, u: Controls = None) -> Tensor:
-        dt = control(u, "dt").to(x.dtype)[..., 0]
-        q = torch.diag_embed(self.process_psd.expand(*dt.shape, 3))
-        d = dt[..., None, None]
-        top = torch.cat([q * d**3 / 3, q * d**2 / 2], -1)
-        out = torch.cat([top, torch.cat([q * d**2 / 2, q * d], -1)], -2)
-        return 0.5 * (out + out.mT)
-
-
 class RangeMeasurement3D(RangeMeasurement2D):
     """:class:`~difffilter.models.navigation.ranging2d.RangeMeasurement2D` with 3-D anchors
-    (control ``anchors [..., A, 3]``) and the position in the first three state components of a
-    ``state_dim``-dimensional state."""
+    (control ``anchors [..., A, 3]``) and the position at the state indices ``position`` (three
+    distinct indices in ``[0, state_dim)``: ``(0, 1, 2)`` for :class:`OdometryDynamics3D`,
+    ``(0, 2, 4)`` for :class:`~difffilter.models.motion.ConstantVelocity` ``(axes=3)``; a
+    model's ``defaults.layout.position``).  Other keyword arguments as the 2-D model."""
 
-    def __init__(self, *, state_dim: int, **kwargs: object) -> None:
+    def __init__(self, *, state_dim: int, position: Sequence[int], **kwargs: object) -> None:
         super().__init__(**kwargs)  # type: ignore[arg-type]
-        if int(state_dim) < 3:
-            raise ValueError(f"state_dim must be >= 3 (the position comes first), got {state_dim}")
-        self.state_dim = int(state_dim)
+        n = int(state_dim)
+        if n < 3:
+            raise ValueError(f"state_dim must be >= 3 (three position components), got {state_dim}")
+        pos = tuple(int(i) for i in position)
+        if len(pos) != 3 or len(set(pos)) != 3 or not all(0 <= i < n for i in pos):
+            raise ValueError(f"position must be three distinct state indices in [0, {n}), got {list(position)}")
+        self.state_dim = n
+        self.position = pos
 
     def _geometry(self, x: Tensor, u: Controls) -> tuple[Tensor, Tensor]:
-        d = x[..., None, :3] - control(u, "anchors").to(x.dtype)
+        d = x[..., None, list(self.position)] - control(u, "anchors").to(x.dtype)
         return d, torch.sqrt((d * d).sum(-1) + 1e-12)
 
     def jacobian(self, x: Tensor, u: Controls = None) -> Tensor:
         d, r = self._geometry(x, u)
-        unit = d / r[..., None]
-        return torch.cat([unit, unit.new_zeros(*unit.shape[:-1], self.state_dim - 3)], -1)
+        jac = d.new_zeros(*d.shape[:-1], self.state_dim)
+        jac[..., list(self.position)] = d / r[..., None]
+        return jac
 
 
 def make_ranging3d_model(
@@ -151,14 +135,26 @@ def make_ranging3d_model(
     dtype: torch.dtype = torch.float64,
 ) -> StateSpaceModel:
     """The 3-D range model with :class:`OdometryDynamics3D` (``odometry=True``; default
-    ``process_psd`` ``(1e-4, 1e-4, 1e-4, 1e-6)``) or :class:`ConstantVelocity3D` (default
-    ``process_psd`` ``(1, 1, 1)`` m^2/s^3); ``gate`` as
-    :func:`~difffilter.models.navigation.ranging2d.make_ranging_model`."""
+    ``process_psd`` ``(1e-4, 1e-4, 1e-4, 1e-6)``) or
+    :class:`~difffilter.models.motion.ConstantVelocity` ``(axes=3)`` (``process_psd`` is its
+    per-axis acceleration density ``q``, default ``(1, 1, 1)`` m^2/s^3; the sample interval is
+    the control ``dt``); ``gate`` as :func:`~difffilter.models.navigation.ranging2d.make_ranging_model`.
+    The model carries ``defaults`` (:func:`~difffilter.models.layout.describe`): the state's
+    layout (``defaults.layout.position``: where the position sits) and every parameter as
+    ``learn``."""
     robust = range_gate(gate, threshold=gate_threshold, floor=gate_floor, softness=gate_softness, dtype=dtype)
     dyn: DynamicsModel
     if odometry:
         dyn = OdometryDynamics3D(odom_scale=odom_scale, process_psd=tuple(process_psd or (1e-4, 1e-4, 1e-4, 1e-6)), dtype=dtype)  # type: ignore[arg-type]
+        layout = _ODOMETRY_LAYOUT
     else:
-        dyn = ConstantVelocity3D(process_psd=tuple(process_psd or (1.0, 1.0, 1.0)), dtype=dtype)  # type: ignore[arg-type]
-    meas = RangeMeasurement3D(state_dim=dyn.state_dim, num_anchors=num_anchors, bias=bias, noise=noise, gate=robust, dtype=dtype)
-    return StateSpaceModel(dyn, meas)
+        q = tuple(process_psd or (1.0, 1.0, 1.0))
+        if len(q) != 3 or min(q) <= 0:
+            raise ValueError(f"process_psd must be three positive numbers without odometry, got {q}")
+        dyn = ConstantVelocity(axes=3, q=torch.tensor(q, dtype=dtype), dtype=dtype)
+        layout = StateLayout.kinematic(axes=3, order=2)
+    meas = RangeMeasurement3D(
+        state_dim=dyn.state_dim, position=layout.position, num_anchors=num_anchors, bias=bias, noise=noise, gate=robust, dtype=dtype
+    )
+    model = StateSpaceModel(dyn, meas)
+    return describe(model, layout=layout, learn=list(parameter_owners(model)), name="ranging3d")  # type: ignore[return-value]

@@ -54,6 +54,7 @@ from .protocol import (
     train_jobs,
     validation_score,
 )
+from .significance import significance_gate, significance_options, validation_epochs
 
 __all__ = ["format_tables", "resolve_config", "run_evaluation", "run_protocol", "run_transfer", "untrained_filter", "write_fold_csv"]
 
@@ -145,6 +146,9 @@ def _values(filt: torch.nn.Module, names: Sequence[str]) -> dict[str, list[float
 
 def run_protocol(cfg: Mapping[str, Any], output_dir: str | Path, *, workers: int = 1) -> dict[str, Any]:
     """Train, select and test as :mod:`~experiments.papers.smartloc.protocol` describes; write the report."""
+    selection = dict(cfg.get("selection") or {})
+    if significance_options(selection) is not None and not selection.get("start_candidate"):
+        raise ValueError("selection.significance needs selection.start_candidate: true (the untrained start is one of its references)")
     t0 = time.time()
     out_dir = Path(output_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -182,6 +186,8 @@ def run_protocol(cfg: Mapping[str, Any], output_dir: str | Path, *, workers: int
         fallback = bool(dict(cfg.get("selection") or {}).get("hand_tuned_candidate", False))
         # start_candidate: the untrained start is a non-learned candidate too; a learned model must beat it strictly.
         strict_start = bool(dict(cfg.get("selection") or {}).get("start_candidate", False))
+        # significance: a learned choice must also beat those candidates by a validation block bootstrap.
+        significance = significance_options(cfg.get("selection"))
         for variant in cfg["variants"]:
             mine = [r for r in runs if r["fold"] == fold and r["variant"] == variant]
             for h in horizons:
@@ -196,6 +202,17 @@ def run_protocol(cfg: Mapping[str, Any], output_dir: str | Path, *, workers: int
                     )
                     best = select_candidate([r["scores"] for r in trained], int(cfg["epochs"]) * h)
                     best_learned = {"seed": trained[best[0]]["seed"], "epoch": best[1], "val_score": trained[best[0]]["scores"][best[1]]}
+                    if kind == "learned" and significance is not None:
+                        coef = coefs[(fold, variant)]
+                        kind, best_learned["significance"] = significance_gate(
+                            learned_filter(cfg, drives, variant, coef, trained[rep]["snapshots"][ep]),
+                            {"hand-tuned": (filters["hand-tuned"], hand_score)} if fallback else {},
+                            ("start", learned_filter(cfg, drives, variant, coef, start["snapshots"][0]), start["scores"][0]),
+                            sets["val"],
+                            significance,
+                            validation_epochs(cfg, drives, fold),
+                        )
+                        rep, ep = (rep, ep) if kind == "learned" else (0, 0)
                     run = trained[rep] if kind == "learned" else start
                 else:
                     rep, ep = select_candidate([r["scores"] for r in mine], int(cfg["epochs"]) * h)

@@ -7,8 +7,10 @@ paired block-bootstrap differences to the hand-tuned filter (``d_*``) and to the
 filter (``u_*``; *win* / *loss* when the 95 % interval excludes zero, *tie* otherwise); and from
 ``<run>/summary.json`` what validation selected for each learned row, with the validation scores of
 the hand-tuned filter, the untrained start and the best learned (seed, epoch); and, for a run that
-learned the sensor-model extras (protocol v4), their values in each selected learned row.  Nothing
-is recomputed: the numbers are the run's own.
+learned the sensor-model extras (protocol v4), their values in each selected learned row; for a run
+with the significance gate (protocol v5), the best learned model's validation score minus the
+hand-tuned filter's and the untrained start's with the gate's 95 % intervals, and its verdict.
+Nothing is recomputed: the numbers are the run's own.
 """
 
 from __future__ import annotations
@@ -29,6 +31,11 @@ def _verdict(row: dict[str, str], prefix: str, stat: str) -> str:
     d, lo, hi = (float(row[f"{prefix}_{stat}{s}"]) for s in ("", "_lo", "_hi"))
     word = "win" if hi < 0 else "loss" if lo > 0 else "tie"
     return f"{d:+.2f} [{lo:+.2f}, {hi:+.2f}] {word}"
+
+
+def _gate(sel: dict) -> dict | None:
+    """The significance gate's record of a selection (protocol v5), if it ran."""
+    return (sel.get("best_learned") or {}).get("significance")
 
 
 def tables(run: str | Path) -> str:
@@ -76,6 +83,24 @@ def tables(run: str | Path) -> str:
         for fold, name, values in extras:
             cell = {e: ", ".join(f"{v:+.2f}" for v in next((x for k, x in values.items() if k.endswith(e)), [])) for e in _EXTRAS}
             out.append(f"| {fold} | {name} | {cell['lever_arm']} | {cell['latency']} | {cell['elevation_bias']} |")
+    gated = [(fold, name, sel) for fold, fs in summary["folds"].items() for name, sel in fs["selection"].items() if _gate(sel)]
+    if gated:
+        out += [
+            "",
+            "| fold | row | best learned score | - hand-tuned [95 % CI] | - untrained start [95 % CI] | gate |",
+            "|---|---|---|---|---|---|",
+        ]
+        for fold, name, sel in gated:
+            fs = summary["folds"][fold]
+            b, g = sel["best_learned"], _gate(sel)
+            start = fs["val_scores"][f"{name.removeprefix('learned-').split(' ')[0]}/seedstart"][0]
+            refs = {"hand-tuned": fs["hand_val"]["median"] + fs["hand_val"]["rms"], "start": start}
+            cells = [
+                f"{b['val_score'] - refs[k]:+.2f} [{g['intervals'][k][0]:+.2f}, {g['intervals'][k][1]:+.2f}]" if k in g["intervals"] else ""
+                for k in ("hand-tuned", "start")
+            ]
+            verdict = "passed" if g["passed"] else f"not passed: {sel['seed']}"
+            out.append(f"| {fold} | {name} | {b['val_score']:.2f} | {cells[0]} | {cells[1]} | {verdict} |")
     out.append("")
     out.append(f"Run time: {summary['total_seconds']:.0f} s wall (training {summary['train_seconds']:.0f} s).")
     return "\n".join(out) + "\n"

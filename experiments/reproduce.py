@@ -119,6 +119,20 @@ def _learned_adaptive(experiment: str, family: str, root: str = "outputs/practit
     )
 
 
+def _kappa0(family: str, root: str = "outputs/practitioners") -> tuple[str, ...]:
+    """p000's adaptive rows around a kappa 0 UKF (issue 25): their sweep merged into the family's data
+    file, then the learned adaptive kappa 0 sweep joined to it (in this order: the join pairs with the
+    best row, which the merge may change)."""
+    k0, adaptive, into = f"{root}/{family}_k0", f"{root}/{family}_learned_adaptive_k0", f"results/data/{family}_practitioners.csv"
+    return (
+        f"python experiments/train.py -m experiment={family}_practitioners_k0 seed=0,1,2,3,4 logger=csv hydra.sweep.dir={k0}",
+        f"python -m experiments.practitioners {k0}",
+        f"python -m experiments.practitioners --merge {k0} --into {into}",
+        f"python experiments/train.py -m experiment={family}_learned_adaptive_k0 seed=0,1,2,3,4 logger=csv hydra.sweep.dir={adaptive}",
+        f"python -m experiments.practitioners --adaptive {adaptive} --name learned-adaptive-k0 --into {into}",
+    )
+
+
 def _p003(experiment: str) -> tuple[str, str]:
     return (
         f"python experiments/train.py -m experiment={experiment} seed=0,1,2,3,4 learner.init_perturbation=0.3 logger=csv "
@@ -227,7 +241,8 @@ JOBS: tuple[Job, ...] = (
     Job("p004_urban", "p004_urban.md", 321, _sweep_and_test("p004_urban", RERUN, learned_values=False)),
     # issue 25: the families again with the practitioners' rows (results/p00_practitioners.md)
     Job("p001_elevation_practitioners", "p00_practitioners.md", 489, _practitioners("p001_elevation")),
-    Job("p000_infamily_practitioners", "p00_practitioners.md", 411, _practitioners("p000_infamily")),
+    # (rerun at px000k's code state, whose learned row no longer matched the 11-27 one: 213 CPU-s, /usr/bin/time)
+    Job("p000_infamily_practitioners", "p00_practitioners.md", 213, _practitioners("p000_infamily")),
     # cpu_s not measured (the five seeds took 6 min wall on the compiled engine; learned training 10.7 CPU-s per seed)
     Job("p000_gyro_practitioners", "p00_practitioners.md", 200, _practitioners("p000_gyro")),
     Job("p000_gps_practitioners", "p00_practitioners.md", 359, _practitioners("p000_gps")),
@@ -335,6 +350,13 @@ JOBS: tuple[Job, ...] = (
     # no job for p000_nominal / odometer / gps / gyro
     # (every seed's training diverged: the sweep exits non-zero, no row) nor p000_infamily (seed 2 diverged,
     # the join refused the 4-seed rows): the overlays stay for a rerun under a new declaration
+    # ("Adaptive rows around a kappa 0 UKF", session px000k): the kappa 0 rows merged, then the learned adaptive
+    # filter around the kappa 0 UKF joined; CPU-s measured (/usr/bin/time, user + sys, the two sweeps of each job)
+    Job("p000_gyro_k0", "p00_practitioners.md", 423, _kappa0("p000_gyro")),
+    Job("p000_gps_k0", "p00_practitioners.md", 264, _kappa0("p000_gps")),
+    Job("p000_odometer_k0", "p00_practitioners.md", 312, _kappa0("p000_odometer")),
+    Job("p000_nominal_k0", "p00_practitioners.md", 274, _kappa0("p000_nominal")),
+    Job("p000_infamily_k0", "p00_practitioners.md", 352, _kappa0("p000_infamily")),
     # issue 25: data efficiency (N = 1, 4, 16 training trajectories) and transfer across p002's
     # families (results/p00_efficiency_transfer.md); the transfer pairs read all three p002 sweeps
     Job(

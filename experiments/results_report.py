@@ -26,11 +26,12 @@ from collections.abc import Sequence  # noqa: E402
 from dataclasses import dataclass, replace  # noqa: E402
 
 from experiments.efficiency_transfer import DATA_FILES  # noqa: E402
-from experiments.practitioners import join_learned_adaptive  # noqa: E402
+from experiments.practitioners import join_learned_adaptive, merge_rows  # noqa: E402
 from experiments.results_tables import (  # noqa: E402
     METHODS,
     REFERENCE,
     ROOT,
+    VARIANTS,
     Row,
     anees_band,
     anees_verdict,
@@ -262,6 +263,11 @@ FAMILIES: tuple[Family, ...] = (
 )
 
 LEARNED: tuple[tuple[str, str], ...] = (("learned", "learned"), ("learned adaptive", "learned-adaptive"))
+#: The learned adaptive filter around p000's UKF with Julier kappa 0 (issue 25, "Adaptive rows around a
+#: kappa 0 UKF"), a learned row shown in the learned adaptive cells after "; kappa 0: "
+ADAPTIVE_K0 = "learned-adaptive-k0"
+#: What a cell shows before a kappa 0 row's value
+K0_LABEL = "; kappa 0: "
 
 
 def _get(rows: Sequence[Row], group: str, name: str, quantity: str, reference: str = "") -> Row | None:
@@ -272,6 +278,12 @@ def _paired(rows: Sequence[Row], group: str, name: str, best: str) -> Row | None
     """``name`` - ``best`` in %: the sweep's ``diff_pct`` when ``best`` is the sweep's reference,
     else a ``diff_pct`` row whose ``reference`` names ``best``."""
     return _get(rows, group, name, "diff_pct") if best == REFERENCE else _get(rows, group, name, "diff_pct", best)
+
+
+def _adaptive_cell(rows: Sequence[Row], group: str, name: str, best: str) -> str:
+    """A learned adaptive row - the best non-learned row, % [95 %] (verdict)."""
+    la = _paired(rows, group, name, best) if best else None
+    return "no paired interval" if la is None else f"{fmt_ci(la.estimate, la.lo, la.hi)} ({paired_verdict(la.lo, la.hi)})"
 
 
 def _cell(rows: Sequence[Row], group: str, name: str, value: Row | None) -> str:
@@ -288,6 +300,13 @@ def summary_cells(fam: Family, rows: Sequence[Row], metric: str = "rmse_pos") ->
     value = {name: _get(rows, g, name, metric) for _, name in (*METHODS, *LEARNED)}
     shown = [_cell(rows, g, name, value[name]) for _, name in (*METHODS, *LEARNED)]
     ran = [(title, name) for title, name in METHODS if value[name] is not None]
+    columns = [name for _, name in METHODS]
+    for title, name, column in VARIANTS:  # shown inside their column's cell, candidates for the best
+        variant = _get(rows, g, name, metric)
+        if variant is not None:
+            value[name] = variant
+            ran.append((title, name))
+            shown[columns.index(column)] += K0_LABEL + _cell(rows, g, name, variant)
     best_title, best = min(ran, key=lambda tn: value[tn[1]].estimate) if ran else ("-", "")
     learned = value["learned"]
     diff = _paired(rows, g, "learned", best) if learned and best else None
@@ -299,8 +318,11 @@ def summary_cells(fam: Family, rows: Sequence[Row], metric: str = "rmse_pos") ->
     if value["learned-adaptive"] is None:
         shown[-1] = adaptive_cell
     else:
-        la = _paired(rows, g, "learned-adaptive", best) if best else None
-        adaptive_cell = "no paired interval" if la is None else f"{fmt_ci(la.estimate, la.lo, la.hi)} ({paired_verdict(la.lo, la.hi)})"
+        adaptive_cell = _adaptive_cell(rows, g, "learned-adaptive", best)
+    k0 = _get(rows, g, ADAPTIVE_K0, metric)
+    if k0 is not None:
+        shown[-1] += K0_LABEL + _cell(rows, g, ADAPTIVE_K0, k0)
+        adaptive_cell += K0_LABEL + _adaptive_cell(rows, g, ADAPTIVE_K0, best)
     anees = _get(rows, g, "learned", "anees_all", _get_dof(rows, g))
     if anees is None:
         anees_cell, anees_v = "not in the data", "-"
@@ -374,11 +396,13 @@ def build_report(families: Sequence[Family] = FAMILIES, root: Path = ROOT) -> st
         "",
         "- learned - best non-learned: the paired difference per test run and seed, in % of the reference; **win**",
         "  when its 95 % interval lies below zero, **loss** when above, **tie** when it contains zero.  The best",
-        "  non-learned method is the lowest-RMSE row among the seven non-learned columns that were run; a method",
-        "  without a row in the family's CSV says *not run*.  A paired interval exists only against the row the",
-        "  sweep pairs with (the paper's constants) or a `diff_pct` row whose `reference` names the best method.",
-        "  The learned adaptive filter (Sage-Husa with its forgetting factor and noise learned, a separate training",
-        "  job) gets the same paired comparison and rule in its own column where it ran.",
+        "  non-learned method is the lowest-RMSE row among the seven non-learned columns that were run and, on p000,",
+        "  the three adaptive filters around a UKF with Julier kappa 0 (shown in their kappa -5 column's cell after",
+        "  `kappa 0:`); a method without a row in the family's CSV says *not run*.  A paired interval exists only",
+        "  against the row the sweep pairs with (the paper's constants) or a `diff_pct` row whose `reference` names",
+        "  the best method.  The learned adaptive filter (Sage-Husa with its forgetting factor and noise learned, a",
+        "  separate training job) gets the same paired comparison and rule in its own column where it ran (on p000",
+        "  also around the kappa 0 UKF, after `kappa 0:`).",
         "- ANEES of the learned filter (all states, d of them) against the 95 % chi-square band of a consistent",
         "  filter's mean NEES over the N test runs, `[chi2_0.025(N d) / N, chi2_0.975(N d) / N]`: **consistent** when",
         "  the ANEES interval lies inside the band, **over-** / **under-confident** when entirely above / below it,",
@@ -400,6 +424,7 @@ def build_report(families: Sequence[Family] = FAMILIES, root: Path = ROOT) -> st
     ]
     tally: dict[str, dict[str, int]] = {}
     adaptive: list[str] = []
+    adaptive_k0: list[str] = []
     no_row: list[str] = []
     for fam in families:
         shown = fam.practitioners_family() if fam.practitioners else fam
@@ -407,11 +432,13 @@ def build_report(families: Sequence[Family] = FAMILIES, root: Path = ROOT) -> st
         out.append("| " + " | ".join(cells) + " |")
         kind = tally.setdefault(fam.kind, {})
         kind[cells[_HEADER.index("verdict")]] = kind.get(cells[_HEADER.index("verdict")], 0) + 1
-        la_cell = cells[_HEADER.index("learned adaptive - best non-learned, % [95 %] (verdict)")]
+        la_cell, _, k0_cell = cells[_HEADER.index("learned adaptive - best non-learned, % [95 %] (verdict)")].partition(K0_LABEL)
         if la_cell.endswith(")"):
             adaptive.append(f"{fam.name} {la_cell.rsplit('(', 1)[1].rstrip(')')}")
         elif fam.adaptive_outcome and la_cell == fam.adaptive_outcome:
             no_row.append(f"{fam.name} ({fam.adaptive_outcome.removeprefix('ran, no row: ')})")
+        if k0_cell.endswith(")"):
+            adaptive_k0.append(f"{fam.name} {k0_cell.rsplit('(', 1)[1].rstrip(')')}")
     out += [""] + [
         f"Verdicts of learned against the best non-learned method, {kind} families: "
         + ", ".join(f"{n} {v}" for v, n in sorted(counts.items()))
@@ -424,6 +451,12 @@ def build_report(families: Sequence[Family] = FAMILIES, root: Path = ROOT) -> st
         )
     if no_row:
         out.append("Learned adaptive jobs that ran and left no row: " + ", ".join(no_row) + ".")
+    if adaptive_k0:
+        out.append(
+            "Verdicts of the learned adaptive filter around a kappa 0 UKF against the best non-learned method: "
+            + ", ".join(adaptive_k0)
+            + "."
+        )
     out += [
         "",
         "Not in the table: the real drive (smartLoc Berlin, `results/smartloc_real.md`: median/RMS error per fold,",
@@ -455,7 +488,7 @@ def build_detail(fam: Family, root: Path = ROOT) -> str:
         "",
         render_metric(rows, {}),
     ]
-    paired = [r for r in rows if r.filter in {n for _, n in LEARNED} and r.quantity == "diff_pct" and r.reference]
+    paired = [r for r in rows if r.filter in {ADAPTIVE_K0, *(n for _, n in LEARNED)} and r.quantity == "diff_pct" and r.reference]
     cpu = [r for r in rows if r.quantity == "tuning_cpu_s"]
     if paired:
         out += ["", "Learned - best non-learned (paired per test run and seed, % of the best's mean):", ""]
@@ -537,12 +570,18 @@ def render(root: Path = ROOT) -> list[Path]:
 
 
 def _rejoin_learned_adaptive(fam: Family, root: Path) -> None:
-    """A practitioners data file just copied from its sweep gets its ``learned-adaptive`` rows
-    again from the learned adaptive sweep beside it, where one ran (issue 25; the join checks
-    that the sweep's rebuilt rows are the file's)."""
-    sweep = root / f"{fam.sweep}_learned_adaptive"
-    if fam.sweep.startswith(PRACTITIONERS_ROOT) and sweep.is_dir():
-        join_learned_adaptive(sweep, _source(fam, root))
+    """A practitioners data file just copied from its sweep gets its rows from the sweeps beside it
+    again, where they ran (issue 25): the kappa 0 rows (``<sweep>_k0``, :func:`merge_rows`), then the
+    ``learned-adaptive`` rows (``<sweep>_learned_adaptive``) and the ``learned-adaptive-k0`` rows
+    (``<sweep>_learned_adaptive_k0``); each join checks that its sweep's shared rows are the file's."""
+    if not fam.sweep.startswith(PRACTITIONERS_ROOT):
+        return
+    if (root / f"{fam.sweep}_k0").is_dir():
+        merge_rows(root / f"{fam.sweep}_k0", _source(fam, root))
+    for suffix, name in (("_learned_adaptive", "learned-adaptive"), ("_learned_adaptive_k0", ADAPTIVE_K0)):
+        sweep = root / f"{fam.sweep}{suffix}"
+        if sweep.is_dir():
+            join_learned_adaptive(sweep, _source(fam, root), name=name)
 
 
 def collect(root: Path = ROOT) -> list[Path]:

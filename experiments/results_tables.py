@@ -42,7 +42,9 @@ from scipy.stats import chi2
 __all__ = [
     "FIELDS",
     "METHODS",
+    "NON_LEARNED",
     "REFERENCE",
+    "VARIANTS",
     "Row",
     "anees_band",
     "anees_verdict",
@@ -71,6 +73,16 @@ METHODS: tuple[tuple[str, str], ...] = (
     ("VB-AKF", "vb-akf"),
     ("covariance matching", "covariance-matching"),
 )
+#: Non-learned rows shown inside another method's column (title, filter name, the column's filter
+#: name): the adaptive filters around p000's UKF with Julier kappa 0 (issue 25, results/p00_practitioners.md,
+#: "Adaptive rows around a kappa 0 UKF"), candidates for the best non-learned row like the columns' own.
+VARIANTS: tuple[tuple[str, str, str], ...] = (
+    ("Sage-Husa, kappa 0", "sage-husa-k0", "sage-husa"),
+    ("VB-AKF, kappa 0", "vb-akf-k0", "vb-akf"),
+    ("covariance matching, kappa 0", "covariance-matching-k0", "covariance-matching"),
+)
+#: Every non-learned row (filter name) the best non-learned row is chosen from.
+NON_LEARNED: tuple[str, ...] = (*(n for _, n in METHODS), *(n for _, n, _ in VARIANTS))
 #: The row every sweep pairs its differences with (the paper's constants).
 REFERENCE = "hand-tuned"
 

@@ -256,10 +256,12 @@ JOBS: tuple[Job, ...] = (
     Job("p004_blend_practitioners", "p00_practitioners.md", 435, _practitioners("p004_blend")),
     # cpu_s not measured for this one (10.5 min wall on the loaded 2-core machine, compiled engine); it orders the queue only
     Job("p004_outage_practitioners", "p00_practitioners.md", 300, _practitioners("p004_outage")),
-    # p003_physical: 973 CPU-s measured (/usr/bin/time, 5 seeds, 51 min wall on the loaded machine; eager engine)
-    Job("p003_physical_practitioners", "p00_practitioners.md", 973, _practitioners("p003_physical")),
-    # p003_modes / p003_imm_sins: 926 / 866 CPU-s measured (/usr/bin/time, 5 seeds, 30 / 27 min wall, the two side by side)
-    Job("p003_modes_practitioners", "p00_practitioners.md", 926, _practitioners("p003_modes")),
+    # p003_physical: 973 CPU-s measured (/usr/bin/time, 5 seeds, 51 min wall on the loaded machine; eager engine);
+    # 995 in the stopped rerun of 2026-11-28 (results/p00_compute_budget.md)
+    Job("p003_physical_practitioners", "p00_practitioners.md", 995, _practitioners("p003_physical")),
+    # p003_modes / p003_imm_sins: 926 / 866 CPU-s measured (/usr/bin/time, 5 seeds, 30 / 27 min wall, the two side by side);
+    # p003_modes 1,074 in the stopped rerun of 2026-11-28
+    Job("p003_modes_practitioners", "p00_practitioners.md", 1074, _practitioners("p003_modes")),
     Job("p003_imm_sins_practitioners", "p00_practitioners.md", 866, _practitioners("p003_imm_sins")),
     Job(
         "p002_disturbed_practitioners",
@@ -359,10 +361,11 @@ JOBS: tuple[Job, ...] = (
     Job("p000_infamily_k0", "p00_practitioners.md", 352, _kappa0("p000_infamily")),
     # issue 25: data efficiency (N = 1, 4, 16 training trajectories) and transfer across p002's
     # families (results/p00_efficiency_transfer.md); the transfer pairs read all three p002 sweeps
+    # 449 CPU-s in the stopped rerun of 2026-11-28 (1,500 when its results were produced, eager, loaded)
     Job(
         "p002_efficiency_transfer",
         "p00_efficiency_transfer.md",
-        1500,
+        449,
         (
             "python experiments/train.py -m experiment=p002_pdr_efficiency data.train_size=1,4,16 seed=0,1,2,3,4 logger=csv "
             "hydra.sweep.dir=outputs/efficiency/p002_pdr",

@@ -106,6 +106,11 @@ def test_the_gate_falls_back_to_the_better_non_learned_candidate(monkeypatch) ->
     assert significance.significance_gate(noise, hand, ("start", ref, 92.0), None, OPTS)[0] == "start"
     assert significance.significance_gate(noise, hand, ("start", ref, 93.0), None, OPTS)[0] == "hand-tuned"
     assert significance.significance_gate(noise, {}, ("start", ref, 93.0), None, OPTS)[0] == "start"
+    # a diverged non-learned candidate (infinite validation score) is no reference and no fallback
+    inf = float("inf")
+    kind, rec = significance.significance_gate(noise, {"hand-tuned": (ref, inf)}, ("start", ref, 95.0), None, OPTS)
+    assert kind == "start" and set(rec["intervals"]) == {"start"}
+    assert significance.significance_gate(noise, {"hand-tuned": (ref, inf)}, ("start", ref, inf), None, OPTS)[0] == "learned"
 
 
 def test_the_protocol_refuses_significance_without_the_start_as_a_candidate(tmp_path) -> None:

@@ -25,6 +25,7 @@ Configuration (``conf/realdata/smartloc_v5.yaml``)::
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -171,11 +172,12 @@ def significance_gate(
     the hand-tuned filter's (if a candidate) and the untrained start's
     (:func:`significantly_better`), else the better of
     those two by score (the hand-tuned filter on a tie) with the intervals that failed."""
-    refs = {name: (filt, score) for name, (filt, score) in hand.items()} | {start[0]: (start[1], start[2])}
+    # a candidate whose validation run is not finite is not a candidate (as in select_with_fallbacks)
+    refs = {k: v for k, v in ({**hand, start[0]: (start[1], start[2])}).items() if math.isfinite(float(v[1]))}
     errors = {name: horizontal_errors(filt, val_sets) for name, (filt, _) in refs.items()}
     better, intervals = significantly_better(horizontal_errors(learned, val_sets), errors, options, groups)
     record = {"options": dict(options), "intervals": {k: list(v) for k, v in intervals.items()}, "passed": better}
-    if better:
+    if better or not refs:
         return "learned", record
     low = min(score for _, score in refs.values())
     return next(name for name, (_, score) in refs.items() if score == low), record

@@ -29,6 +29,7 @@ from difffilter.engines import shared as shared_module  # noqa: E402
 from experiments.benchmarks.cases import builtin_case  # noqa: E402
 from experiments.benchmarks.gpsdr import simulate_gpsdr  # noqa: E402
 from experiments.benchmarks.runner import BenchSettings  # noqa: E402
+from experiments.benchmarks.timing import best_of  # noqa: E402
 
 
 def cpu_per_training_step(batch: int, steps: int, repeats: int, shared: bool) -> float:
@@ -40,13 +41,7 @@ def cpu_per_training_step(batch: int, steps: int, repeats: int, shared: bool) ->
     def train() -> None:
         fused(case.measurements, case.initial_mean, case.initial_cov).log_likelihood.sum().backward()
 
-    train()
-    best = float("inf")
-    for _ in range(repeats):
-        t0 = time.process_time()
-        train()
-        best = min(best, time.process_time() - t0)
-    return best
+    return best_of(train, repeats, clock=time.process_time)
 
 
 def main() -> None:

@@ -147,7 +147,9 @@ def _values(filt: torch.nn.Module, names: Sequence[str]) -> dict[str, list[float
 def run_protocol(cfg: Mapping[str, Any], output_dir: str | Path, *, workers: int = 1) -> dict[str, Any]:
     """Train, select and test as :mod:`~experiments.papers.smartloc.protocol` describes; write the report."""
     selection = dict(cfg.get("selection") or {})
-    if significance_options(selection) is not None and not selection.get("start_candidate"):
+    # significance: a learned choice must also beat the non-learned candidates by a validation block bootstrap.
+    significance = significance_options(selection)
+    if significance is not None and not selection.get("start_candidate"):
         raise ValueError("selection.significance needs selection.start_candidate: true (the untrained start is one of its references)")
     t0 = time.time()
     out_dir = Path(output_dir)
@@ -186,8 +188,6 @@ def run_protocol(cfg: Mapping[str, Any], output_dir: str | Path, *, workers: int
         fallback = bool(dict(cfg.get("selection") or {}).get("hand_tuned_candidate", False))
         # start_candidate: the untrained start is a non-learned candidate too; a learned model must beat it strictly.
         strict_start = bool(dict(cfg.get("selection") or {}).get("start_candidate", False))
-        # significance: a learned choice must also beat those candidates by a validation block bootstrap.
-        significance = significance_options(cfg.get("selection"))
         for variant in cfg["variants"]:
             mine = [r for r in runs if r["fold"] == fold and r["variant"] == variant]
             for h in horizons:

@@ -344,7 +344,31 @@ def render_times(paths: Sequence[Path]) -> str:
     return _table(["job", "status", "wall (s)", "CPU (s)"], lines)
 
 
+def render_targets(paths: Sequence[Path]) -> str:
+    """The performance targets of ``experiments/benchmark.py``'s ``targets.csv`` files (``target,
+    measured, goal, met``): one row per target that the run measured (``met`` is ``n/a`` for the
+    targets of cases it did not run, and those are left out), the file's name beside it.
+
+    Raises:
+        ValueError: a file without that header.
+    """
+    lines = []
+    for path in paths:
+        with open(path, newline="") as fh:
+            reader = csv.DictReader(fh)
+            if reader.fieldnames is None or list(reader.fieldnames)[:4] != ["target", "measured", "goal", "met"]:
+                raise ValueError(f"{path}: not a benchmark targets.csv (header target, measured, goal, met)")
+            for row in reader:
+                if row["met"] == "n/a":
+                    continue
+                v = float(row["measured"])
+                lines.append([row["target"], f"{v:.3g}" if abs(v) < 1000 else f"{v:.0f}", row["goal"], row["met"], path.parent.name])
+    return _table(["target", "measured", "goal", "met", "run"], lines)
+
+
 RENDERERS = {"metric": render_metric, "anees": render_anees, "paired": render_paired}
+#: renderers of files other than summary CSVs: they take the source paths
+FILE_RENDERERS = {"times": render_times, "targets": render_targets}
 
 
 def parse_args(args: str) -> tuple[list[str], dict[str, str]]:
@@ -370,11 +394,11 @@ def render_table(args: str, root: Path = ROOT) -> str:
     sources, opts = parse_args(args)
     if not sources:
         raise ValueError(f"marker {args!r}: no source=")
-    if opts.get("renderer") == "times":
-        return render_times([root / s for s in sources])
+    if opts.get("renderer") in FILE_RENDERERS:
+        return FILE_RENDERERS[opts["renderer"]]([root / s for s in sources])
     renderer = RENDERERS.get(opts.get("renderer", ""))
     if renderer is None:
-        raise ValueError(f"marker {args!r}: renderer must be one of {sorted([*RENDERERS, 'times'])}")
+        raise ValueError(f"marker {args!r}: renderer must be one of {sorted([*RENDERERS, *FILE_RENDERERS])}")
     rows = [r for s in sources for r in read_rows(root / s)]
     return renderer(rows, opts)
 

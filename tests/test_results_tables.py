@@ -98,7 +98,7 @@ def test_renderer_is_deterministic(tmp_path):
 def test_marker_errors_are_reported_not_raised(tmp_path):
     _write(tmp_path / "d.csv", [{"filter": "hand-tuned", "quantity": "rmse_pos", "estimate": 1.0}])
     bad = "<!-- table: t renderer=nope source=d.csv -->\n| x |\n|---|\n<!-- /table -->\n"
-    want = "table t: marker 'renderer=nope source=d.csv': renderer must be one of ['anees', 'metric', 'paired', 'times']"
+    want = "table t: marker 'renderer=nope source=d.csv': renderer must be one of ['anees', 'metric', 'paired', 'targets', 'times']"
     assert check_text(bad, tmp_path) == [want]
     missing = "<!-- table: t renderer=metric source=gone.csv -->\n<!-- /table -->\n"
     assert check_text(missing, tmp_path)[0].startswith("table t: [Errno 2]")
@@ -261,3 +261,28 @@ def test_times_renderer_tables_a_reproduce_run(tmp_path):
     assert "not a reproduce.py times.tsv" in check_text(text.replace("t.tsv", "bad.tsv"), tmp_path)[0]
     (tmp_path / "short.tsv").write_text("job\tstatus\twall_s\tcpu_s\nx\t0\t1\n")
     assert "short.tsv:2: expected 4 tab-separated fields" in check_text(text.replace("t.tsv", "short.tsv"), tmp_path)[0]
+
+
+def test_targets_renderer_tables_a_benchmark_run(tmp_path):
+    """``renderer=targets``: the targets a benchmark run measured (its ``n/a`` rows left out), with
+    the run's folder; a file that is not a targets.csv is refused."""
+    run = tmp_path / "bench_2026-12-07"
+    run.mkdir()
+    csv_text = (
+        "target,measured,goal,met\n"
+        "UKF train B=256: difffilter (plain call) / dynamax throughput,7.2345,>= 5,yes\n"
+        "UKF train B=256: difffilter-fused / dynamax throughput,,>= 2,n/a\n"
+        "UKF cold first forward + training step: CPU s,41.26,<= 30,NO\n"
+    )
+    (run / "targets.csv").write_text(csv_text)
+    text = "<!-- table: t renderer=targets source=bench_2026-12-07/targets.csv -->\n<!-- /table -->\n"
+    got = render_text(text, tmp_path).splitlines()
+    assert got[1:5] == [
+        "| target | measured | goal | met | run |",
+        "|---|---|---|---|---|",
+        "| UKF train B=256: difffilter (plain call) / dynamax throughput | 7.23 | >= 5 | yes | bench_2026-12-07 |",
+        "| UKF cold first forward + training step: CPU s | 41.3 | <= 30 | NO | bench_2026-12-07 |",
+    ]
+    assert len(got) == 6 and check_text(render_text(text, tmp_path), tmp_path) == []
+    (run / "bad.csv").write_text("job,status\n")
+    assert "not a benchmark targets.csv" in check_text(text.replace("targets.csv", "bad.csv"), tmp_path)[0]

@@ -63,6 +63,22 @@ def test_hypot_atan2_and_numpy_constants_lower_with_their_derivatives() -> None:
     _check_against_torch(lambda x, y: x ** np.int64(2) + torch.as_tensor(np.array([1.0, 2.0, 3.0, 4.0])) * y, a, b)
 
 
+def test_one_component_written_in_place_lowers_with_its_derivatives() -> None:
+    """``y = x.clone(); y[..., k] = ...`` (``select_scatter``), also with a negative index, on a
+    state vector and on a batch of them: on a vector the target is a single element, where a 0-d
+    source array was once stored as the element itself (a TypeError, and the filter ran eagerly)."""
+
+    def write(x: Tensor) -> Tensor:
+        y = x.clone()
+        y[..., 1] = 2.0 * x[..., 0]
+        y[..., -1] = torch.sin(x[..., 2])
+        return y * x
+
+    g = torch.Generator().manual_seed(1)
+    for shape in ((4,), (3, 4)):
+        _check_against_torch(write, torch.randn(*shape, dtype=F64, generator=g))
+
+
 def test_a_data_label_picks_one_of_several_scales() -> None:
     """``scale[label]`` with the label among the data (negative labels as torch reads them)."""
     g = torch.Generator().manual_seed(1)

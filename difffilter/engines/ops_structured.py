@@ -127,7 +127,11 @@ def lower_structured(L: Lowering, name: str, args: tuple, kw: dict[str, Any], no
         if name == "select_scatter":
             d = dim_index(args[2], x.ndim)
             sl = [slice(None)] * x.ndim
-            sl[d] = args[3]
+            # a length-one slice, not the integer: assigned to a single element of an object
+            # array, a 0-d source array would be stored as the element itself (not its node)
+            k = args[3] % x.shape[d]
+            sl[d] = slice(k, k + 1)
+            src = np.expand_dims(src, d)
         elif name == "slice_scatter":
             d = dim_index(args[2] if len(args) > 2 else kw.get("dim", 0), x.ndim)
             start = args[3] if len(args) > 3 else kw.get("start")

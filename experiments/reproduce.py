@@ -55,7 +55,7 @@ class Job:
     Attributes:
         name: ``<paper>_<family>``; ``--only`` selects by prefix.
         results: the results file (under ``results/``) whose numbers the job recomputes.
-        cpu_s: CPU seconds it took when its results were produced (the order of the queue).
+        cpu_s: CPU seconds it took when last measured (the order of the queue; see :data:`JOBS`).
         commands: shell commands, run in order from the repository root; the job stops at the first failure.
     """
 
@@ -179,14 +179,16 @@ _UKF_ONLY = "filter=p002_ukf 'learn=[Q,R]' '~experiment.hand_tuned.rho'"
 #: (reproducible at commit 169863d, where the same commands wrote outputs/sweeps, outputs/final).
 RERUN = "outputs/rerun_logit"
 
-#: Every job behind the results/p00*.md numbers that the current code reproduces (CPU seconds
-#: measured when they were produced: results/p00_compute_budget.md, the reruns' own timings).
+#: Every job behind the results/p00*.md numbers that the current code reproduces (CPU seconds: for
+#: the 24 jobs that finished in the quiet rerun of 2026-12-07 its measured figures, cold kernel cache
+#: included (results/data/reproduce_times_2026-12-07.tsv); for the others, those measured when they
+#: were produced: results/p00_compute_budget.md, the reruns' own timings).
 JOBS: tuple[Job, ...] = (
     Job("p000_infamily", "p000_gpsdr.md", 212, (_final("p000_infamily", "p000_infamily"),)),
-    Job("p000_gyro", "p000_gpsdr.md", 430, (_final("p000_gpsdr", "p000_gyro", "scenario=p000_gyro"),)),
-    Job("p000_gps", "p000_gpsdr.md", 431, (_final("p000_gpsdr", "p000_gps", "scenario=p000_gps"),)),
-    Job("p000_odometer", "p000_gpsdr.md", 432, (_final("p000_gpsdr", "p000_odometer", "scenario=p000_odometer"),)),
-    Job("p000_nominal", "p000_gpsdr.md", 384, (_final("p000_gpsdr", "p000_nominal", "scenario=p000_random"),)),
+    Job("p000_gyro", "p000_gpsdr.md", 103, (_final("p000_gpsdr", "p000_gyro", "scenario=p000_gyro"),)),
+    Job("p000_gps", "p000_gpsdr.md", 104, (_final("p000_gpsdr", "p000_gps", "scenario=p000_gps"),)),
+    Job("p000_odometer", "p000_gpsdr.md", 152, (_final("p000_gpsdr", "p000_odometer", "scenario=p000_odometer"),)),
+    Job("p000_nominal", "p000_gpsdr.md", 97, (_final("p000_gpsdr", "p000_nominal", "scenario=p000_random"),)),
     Job("p000_sigma_sweep", "p000_gpsdr.md", 290, (_SIGMA_SWEEP,)),
     Job("p001_colored", "p001_colored.md", 255, _sweep("p001_colored", RERUN)),
     Job("p001_multipath", "p001_multipath.md", 281, _sweep_and_test("p001_multipath", RERUN)),
@@ -223,9 +225,9 @@ JOBS: tuple[Job, ...] = (
             f"python -m experiments.papers.p002.report --between outputs/final/p002_pdr_ukf {RERUN}/p002_pdr_rcukf",
         ),
     ),
-    Job("p003_modes", "p003_imm_sins.md", 556, _p003("p003_modes")),
-    Job("p003_physical", "p003_imm_sins.md", 556, _p003("p003_physical")),
-    Job("p003_imm_sins", "p003_imm_sins.md", 556, _p003("p003_imm_sins")),
+    Job("p003_modes", "p003_imm_sins.md", 604, _p003("p003_modes")),
+    Job("p003_physical", "p003_imm_sins.md", 595, _p003("p003_physical")),
+    Job("p003_imm_sins", "p003_imm_sins.md", 627, _p003("p003_imm_sins")),
     Job("p004_blend", "p004_blend.md", 250, _sweep("p004_blend", RERUN, learned_values=False)),
     Job(
         "p004_outage",
@@ -240,7 +242,7 @@ JOBS: tuple[Job, ...] = (
     Job("p004_mems", "p004_mems.md", 302, _sweep_and_test("p004_mems", RERUN, learned_values=False)),
     Job("p004_urban", "p004_urban.md", 321, _sweep_and_test("p004_urban", RERUN, learned_values=False)),
     # issue 25: the families again with the practitioners' rows (results/p00_practitioners.md)
-    Job("p001_elevation_practitioners", "p00_practitioners.md", 489, _practitioners("p001_elevation")),
+    Job("p001_elevation_practitioners", "p00_practitioners.md", 700, _practitioners("p001_elevation")),
     # (rerun at px000k's code state, whose learned row no longer matched the 11-27 one: 213 CPU-s, /usr/bin/time)
     Job("p000_infamily_practitioners", "p00_practitioners.md", 213, _practitioners("p000_infamily")),
     # cpu_s not measured (the five seeds took 6 min wall on the compiled engine; learned training 10.7 CPU-s per seed)
@@ -248,21 +250,21 @@ JOBS: tuple[Job, ...] = (
     Job("p000_gps_practitioners", "p00_practitioners.md", 359, _practitioners("p000_gps")),
     Job("p000_nominal_practitioners", "p00_practitioners.md", 354, _practitioners("p000_nominal")),
     Job("p000_odometer_practitioners", "p00_practitioners.md", 374, _practitioners("p000_odometer")),
-    Job("p001_colored_practitioners", "p00_practitioners.md", 446, _practitioners("p001_colored")),
-    Job("p001_multipath_practitioners", "p00_practitioners.md", 377, _practitioners("p001_multipath")),
-    Job("p001_multipath_shared_practitioners", "p00_practitioners.md", 387, _practitioners("p001_multipath_shared")),
-    Job("p004_urban_practitioners", "p00_practitioners.md", 540, _practitioners("p004_urban")),
-    Job("p004_mems_practitioners", "p00_practitioners.md", 491, _practitioners("p004_mems")),
-    Job("p004_blend_practitioners", "p00_practitioners.md", 435, _practitioners("p004_blend")),
+    Job("p001_colored_practitioners", "p00_practitioners.md", 529, _practitioners("p001_colored")),
+    Job("p001_multipath_practitioners", "p00_practitioners.md", 468, _practitioners("p001_multipath")),
+    Job("p001_multipath_shared_practitioners", "p00_practitioners.md", 458, _practitioners("p001_multipath_shared")),
+    Job("p004_urban_practitioners", "p00_practitioners.md", 370, _practitioners("p004_urban")),
+    Job("p004_mems_practitioners", "p00_practitioners.md", 349, _practitioners("p004_mems")),
+    Job("p004_blend_practitioners", "p00_practitioners.md", 204, _practitioners("p004_blend")),
     # cpu_s not measured for this one (10.5 min wall on the loaded 2-core machine, compiled engine); it orders the queue only
     Job("p004_outage_practitioners", "p00_practitioners.md", 300, _practitioners("p004_outage")),
     # p003_physical: 973 CPU-s measured (/usr/bin/time, 5 seeds, 51 min wall on the loaded machine; eager engine);
     # 995 in the stopped rerun of 2026-11-28 (results/p00_compute_budget.md)
-    Job("p003_physical_practitioners", "p00_practitioners.md", 995, _practitioners("p003_physical")),
+    Job("p003_physical_practitioners", "p00_practitioners.md", 1084, _practitioners("p003_physical")),
     # p003_modes / p003_imm_sins: 926 / 866 CPU-s measured (/usr/bin/time, 5 seeds, 30 / 27 min wall, the two side by side);
     # p003_modes 1,074 in the stopped rerun of 2026-11-28
-    Job("p003_modes_practitioners", "p00_practitioners.md", 1074, _practitioners("p003_modes")),
-    Job("p003_imm_sins_practitioners", "p00_practitioners.md", 866, _practitioners("p003_imm_sins")),
+    Job("p003_modes_practitioners", "p00_practitioners.md", 1119, _practitioners("p003_modes")),
+    Job("p003_imm_sins_practitioners", "p00_practitioners.md", 1065, _practitioners("p003_imm_sins")),
     Job(
         "p002_disturbed_practitioners",
         "p00_practitioners.md",
@@ -276,7 +278,7 @@ JOBS: tuple[Job, ...] = (
     Job(
         "p002_pdr_practitioners",
         "p00_practitioners.md",
-        421,
+        150,
         (
             "python experiments/train.py -m experiment=p002_pdr_practitioners seed=0,1,2,3,4 logger=csv "
             "hydra.sweep.dir=outputs/practitioners/p002_pdr_rcukf",
@@ -298,7 +300,7 @@ JOBS: tuple[Job, ...] = (
     Job(
         "p001_elevation_learned_adaptive",
         "p00_practitioners.md",
-        480,
+        536,
         _learned_adaptive("p001_elevation_learned_adaptive", "p001_elevation"),
     ),
     Job("p004_urban_learned_adaptive", "p00_practitioners.md", 307, _learned_adaptive("p004_urban_learned_adaptive", "p004_urban")),
@@ -324,15 +326,15 @@ JOBS: tuple[Job, ...] = (
     Job(
         "p003_physical_learned_adaptive",
         "p00_practitioners.md",
-        758,
+        950,
         _learned_adaptive("p003_physical_learned_adaptive", "p003_physical"),
     ),
-    Job("p003_modes_learned_adaptive", "p00_practitioners.md", 727, _learned_adaptive("p003_modes_learned_adaptive", "p003_modes")),
+    Job("p003_modes_learned_adaptive", "p00_practitioners.md", 1006, _learned_adaptive("p003_modes_learned_adaptive", "p003_modes")),
     # (declared in "p003 learned adaptive"; run by the lead at 488a2e7 after that declaration's start deadline: 633 CPU-s)
     Job(
         "p003_imm_sins_learned_adaptive",
         "p00_practitioners.md",
-        633,
+        950,
         _learned_adaptive("p003_imm_sins_learned_adaptive", "p003_imm_sins"),
     ),
     # ("Learned adaptive, remaining families", session la25c)
@@ -365,7 +367,7 @@ JOBS: tuple[Job, ...] = (
     Job(
         "p002_efficiency_transfer",
         "p00_efficiency_transfer.md",
-        449,
+        559,
         (
             "python experiments/train.py -m experiment=p002_pdr_efficiency data.train_size=1,4,16 seed=0,1,2,3,4 logger=csv "
             "hydra.sweep.dir=outputs/efficiency/p002_pdr",
@@ -381,7 +383,7 @@ JOBS: tuple[Job, ...] = (
     Job(
         "p000_infamily_efficiency",
         "p00_efficiency_transfer.md",
-        600,
+        428,
         (
             "python experiments/train.py -m experiment=p000_infamily_efficiency data.train_size=1,4,16 seed=0,1,2,3,4 logger=csv "
             "hydra.sweep.dir=outputs/efficiency/p000_infamily",

@@ -18,7 +18,9 @@ cites and its ``summary.md`` can be compared with the table there.  The tables o
 family, the schema of a sweep's ``summary.csv``; ``python experiments/report.py --render``, checked
 by ``--check``).  This script recomputes the evidence and leaves ``results/`` alone unless given
 ``--collect``: then, when every job succeeded, it copies each family's ``<sweep>/summary.csv`` into
-``results/data/``, renders every table again and runs the check (``git diff results/`` shows what changed).
+``results/data/``, joins the practitioners families' kappa 0 and learned adaptive sweeps to them (to
+the committed file where the family's own sweep did not run), renders every table again and runs
+the check (``git diff results/`` shows what changed).
 
 Every job's wall time and CPU time (user + system of the job's shell and everything it ran) are
 appended to ``<out>/times.tsv`` and summed at the end: the "full REPORT regenerates in <= 2 h on
@@ -110,26 +112,24 @@ def _practitioners(family: str, root: str = "outputs/practitioners") -> tuple[st
     )
 
 
-def _learned_adaptive(experiment: str, family: str, root: str = "outputs/practitioners") -> tuple[str, str]:
-    """A learned adaptive sweep (issue 25) and its rows joined to the family's practitioners data file."""
+def _learned_adaptive(experiment: str, family: str, root: str = "outputs/practitioners") -> tuple[str]:
+    """A learned adaptive sweep (issue 25).  Its rows are joined to the family's data file by
+    ``--collect`` (:func:`experiments.results_report.collect`), after the family's own sweep: a join
+    in the job would check them against the committed file, before or beside the family's rerun."""
     sweep = f"{root}/{family}_learned_adaptive"
-    return (
-        f"python experiments/train.py -m experiment={experiment} seed=0,1,2,3,4 logger=csv hydra.sweep.dir={sweep}",
-        f"python -m experiments.practitioners --adaptive {sweep} --into results/data/{family}_practitioners.csv",
-    )
+    return (f"python experiments/train.py -m experiment={experiment} seed=0,1,2,3,4 logger=csv hydra.sweep.dir={sweep}",)
 
 
 def _kappa0(family: str, root: str = "outputs/practitioners") -> tuple[str, ...]:
-    """p000's adaptive rows around a kappa 0 UKF (issue 25): their sweep merged into the family's data
-    file, then the learned adaptive kappa 0 sweep joined to it (in this order: the join pairs with the
-    best row, which the merge may change)."""
-    k0, adaptive, into = f"{root}/{family}_k0", f"{root}/{family}_learned_adaptive_k0", f"results/data/{family}_practitioners.csv"
+    """p000's adaptive rows around a kappa 0 UKF (issue 25): their sweep and the learned adaptive
+    kappa 0 sweep.  ``--collect`` merges the first into the family's data file and then joins the
+    second (in this order: the join pairs with the best row, which the merge may change), after the
+    family's own sweep (see :func:`_learned_adaptive`)."""
+    k0, adaptive = f"{root}/{family}_k0", f"{root}/{family}_learned_adaptive_k0"
     return (
         f"python experiments/train.py -m experiment={family}_practitioners_k0 seed=0,1,2,3,4 logger=csv hydra.sweep.dir={k0}",
         f"python -m experiments.practitioners {k0}",
-        f"python -m experiments.practitioners --merge {k0} --into {into}",
         f"python experiments/train.py -m experiment={family}_learned_adaptive_k0 seed=0,1,2,3,4 logger=csv hydra.sweep.dir={adaptive}",
-        f"python -m experiments.practitioners --adaptive {adaptive} --name learned-adaptive-k0 --into {into}",
     )
 
 

@@ -586,7 +586,9 @@ def _rejoin_learned_adaptive(fam: Family, root: Path) -> None:
 
 def collect(root: Path = ROOT) -> list[Path]:
     """Copy each family's ``<sweep>/summary.csv``, where a run of ``experiments/reproduce.py`` left
-    one, over its data file (the committed numbers then come from the run), and each summary of
+    one, over its data file (the committed numbers then come from the run), join the practitioners
+    families' kappa 0 and learned adaptive sweeps that ran to their data files (:func:`_rejoin_learned_adaptive`;
+    to the committed file where the family's own sweep did not run), and copy each summary of
     :data:`experiments.efficiency_transfer.DATA_FILES` over its data file; returns those copied."""
     copied = []
     for fam in (f for g in FAMILIES for f in _with_practitioners(g)):
@@ -597,6 +599,10 @@ def collect(root: Path = ROOT) -> list[Path]:
                 shutil.copyfile(src, _source(fam, root))
                 copied.append(src)
                 _rejoin_learned_adaptive(fam, root)
+        elif _source(fam, root).exists():
+            # the family's own sweep did not run (reproduce.py --only): its kappa 0 and learned
+            # adaptive sweeps, where they ran, join the committed file (each join checks its rows)
+            _rejoin_learned_adaptive(fam, root)
     for source, data in DATA_FILES:  # issue 25's efficiency and transfer summaries
         if (root / source).exists() and read_rows(root / source):
             shutil.copyfile(root / source, root / data)

@@ -198,3 +198,37 @@ def test_collect_joins_the_learned_adaptive_rows_again_after_copying_a_practitio
     joined = next(r for r in rows if (r.filter, r.quantity, r.reference) == ("learned-adaptive", "diff", "textbook"))
     assert joined.estimate == pytest.approx(-0.1, rel=1e-12)
     assert {r.filter for r in rows} == {"hand-tuned", "learned", "textbook", "learned-adaptive"}
+
+
+def test_collect_joins_the_learned_adaptive_rows_to_the_committed_file_when_the_family_did_not_run(tmp_path, monkeypatch):
+    """reproduce.py's learned adaptive jobs leave the join to ``--collect``: where the family's own
+    sweep did not run (``--only``), the committed data file gets the rows, its shared rows checked."""
+    import experiments.results_report as report
+
+    runs = 6
+    hand = [2.0 + 0.1 * r for r in range(runs)]
+    textbook = [h - 0.4 for h in hand]
+    prac = tmp_path / "outputs" / "practitioners" / "x"
+    prac.parent.mkdir(parents=True)
+    learned = [[t + 0.05 * (s + 1) for t in textbook] for s in range(3)]
+    summarize_practitioners(_sweep(prac, hand, {"learned": learned, "textbook": [textbook] * 3}))
+    (tmp_path / "results" / "data").mkdir(parents=True)
+    committed = tmp_path / "results" / "data" / "x_practitioners.csv"
+    (prac / "summary.csv").rename(committed)  # the committed file; the family's sweep left no summary
+    job = {"learned": [[t - 0.1 for t in textbook]] * 3, "paper-constants": [hand] * 3, "textbook": [textbook] * 3}
+    _sweep(tmp_path / "outputs" / "practitioners" / "x_learned_adaptive", hand, job)
+    monkeypatch.setattr(
+        report, "FAMILIES", (report.Family("x", "p00x", "mis-specified", "synthetic", "x.md", "outputs/x", practitioners=True),)
+    )
+    assert report.collect(tmp_path) == []
+    rows = read_rows(committed)
+    joined = next(r for r in rows if (r.filter, r.quantity, r.reference) == ("learned-adaptive", "diff", "textbook"))
+    assert joined.estimate == pytest.approx(-0.1, rel=1e-12)
+    # a learned adaptive sweep whose rebuilt rows are not the committed file's is refused
+    import shutil
+
+    shutil.rmtree(tmp_path / "outputs" / "practitioners" / "x_learned_adaptive")
+    job["textbook"] = [[t + 0.01 for t in textbook]] * 3
+    _sweep(tmp_path / "outputs" / "practitioners" / "x_learned_adaptive", hand, job)
+    with pytest.raises(ValueError):
+        report.collect(tmp_path)

@@ -177,16 +177,22 @@ def test_overlay_runs_end_to_end(tmp_path, overlay):
         assert float(next(r for r in csv.DictReader(fh) if r["filter"] == "learned")["tuning_cpu_s"]) > 0
 
 
-def test_collect_joins_the_learned_adaptive_rows_again_after_copying_a_practitioners_summary(tmp_path, monkeypatch):
-    import experiments.results_report as report
-
-    runs = 6
-    hand = [2.0 + 0.1 * r for r in range(runs)]
+def _family_x(tmp_path: Path) -> tuple[list[float], list[float], Path]:
+    """Family ``x``'s practitioners sweep under ``tmp_path/outputs/practitioners/x`` with its summary
+    (plain learned loses to the textbook rule): ``(hand, textbook, sweep folder)``."""
+    hand = [2.0 + 0.1 * r for r in range(6)]
     textbook = [h - 0.4 for h in hand]
     prac = tmp_path / "outputs" / "practitioners" / "x"
     prac.parent.mkdir(parents=True)
     learned = [[t + 0.05 * (s + 1) for t in textbook] for s in range(3)]
     summarize_practitioners(_sweep(prac, hand, {"learned": learned, "textbook": [textbook] * 3}))
+    return hand, textbook, prac
+
+
+def test_collect_joins_the_learned_adaptive_rows_again_after_copying_a_practitioners_summary(tmp_path, monkeypatch):
+    import experiments.results_report as report
+
+    hand, textbook, prac = _family_x(tmp_path)
     job = {"learned": [[t - 0.1 for t in textbook]] * 3, "paper-constants": [hand] * 3, "textbook": [textbook] * 3}
     _sweep(tmp_path / "outputs" / "practitioners" / "x_learned_adaptive", hand, job)
     (tmp_path / "results" / "data").mkdir(parents=True)
@@ -205,13 +211,7 @@ def test_collect_joins_the_learned_adaptive_rows_to_the_committed_file_when_the_
     sweep did not run (``--only``), the committed data file gets the rows, its shared rows checked."""
     import experiments.results_report as report
 
-    runs = 6
-    hand = [2.0 + 0.1 * r for r in range(runs)]
-    textbook = [h - 0.4 for h in hand]
-    prac = tmp_path / "outputs" / "practitioners" / "x"
-    prac.parent.mkdir(parents=True)
-    learned = [[t + 0.05 * (s + 1) for t in textbook] for s in range(3)]
-    summarize_practitioners(_sweep(prac, hand, {"learned": learned, "textbook": [textbook] * 3}))
+    hand, textbook, prac = _family_x(tmp_path)
     (tmp_path / "results" / "data").mkdir(parents=True)
     committed = tmp_path / "results" / "data" / "x_practitioners.csv"
     (prac / "summary.csv").rename(committed)  # the committed file; the family's sweep left no summary

@@ -19,17 +19,21 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import resource
 import subprocess
 import sys
 import tempfile
 import time
+from pathlib import Path
 
-import torch
+# The research tree (experiments/) is not installed: make it importable from the repository root.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from difffilter.engines import FusedFilter
-from difffilter.filters import UKF
-from difffilter.models import FunctionalModel
+import torch  # noqa: E402
+
+from difffilter.engines import FusedFilter  # noqa: E402
+from difffilter.filters import UKF  # noqa: E402
+from difffilter.models import FunctionalModel  # noqa: E402
+from experiments.benchmarks.timing import cpu_with_children  # noqa: E402
 
 D = torch.float64
 
@@ -54,11 +58,6 @@ def _model(n: int):
     return UKF(model), m
 
 
-def _cpu() -> float:
-    a, b = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
-    return a.ru_utime + a.ru_stime + b.ru_utime + b.ru_stime
-
-
 def child(n: int, batch: int, steps: int) -> None:
     ukf, m = _model(n)
     g = torch.Generator().manual_seed(0)
@@ -68,12 +67,12 @@ def child(n: int, batch: int, steps: int) -> None:
     p0 = torch.eye(n, dtype=D)
     out = {}
     for name, runner in (("compiled", FusedFilter(ukf, engine="generated")), ("eager", ukf)):
-        w0, c0 = time.perf_counter(), _cpu()
+        w0, c0 = time.perf_counter(), cpu_with_children()
         (-runner(z, m0, p0).log_likelihood.mean()).backward()
-        out[name] = (time.perf_counter() - w0, _cpu() - c0)
-    w0, c0 = time.perf_counter(), _cpu()
+        out[name] = (time.perf_counter() - w0, cpu_with_children() - c0)
+    w0, c0 = time.perf_counter(), cpu_with_children()
     (-FusedFilter(ukf, engine="generated")(z, m0, p0).log_likelihood.mean()).backward()
-    out["compiled again"] = (time.perf_counter() - w0, _cpu() - c0)
+    out["compiled again"] = (time.perf_counter() - w0, cpu_with_children() - c0)
     print(json.dumps(out))
 
 

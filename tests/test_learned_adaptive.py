@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import csv
 import math
+import shutil
 from pathlib import Path
 
 import pytest
@@ -177,9 +178,16 @@ def test_overlay_runs_end_to_end(tmp_path, overlay):
         assert float(next(r for r in csv.DictReader(fh) if r["filter"] == "learned")["tuning_cpu_s"]) > 0
 
 
-def _family_x(tmp_path: Path) -> tuple[list[float], list[float], Path]:
+def _family_x(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> tuple[list[float], list[float], Path]:
     """Family ``x``'s practitioners sweep under ``tmp_path/outputs/practitioners/x`` with its summary
-    (plain learned loses to the textbook rule): ``(hand, textbook, sweep folder)``."""
+    (plain learned loses to the textbook rule), the results' data folder, and ``x`` as
+    ``results_report``'s only family: ``(hand, textbook, sweep folder)``."""
+    import experiments.results_report as report
+
+    monkeypatch.setattr(
+        report, "FAMILIES", (report.Family("x", "p00x", "mis-specified", "synthetic", "x.md", "outputs/x", practitioners=True),)
+    )
+    (tmp_path / "results" / "data").mkdir(parents=True)
     hand = [2.0 + 0.1 * r for r in range(6)]
     textbook = [h - 0.4 for h in hand]
     prac = tmp_path / "outputs" / "practitioners" / "x"
@@ -192,13 +200,9 @@ def _family_x(tmp_path: Path) -> tuple[list[float], list[float], Path]:
 def test_collect_joins_the_learned_adaptive_rows_again_after_copying_a_practitioners_summary(tmp_path, monkeypatch):
     import experiments.results_report as report
 
-    hand, textbook, prac = _family_x(tmp_path)
+    hand, textbook, prac = _family_x(tmp_path, monkeypatch)
     job = {"learned": [[t - 0.1 for t in textbook]] * 3, "paper-constants": [hand] * 3, "textbook": [textbook] * 3}
     _sweep(tmp_path / "outputs" / "practitioners" / "x_learned_adaptive", hand, job)
-    (tmp_path / "results" / "data").mkdir(parents=True)
-    monkeypatch.setattr(
-        report, "FAMILIES", (report.Family("x", "p00x", "mis-specified", "synthetic", "x.md", "outputs/x", practitioners=True),)
-    )
     report.collect(tmp_path)
     rows = read_rows(tmp_path / "results" / "data" / "x_practitioners.csv")
     joined = next(r for r in rows if (r.filter, r.quantity, r.reference) == ("learned-adaptive", "diff", "textbook"))
@@ -211,22 +215,16 @@ def test_collect_joins_the_learned_adaptive_rows_to_the_committed_file_when_the_
     sweep did not run (``--only``), the committed data file gets the rows, its shared rows checked."""
     import experiments.results_report as report
 
-    hand, textbook, prac = _family_x(tmp_path)
-    (tmp_path / "results" / "data").mkdir(parents=True)
+    hand, textbook, prac = _family_x(tmp_path, monkeypatch)
     committed = tmp_path / "results" / "data" / "x_practitioners.csv"
     (prac / "summary.csv").rename(committed)  # the committed file; the family's sweep left no summary
     job = {"learned": [[t - 0.1 for t in textbook]] * 3, "paper-constants": [hand] * 3, "textbook": [textbook] * 3}
     _sweep(tmp_path / "outputs" / "practitioners" / "x_learned_adaptive", hand, job)
-    monkeypatch.setattr(
-        report, "FAMILIES", (report.Family("x", "p00x", "mis-specified", "synthetic", "x.md", "outputs/x", practitioners=True),)
-    )
     assert report.collect(tmp_path) == []
     rows = read_rows(committed)
     joined = next(r for r in rows if (r.filter, r.quantity, r.reference) == ("learned-adaptive", "diff", "textbook"))
     assert joined.estimate == pytest.approx(-0.1, rel=1e-12)
     # a learned adaptive sweep whose rebuilt rows are not the committed file's is refused
-    import shutil
-
     shutil.rmtree(tmp_path / "outputs" / "practitioners" / "x_learned_adaptive")
     job["textbook"] = [[t + 0.01 for t in textbook]] * 3
     _sweep(tmp_path / "outputs" / "practitioners" / "x_learned_adaptive", hand, job)

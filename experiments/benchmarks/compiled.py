@@ -29,14 +29,9 @@ import torch
 from .cases import builtin_case, torch_runner
 from .gpsdr import simulate_gpsdr
 from .runner import DTYPES, BenchSettings
+from .timing import cpu_with_children
 
 __all__ = ["compile_costs", "first_calls"]
-
-
-def _cpu() -> float:
-    """CPU seconds of this process and of its finished children (the C++ compiler)."""
-    t = os.times()
-    return t.user + t.system + t.children_user + t.children_system
 
 
 def first_calls(*, kind: str, engine: str, dtype: str, batch: int, steps: int, threads: int = 1, seed: int = 0) -> dict[str, Any]:
@@ -45,12 +40,12 @@ def first_calls(*, kind: str, engine: str, dtype: str, batch: int, steps: int, t
     torch.set_num_threads(threads)
     dt = DTYPES[dtype]
     case = builtin_case(kind, dt, simulate_gpsdr(batch_size=batch, steps=steps, seed=seed, dtype=dt), BenchSettings())
-    c0, t0 = _cpu(), time.perf_counter()
+    c0, t0 = cpu_with_children(), time.perf_counter()
     forward = torch_runner(case, "forward", fused=True, threads=threads, engine=engine)
     forward()
     t1 = time.perf_counter()
     torch_runner(case, "train", runner=forward.runner)()  # the same wrapper, as a training script uses it
-    t2, c2 = time.perf_counter(), _cpu()
+    t2, c2 = time.perf_counter(), cpu_with_children()
     return {"first_forward_s": t1 - t0, "first_train_s": t2 - t1, "total_s": t2 - t0, "total_cpu_s": c2 - c0}
 
 
